@@ -1,0 +1,111 @@
+"""The element model: one thing to build, with its pose, geometry and supports.
+
+Frames: ``T_world_element`` places the element frame in the world. For a block
+the element frame sits at the centre of the block, x along its length, z up;
+for a print path it is the frame the path's points are given in; for a task
+point it is the tool frame to reach.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+ElementType = Literal["block", "print_path", "task_point"]
+
+
+@dataclass(frozen=True, eq=False)
+class Element:
+    """One element of the design.
+
+    Attributes
+    ----------
+    id
+        Unique id within a project (e.g. ``"B0123"``).
+    type
+        ``"block"``, ``"print_path"`` or ``"task_point"``.
+    T_world_element
+        4x4 pose of the element frame in the world frame (metres).
+    layer
+        Layer index (0 = lowest), used for build order.
+    supports
+        Ids of the elements this one rests on.
+    part
+        Which part of the design it belongs to (``"A"``, ``"front"``, ...), or ``None``.
+    robot_built
+        Whether the robot places it (pre-built parts are not).
+    extents
+        Box size (length, width, height) in metres for blocks, else ``None``.
+    polyline
+        (N, 3) points in the element frame for print paths, else ``None``.
+    attributes
+        Extra plain data: bead width, speed, action name and parameters, ...
+    """
+
+    id: str
+    type: ElementType
+    T_world_element: np.ndarray
+    layer: int = 0
+    supports: tuple[str, ...] = ()
+    part: str | None = None
+    robot_built: bool = True
+    extents: np.ndarray | None = None
+    polyline: np.ndarray | None = None
+    attributes: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-compatible data; :meth:`from_dict` restores it exactly."""
+        d: dict[str, Any] = {
+            "id": self.id,
+            "type": self.type,
+            "T_world_element": np.asarray(self.T_world_element, dtype=float).tolist(),
+            "layer": int(self.layer),
+            "supports": list(self.supports),
+            "part": self.part,
+            "robot_built": bool(self.robot_built),
+        }
+        if self.extents is not None:
+            d["extents"] = np.asarray(self.extents, dtype=float).tolist()
+        if self.polyline is not None:
+            d["polyline"] = np.asarray(self.polyline, dtype=float).tolist()
+        if self.attributes:
+            d["attributes"] = self.attributes
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Element:
+        """Inverse of :meth:`to_dict`."""
+        return cls(
+            id=str(d["id"]),
+            type=d["type"],
+            T_world_element=np.asarray(d["T_world_element"], dtype=float).reshape(4, 4),
+            layer=int(d.get("layer", 0)),
+            supports=tuple(d.get("supports", ())),
+            part=d.get("part"),
+            robot_built=bool(d.get("robot_built", True)),
+            extents=None if d.get("extents") is None else np.asarray(d["extents"], dtype=float),
+            polyline=None
+            if d.get("polyline") is None
+            else np.asarray(d["polyline"], dtype=float).reshape(-1, 3),
+            attributes=dict(d.get("attributes", {})),
+        )
+
+
+def element_poses(elements: Sequence[Element]) -> np.ndarray:
+    """Stack the element poses into an (N, 4, 4) array (world frame, metres)."""
+    if not elements:
+        return np.zeros((0, 4, 4))
+    return np.stack([e.T_world_element for e in elements])
+
+
+def elements_to_json(elements: Iterable[Element]) -> list[dict[str, Any]]:
+    """Serialize elements to a JSON-compatible list."""
+    return [e.to_dict() for e in elements]
+
+
+def elements_from_json(data: Iterable[dict[str, Any]]) -> list[Element]:
+    """Deserialize elements written by :func:`elements_to_json`."""
+    return [Element.from_dict(d) for d in data]

@@ -1,0 +1,1 @@
+"""The browser scene (viser), live and exported as one HTML file."""

@@ -1,0 +1,553 @@
+"""The project file: a declarative description of one fabrication job.
+
+A project is a YAML file validated by the pydantic models below. Lengths are in
+metres, angles in the field's named unit (``*_deg`` fields are degrees), poses
+are given as ``{xyz: [x, y, z], abc_deg: [A, B, C]}`` with R = Rz(A) Ry(B) Rx(C)
+(the KUKA convention). Relative paths resolve against the project file's folder.
+
+Load with :func:`load_project`; every problem becomes a :class:`~fabflow.errors.InputError`
+naming the file, the field path (``elements[0].cabin.block.length``) and the line.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    model_validator,
+)
+
+from fabflow.errors import InputError
+
+ROBOT_MODELS = ("kuka_kr60_3", "ur10e", "abb_irb4600_60_205", "brokk_170")
+LOCALIZATION_METHODS = ("uwb", "total_station", "icp")
+PROGRAM_FORMATS = ("krl", "rapid", "urscript", "json")
+
+
+class StrictModel(BaseModel):
+    """Base of every project model: unknown keys are errors, values are not coerced."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _resolve_path(value: Path, info: ValidationInfo) -> Path:
+    base = (info.context or {}).get("base_dir")
+    path = Path(value).expanduser()
+    if not path.is_absolute() and base is not None:
+        path = Path(base) / path
+    if not path.exists():
+        raise ValueError(f"file does not exist: {path}")
+    return path.resolve()
+
+
+ExistingPath = Annotated[Path, AfterValidator(_resolve_path)]
+"""A path that must exist; relative paths resolve against the project file's folder."""
+
+Vec2 = tuple[float, float]
+Vec3 = tuple[float, float, float]
+PositiveFloat = Annotated[float, Field(gt=0)]
+NonNegativeFloat = Annotated[float, Field(ge=0)]
+
+
+class PoseSpec(StrictModel):
+    """A rigid pose: translation ``xyz`` in metres, rotation ``abc_deg`` = Rz(A) Ry(B) Rx(C)."""
+
+    xyz: Vec3 = (0.0, 0.0, 0.0)
+    abc_deg: Vec3 = (0.0, 0.0, 0.0)
+
+    def matrix(self) -> np.ndarray:
+        """The pose as a 4x4 homogeneous matrix (metres)."""
+        a, b, c = (math.radians(v) for v in self.abc_deg)
+        ca, sa, cb, sb, cc, sc = (
+            math.cos(a),
+            math.sin(a),
+            math.cos(b),
+            math.sin(b),
+            math.cos(c),
+            math.sin(c),
+        )
+        T = np.eye(4)
+        T[:3, :3] = [
+            [ca * cb, ca * sb * sc - sa * cc, ca * sb * cc + sa * sc],
+            [sa * cb, sa * sb * sc + ca * cc, sa * sb * cc - ca * sc],
+            [-sb, cb * sc, cb * cc],
+        ]
+        T[:3, 3] = self.xyz
+        return T
+
+
+# --------------------------------------------------------------------------- site
+
+
+class BoxObstacle(StrictModel):
+    """An axis-aligned box obstacle in the site frame (metres)."""
+
+    name: str = "box"
+    min: Vec3
+    max: Vec3
+
+    @model_validator(mode="after")
+    def _ordered(self) -> BoxObstacle:
+        if any(lo >= hi for lo, hi in zip(self.min, self.max, strict=True)):
+            raise ValueError("every component of 'min' must be smaller than 'max'")
+        return self
+
+
+class PolygonObstacle(StrictModel):
+    """A vertical prism obstacle: a plan polygon (metres) extruded from ``z_min`` to ``z_max``."""
+
+    name: str = "polygon"
+    points: Annotated[list[Vec2], Field(min_length=3)]
+    z_min: float = 0.0
+    z_max: float = 3.0
+
+
+class Obstacle(StrictModel):
+    """One obstacle, either ``box: {...}`` or ``polygon: {...}``."""
+
+    box: BoxObstacle | None = None
+    polygon: PolygonObstacle | None = None
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> Obstacle:
+        if (self.box is None) == (self.polygon is None):
+            raise ValueError("give exactly one of 'box' or 'polygon'")
+        return self
+
+
+class Site(StrictModel):
+    """The building site: usable ground rectangle and obstacles, in the site (world) frame."""
+
+    frame: str = "world"
+    extent_min: Vec2 = (-5.0, -5.0)
+    extent_max: Vec2 = (10.0, 10.0)
+    obstacles: list[Obstacle] = []
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Site:
+        if any(lo >= hi for lo, hi in zip(self.extent_min, self.extent_max, strict=True)):
+            raise ValueError("'extent_min' must be smaller than 'extent_max' in x and y")
+        return self
+
+
+# -------------------------------------------------------------------------- robot
+
+
+class Tool(StrictModel):
+    """The end effector: its name and the tool centre point in the flange frame."""
+
+    name: str = "gripper"
+    T_flange_tool: PoseSpec = PoseSpec(xyz=(0.0, 0.0, 0.20))
+
+
+class Platform(StrictModel):
+    """The mobile platform carrying the arm.
+
+    ``footprint`` is the platform's plan rectangle (length along its x axis, width
+    along y) centred on the platform origin; ``lift`` the range of the arm base
+    height above the ground (metres); ``T_platform_base`` the arm mounting at the
+    lowest lift position; ``safety_margin`` the clearance kept around the footprint.
+    """
+
+    footprint: Vec2 = (2.2, 1.6)
+    lift: Vec2 = (0.0, 1.2)
+    T_platform_base: PoseSpec = PoseSpec(xyz=(0.0, 0.0, 0.6))
+    safety_margin: NonNegativeFloat = 0.3
+    T_platform_pick: PoseSpec = PoseSpec(xyz=(-0.9, 0.0, 0.7))
+    """Where the robot picks blocks from (a magazine on the platform)."""
+
+    @model_validator(mode="after")
+    def _lift(self) -> Platform:
+        if self.lift[0] > self.lift[1]:
+            raise ValueError("'lift' must be [min, max] with min <= max")
+        if min(self.footprint) <= 0:
+            raise ValueError("'footprint' lengths must be positive")
+        return self
+
+
+class Robot(StrictModel):
+    """The robot arm, its tool and the platform it stands on."""
+
+    model: Literal["kuka_kr60_3", "ur10e", "abb_irb4600_60_205", "brokk_170"] = "kuka_kr60_3"
+    tool: Tool = Tool()
+    platform: Platform = Platform()
+
+
+# ------------------------------------------------------------------- localization
+
+
+class UwbSetup(StrictModel):
+    """Ultra-wideband ranging: anchors in the UWB frame and the ranging model."""
+
+    anchors: Annotated[dict[str, Vec3], Field(min_length=3)]
+    T_world_uwb: PoseSpec = PoseSpec()
+    estimator: Literal["ls", "wls", "wls-t", "eskf"] = "wls-t"
+    sigma: PositiveFloat = 0.05
+    """Range noise standard deviation at 1 m (metres)."""
+    rate_hz: PositiveFloat = 60.0
+    imu_rate_hz: PositiveFloat = 100.0
+    tags: Annotated[list[Vec3], Field(min_length=1)] = [(0.8, 0.0, 1.5), (-0.8, 0.0, 1.5)]
+    """UWB tag lever arms in the platform frame (metres)."""
+    dwell_s: PositiveFloat = 5.0
+    """How long the platform stands still measuring at each station (seconds)."""
+
+
+class TotalStationSetup(StrictModel):
+    """A robotic total station measuring prisms on the robot."""
+
+    instrument: Literal["leica_ms50", "hilti_pos150", "custom"] = "leica_ms50"
+    distance_sigma_mm: PositiveFloat | None = None
+    distance_ppm: NonNegativeFloat | None = None
+    angle_sigma_arcsec: PositiveFloat | None = None
+    T_world_instrument: PoseSpec = PoseSpec(xyz=(-3.0, -3.0, 1.6))
+    procedure: Literal["three_point", "arbitrary"] = "arbitrary"
+    n_points: Annotated[int, Field(ge=3, le=50)] = 4
+    observations: ExistingPath | None = None
+    """Optional measured observations (CSV or Leica GSI); simulated when absent."""
+
+
+class IcpSetup(StrictModel):
+    """LiDAR scan-to-map localization."""
+
+    map: ExistingPath | None = None
+    """A point-cloud map (PLY/XYZ) in the world frame; a simulated site scan when absent."""
+    T_platform_lidar: PoseSpec = PoseSpec(xyz=(0.9, 0.0, 1.2))
+    voxel_size: PositiveFloat = 0.05
+    max_correspondence_distance: PositiveFloat = 0.5
+    min_fitness: Annotated[float, Field(gt=0, le=1)] = 0.5
+    max_rmse: PositiveFloat = 0.03
+
+
+class Localization(StrictModel):
+    """Which method localizes the platform at each station, with that method's setup."""
+
+    method: Literal["uwb", "total_station", "icp"] = "total_station"
+    uwb: UwbSetup | None = None
+    total_station: TotalStationSetup | None = None
+    icp: IcpSetup | None = None
+
+    @model_validator(mode="after")
+    def _setup_present(self) -> Localization:
+        if self.method == "uwb" and self.uwb is None:
+            raise ValueError("method 'uwb' needs a 'uwb' section with the anchor positions")
+        return self
+
+    def setup(self) -> UwbSetup | TotalStationSetup | IcpSetup:
+        """The setup of the chosen method (defaults filled in where optional)."""
+        if self.method == "uwb":
+            assert self.uwb is not None
+            return self.uwb
+        if self.method == "total_station":
+            return self.total_station or TotalStationSetup()
+        return self.icp or IcpSetup()
+
+
+# ----------------------------------------------------------------------- elements
+
+
+class BlockSize(StrictModel):
+    """Timber block dimensions (metres): length along the wall, width across, height."""
+
+    length: PositiveFloat = 0.60
+    width: PositiveFloat = 0.105
+    height: PositiveFloat = 0.105
+
+
+class Opening(StrictModel):
+    """A door or window in one wall of the cabin (metres).
+
+    ``center`` is measured along the wall from its start corner, ``sill`` is the
+    height of the bottom edge above the floor.
+    """
+
+    wall: Literal["front", "rear", "left", "right"]
+    kind: Literal["door", "window"] = "window"
+    center: float
+    width: PositiveFloat
+    sill: NonNegativeFloat = 0.0
+    height: PositiveFloat
+
+
+def _default_openings() -> list[Opening]:
+    return [
+        Opening(wall="front", kind="door", center=2.0, width=0.9, sill=0.0, height=2.0),
+        Opening(wall="left", kind="window", center=1.65, width=1.0, sill=0.95, height=1.0),
+        Opening(wall="right", kind="window", center=1.65, width=1.0, sill=0.95, height=1.0),
+    ]
+
+
+class CabinSpec(StrictModel):
+    """Parameters of the parametric log cabin (defaults: the cabin of the UWB paper).
+
+    ``length`` runs along the world x axis (front and rear walls), ``width`` along
+    y (left and right walls, which carry the gables); ``height`` is the ridge
+    height, ``eave_height`` the height where the roof starts.
+    """
+
+    origin: Vec3 = (0.0, 0.0, 0.0)
+    heading_deg: float = 0.0
+    length: PositiveFloat = 4.00
+    width: PositiveFloat = 3.30
+    height: PositiveFloat = 4.20
+    eave_height: PositiveFloat = 2.52
+    block: BlockSize = BlockSize()
+    openings: list[Opening] = Field(default_factory=_default_openings)
+    robot_parts: list[str] = ["A", "B", "C"]
+
+    @model_validator(mode="after")
+    def _heights(self) -> CabinSpec:
+        if self.eave_height > self.height:
+            raise ValueError("'eave_height' must not exceed 'height' (the ridge)")
+        return self
+
+
+class PrintPathSpec(StrictModel):
+    """Print paths from a DXF drawing (named layers) or a mesh (sliced into layers)."""
+
+    dxf: ExistingPath | None = None
+    mesh: ExistingPath | None = None
+    layers: list[str] = []
+    """DXF layers holding the path geometry (all layers when empty)."""
+    origin: PoseSpec = PoseSpec()
+    """Where the drawing's origin sits in the world."""
+    layer_height: PositiveFloat = 0.02
+    n_layers: Annotated[int, Field(ge=1)] = 10
+    bead_width: PositiveFloat = 0.03
+    speed: PositiveFloat = 0.1
+    """Tool speed along the path (m/s)."""
+    sample_rate_hz: PositiveFloat = 100.0
+
+    @model_validator(mode="after")
+    def _source(self) -> PrintPathSpec:
+        if (self.dxf is None) == (self.mesh is None):
+            raise ValueError("give exactly one of 'dxf' or 'mesh'")
+        return self
+
+
+class TaskPoint(StrictModel):
+    """An explicit tool frame with an action (drill, mark, measure)."""
+
+    id: str
+    pose: PoseSpec
+    action: Literal["drill", "mark", "measure"] = "mark"
+    params: dict[str, float | str] = {}
+
+
+class ElementSource(StrictModel):
+    """One entry of ``elements``: exactly one of ``cabin``, ``print_path``, ``task_points``."""
+
+    cabin: CabinSpec | None = None
+    print_path: PrintPathSpec | None = None
+    task_points: list[TaskPoint] | None = None
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> ElementSource:
+        given = [k for k in ("cabin", "print_path", "task_points") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(
+                "each entry needs exactly one of 'cabin', 'print_path', 'task_points'"
+                + (f" (got {', '.join(given)})" if given else "")
+            )
+        return self
+
+
+# ------------------------------------------------------------------- the rest
+
+
+class Tolerances(StrictModel):
+    """Allowed deviation of an as-built element from its design pose."""
+
+    position: PositiveFloat = 0.01
+    """metres"""
+    rotation_deg: PositiveFloat = 1.0
+
+
+class Planning(StrictModel):
+    """Station planning settings."""
+
+    max_stations: Annotated[int, Field(ge=1)] | None = None
+    candidate_spacing: PositiveFloat = 0.25
+    """Grid spacing of candidate platform positions (metres)."""
+    headings_deg: list[float] = [0.0, 90.0, 180.0, 270.0]
+
+
+class ProgramSettings(StrictModel):
+    """Robot program output settings."""
+
+    format: Literal["krl", "rapid", "urscript", "json"] = "krl"
+    speed: PositiveFloat = 0.25
+    """Cartesian speed for linear moves (m/s)."""
+    approach: PositiveFloat = 0.10
+    """Approach and retract distance above a target (metres)."""
+    blend: NonNegativeFloat = 0.01
+    """Blending (approximation) distance (metres)."""
+
+
+class Simulation(StrictModel):
+    """Sensor and execution noise for simulated runs."""
+
+    seed: int = 0
+    driving_error: NonNegativeFloat = 0.05
+    """Standard deviation of the platform's parking error per axis (metres)."""
+    driving_heading_error_deg: NonNegativeFloat = 2.0
+    robot_repeatability: NonNegativeFloat = 0.0002
+    lift_error: NonNegativeFloat = 0.001
+
+
+class Project(StrictModel):
+    """A fabflow project: site, robot, localization, elements and tolerances."""
+
+    name: Annotated[str, Field(min_length=1)]
+    description: str = ""
+    site: Site = Site()
+    robot: Robot = Robot()
+    localization: Localization = Localization()
+    elements: Annotated[list[ElementSource], Field(min_length=1)]
+    tolerances: Tolerances = Tolerances()
+    planning: Planning = Planning()
+    program: ProgramSettings = ProgramSettings()
+    simulation: Simulation = Simulation()
+
+    path: Path | None = Field(default=None, exclude=True)
+    """The file the project was loaded from (not part of the file itself)."""
+
+
+# ------------------------------------------------------------------------ loading
+
+
+def format_loc(loc: tuple[Any, ...]) -> str:
+    """Turn a pydantic error location into a field path such as ``elements[2].cabin.x``."""
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif not out:
+            out = str(part)
+        else:
+            out += f".{part}"
+    return out or "(top level)"
+
+
+def _line_of(node: yaml.Node | None, loc: tuple[Any, ...]) -> int | None:
+    """1-based line of the YAML node at ``loc`` (or of its nearest existing parent)."""
+    line = None if node is None else node.start_mark.line + 1
+    for part in loc:
+        if isinstance(node, yaml.MappingNode):
+            match = next((v for k, v in node.value if getattr(k, "value", None) == part), None)
+            if match is None:
+                # an extra key: point at the key itself
+                key = next((k for k, _ in node.value if getattr(k, "value", None) == part), None)
+                return key.start_mark.line + 1 if key is not None else line
+            node = match
+        elif isinstance(node, yaml.SequenceNode) and isinstance(part, int):
+            if part >= len(node.value):
+                return line
+            node = node.value[part]
+        else:
+            return line
+        line = node.start_mark.line + 1
+    return line
+
+
+def _describe(error: dict[str, Any]) -> str:
+    kind = error["type"]
+    if kind == "missing":
+        return "required field is missing"
+    if kind == "extra_forbidden":
+        return "unknown key (not part of the project schema)"
+    msg = error["msg"]
+    for prefix in ("Value error, ", "Assertion failed, "):
+        msg = msg.removeprefix(prefix)
+    if "input" in error and kind not in ("model_type", "dict_type") and error["input"] is not None:
+        shown = repr(error["input"])
+        if len(shown) <= 60:
+            msg += f" (got {shown})"
+    return msg
+
+
+def parse_project(
+    text: str, source: str | Path = "<string>", base_dir: Path | None = None
+) -> Project:
+    """Parse and validate project YAML text.
+
+    Parameters
+    ----------
+    text
+        The YAML document.
+    source
+        Name of the file, used in error messages.
+    base_dir
+        Folder that relative paths resolve against (the project file's folder).
+
+    Raises
+    ------
+    InputError
+        For YAML that does not parse or a project that does not validate; the
+        message names the file, the line, the field path and what was expected.
+    """
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else None
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise InputError(f"YAML does not parse: {problem}", source, where) from None
+    if not isinstance(data, dict):
+        raise InputError("expected a mapping of project fields at the top level", source)
+    try:
+        return Project.model_validate(data, context={"base_dir": base_dir})
+    except ValidationError as exc:
+        lines = []
+        for error in exc.errors():
+            loc = error["loc"]
+            line = _line_of(node, loc)
+            at = f"line {line}: " if line else ""
+            lines.append(f"{at}{format_loc(loc)}: {_describe(error)}")
+        message = "invalid project\n  " + "\n  ".join(lines)
+        raise InputError(message, source) from None
+
+
+def load_project(path: str | Path) -> Project:
+    """Load and validate a project file.
+
+    Parameters
+    ----------
+    path
+        A project YAML file, or a folder holding ``project.yaml``.
+
+    Returns
+    -------
+    Project
+        The validated project, with ``path`` set to the resolved file.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / "project.yaml"
+    if not path.exists():
+        raise InputError("project file does not exist", path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read project file: {exc}", path) from None
+    project = parse_project(text, source=path, base_dir=path.parent.resolve())
+    return project.model_copy(update={"path": path.resolve()})
+
+
+def project_json_schema() -> dict[str, Any]:
+    """The JSON Schema (draft 2020-12) of the project file."""
+    schema = Project.model_json_schema(mode="validation")
+    schema.get("properties", {}).pop("path", None)
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["title"] = "fabflow project"
+    return schema

@@ -1,0 +1,1 @@
+"""Machine models, kinematics, inverse kinematics and robot program writers."""

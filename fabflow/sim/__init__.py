@@ -1,0 +1,1 @@
+"""Sensor simulators, simulated construction runs and Monte Carlo studies."""

@@ -1,0 +1,1 @@
+"""Poses, frame graph with uncertainty, vendor conventions (KUKA, ABB, UR)."""
