@@ -27,6 +27,11 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     add_completion=False,
 )
+localize_app = typer.Typer(
+    help="Localize the robot base from measurements; writes the base pose JSON.",
+    no_args_is_help=True,
+)
+app.add_typer(localize_app, name="localize")
 console = Console()
 err_console = Console(stderr=True)
 
