@@ -468,8 +468,9 @@ def _describe(error: dict[str, Any]) -> str:
     msg = error["msg"]
     for prefix in ("Value error, ", "Assertion failed, "):
         msg = msg.removeprefix(prefix)
-    if "input" in error and kind not in ("model_type", "dict_type") and error["input"] is not None:
-        shown = repr(error["input"])
+    given = error.get("input")
+    if given is not None and not isinstance(given, dict | list):
+        shown = repr(given)
         if len(shown) <= 60:
             msg += f" (got {shown})"
     return msg
