@@ -1,0 +1,123 @@
+"""The command line end to end: exit codes, messages, atomic outputs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from conftest import PROJECTS, ROOT
+
+from fabflow import pipeline
+from fabflow.errors import InfeasibleError
+from fabflow.output import atomic_output_dir
+from fabflow.pipeline import run_build
+from fabflow.project import load_project
+
+BAD = ROOT / "tests" / "data" / "bad_projects"
+
+
+def test_validate_ok(cli) -> None:
+    result = cli("validate", "projects/cabin/project.yaml")
+    assert result.returncode == 0, result.stderr
+    assert "is valid" in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("name", "where"),
+    [
+        ("wrong_type.yaml", "elements[0].cabin.block.length"),
+        ("missing_field.yaml", "name: required field is missing"),
+        ("unknown_key.yaml", "robot.colour"),
+        ("missing_path.yaml", "elements[0].print_path.dxf"),
+        ("bad_yaml.yaml", "line 4, column 1"),
+    ],
+)
+@pytest.mark.parametrize("command", ["validate", "build"])
+def test_bad_input_exits_2_without_traceback(cli, tmp_path, name, where, command) -> None:
+    args = [command, str(BAD / name)]
+    if command == "build":
+        args += ["-o", str(tmp_path / "out")]
+    result = cli(*args)
+    assert result.returncode == 2
+    assert where in result.stderr
+    assert name in result.stderr
+    assert "Traceback" not in result.stdout + result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_project_file(cli, tmp_path) -> None:
+    result = cli("validate", str(tmp_path / "nothing.yaml"))
+    assert result.returncode == 2
+    assert "does not exist" in result.stderr
+
+
+def test_schema_prints_json(cli) -> None:
+    result = cli("schema")
+    assert result.returncode == 0
+    schema = json.loads(result.stdout)
+    assert schema["title"] == "fabflow project"
+    assert "elements" in schema["required"]
+
+
+def test_version(cli) -> None:
+    result = cli("--version")
+    assert result.returncode == 0
+    assert result.stdout.startswith("fabflow ")
+
+
+@pytest.mark.parametrize("name", ["cabin", "print_path"])
+def test_build_example_projects(cli, tmp_path, name) -> None:
+    out = tmp_path / name
+    result = cli("build", str(PROJECTS / name), "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    project = json.loads((out / "project.json").read_text())
+    assert project["project"]["name"] == name
+    summary = json.loads((out / "summary.json").read_text())
+    assert {"stage": "project", "item": "name", "value": name} in summary
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_atomic_output_keeps_previous_result_on_failure(tmp_path, monkeypatch) -> None:
+    project = load_project(PROJECTS / "cabin")
+    out = tmp_path / "out"
+    run_build(project, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    (out / "marker.txt").write_text("from the previous run")
+
+    written: list[Path] = []
+
+    def failing_stage(ctx: pipeline.BuildContext) -> None:
+        (ctx.out / "half.json").write_text("{")
+        written.append(ctx.out)
+        raise InfeasibleError("cannot build this")
+
+    original = pipeline.stages
+    monkeypatch.setattr(pipeline, "stages", lambda: [*original(), ("fail", failing_stage)])
+    with pytest.raises(InfeasibleError):
+        run_build(project, out)
+    assert written and not written[0].exists(), "staging folder must be removed"
+    assert (out / "marker.txt").read_text() == "from the previous run"
+    assert not (out / "half.json").exists()
+    for name, data in before.items():
+        assert (out / name).read_bytes() == data
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_atomic_output_replaces_whole_folder(tmp_path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "stale.txt").write_text("old")
+    with atomic_output_dir(out) as staging:
+        (staging / "new.txt").write_text("new")
+        assert not (out / "new.txt").exists(), "nothing appears before completion"
+    assert sorted(p.name for p in out.iterdir()) == ["new.txt"]
+
+
+def test_output_path_that_is_a_file(cli, tmp_path) -> None:
+    target = tmp_path / "file.txt"
+    target.write_text("keep me")
+    result = cli("build", str(PROJECTS / "cabin"), "-o", str(target))
+    assert result.returncode == 2
+    assert "not a folder" in result.stderr
+    assert target.read_text() == "keep me"

@@ -1,0 +1,78 @@
+"""The README's commands are run, so the docs cannot drift from the code.
+
+Every ``console`` block holds ``$ fabflow ...`` commands followed by the output
+they print; ``...`` in the expected output matches anything (including
+nothing). Outputs the README writes under ``out/`` go to a temporary folder.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+
+import pytest
+from conftest import ROOT
+
+README = (ROOT / "README.md").read_text(encoding="utf-8")
+
+
+def console_examples() -> list[tuple[str, str]]:
+    """(command, expected output) pairs from the README's console blocks."""
+    examples = []
+    for block in re.findall(r"```console\n(.*?)```", README, flags=re.S):
+        command, expected = None, []
+        for line in block.splitlines():
+            if line.startswith("$ "):
+                if command:
+                    examples.append((command, "\n".join(expected)))
+                command, expected = line[2:], []
+            else:
+                expected.append(line)
+        if command:
+            examples.append((command, "\n".join(expected)))
+    return examples
+
+
+def matches(expected: str, actual: str) -> bool:
+    """Whether ``actual`` contains ``expected``, with ``...`` as a wildcard."""
+    parts = [re.escape(p) for p in expected.strip().split("...")]
+    return re.search(".*?".join(parts), actual, flags=re.S) is not None
+
+
+EXAMPLES = console_examples()
+
+
+def test_readme_has_examples() -> None:
+    assert len(EXAMPLES) >= 4
+    assert all(cmd.startswith("fabflow ") for cmd, _ in EXAMPLES)
+
+
+@pytest.mark.parametrize(("command", "expected"), EXAMPLES, ids=[c for c, _ in EXAMPLES])
+def test_readme_example(cli, tmp_path, command: str, expected: str) -> None:
+    args = [
+        a.replace("out/", f"{tmp_path}/", 1) if a.startswith("out/") else a
+        for a in shlex.split(command)[1:]
+    ]
+    result = cli(*args)
+    output = result.stdout + result.stderr
+    is_error = expected.lstrip().startswith("error:")
+    assert result.returncode == (2 if is_error else 0), output
+    assert matches(expected, output), f"expected:\n{expected}\n\ngot:\n{output}"
+
+
+def test_quickstart_has_exactly_two_commands() -> None:
+    section = README.split("## Quickstart", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```bash\n(.*?)```", section, flags=re.S)
+    commands = [line for b in blocks for line in b.splitlines() if line.strip()]
+    assert len(commands) == 2
+    assert "fabflow build projects/cabin" in commands[0]
+    assert commands[1] == "bash scripts/test"
+
+
+def test_project_reference_lists_every_top_level_field() -> None:
+    from fabflow.project import Project
+
+    section = README.split("## Project file", 1)[1].split("\n## ", 1)[0]
+    for field in Project.model_fields:
+        if field != "path":
+            assert f"| `{field}` |" in section, field
