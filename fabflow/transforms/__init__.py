@@ -1,1 +1,86 @@
-"""Poses, frame graph with uncertainty, vendor conventions (KUKA, ABB, UR)."""
+"""Poses, frame graph with uncertainty, vendor conventions (KUKA, ABB, UR).
+
+Low-level batch functions on numpy arrays live in :mod:`fabflow.transforms.so3`
+(rotations) and :mod:`fabflow.transforms.se3` (4x4 rigid transforms and the
+covariance convention of :mod:`fabflow.positioning.result`).
+"""
+
+from fabflow.transforms.errors import (
+    DisconnectedFramesError,
+    FrameCycleError,
+    FrameError,
+    QuaternionError,
+    RotationError,
+    UnknownFrameError,
+)
+from fabflow.transforms.se3 import (
+    adjoint,
+    apply_R,
+    apply_T,
+    compose_covariance,
+    compose_jacobians,
+    compose_T,
+    error_from_body_twist,
+    exp_T,
+    inv_T,
+    inverse_covariance,
+    inverse_jacobian,
+    make_T,
+    perturb,
+    pose_error,
+    relative_T,
+    twist_from_error,
+)
+from fabflow.transforms.so3 import (
+    QUATERNION_TOL,
+    ROTATION_TOL,
+    abc_from_matrix,
+    check_rotation,
+    exp_so3,
+    log_so3,
+    matrix_from_abc,
+    matrix_from_quat,
+    normalize_quat,
+    quat_from_matrix,
+    quat_from_rotvec,
+    rotvec_from_quat,
+    skew,
+)
+
+__all__ = [
+    "QUATERNION_TOL",
+    "ROTATION_TOL",
+    "DisconnectedFramesError",
+    "FrameCycleError",
+    "FrameError",
+    "QuaternionError",
+    "RotationError",
+    "UnknownFrameError",
+    "abc_from_matrix",
+    "adjoint",
+    "apply_R",
+    "apply_T",
+    "check_rotation",
+    "compose_T",
+    "compose_covariance",
+    "compose_jacobians",
+    "error_from_body_twist",
+    "exp_T",
+    "exp_so3",
+    "inv_T",
+    "inverse_covariance",
+    "inverse_jacobian",
+    "log_so3",
+    "make_T",
+    "matrix_from_abc",
+    "matrix_from_quat",
+    "normalize_quat",
+    "perturb",
+    "pose_error",
+    "quat_from_matrix",
+    "quat_from_rotvec",
+    "relative_T",
+    "rotvec_from_quat",
+    "skew",
+    "twist_from_error",
+]
