@@ -266,8 +266,11 @@ class BlockSize(StrictModel):
 class Opening(StrictModel):
     """A door or window in one wall of the cabin (metres).
 
-    ``center`` is measured along the wall from its start corner, ``sill`` is the
-    height of the bottom edge above the floor.
+    ``center`` is measured along the wall from its start corner (the corner at
+    x = 0 for the left and right walls, at y = 0 for the front and rear walls),
+    ``sill`` is the height of the bottom edge above the floor. Every block
+    layer that overlaps ``[sill, sill + height]`` is left open; a lintel spans
+    the opening in the first layer above it.
     """
 
     wall: Literal["front", "rear", "left", "right"]
@@ -280,18 +283,37 @@ class Opening(StrictModel):
 
 def _default_openings() -> list[Opening]:
     return [
-        Opening(wall="front", kind="door", center=2.0, width=0.9, sill=0.0, height=2.0),
-        Opening(wall="left", kind="window", center=1.65, width=1.0, sill=0.95, height=1.0),
-        Opening(wall="right", kind="window", center=1.65, width=1.0, sill=0.95, height=1.0),
+        Opening(wall="front", kind="door", center=1.65, width=0.9, sill=0.0, height=2.1),
+        Opening(wall="left", kind="window", center=2.0, width=1.0, sill=0.84, height=1.05),
+        Opening(wall="right", kind="window", center=2.0, width=1.0, sill=0.84, height=1.05),
     ]
+
+
+CabinPiece = Literal["front", "rear", "left", "right", "front_gable", "rear_gable"]
+
+
+def _default_parts() -> dict[str, str]:
+    return {
+        "left": "A",
+        "rear": "B",
+        "right": "C",
+        "front": "front",
+        "front_gable": "front",
+        "rear_gable": "rear",
+    }
 
 
 class CabinSpec(StrictModel):
     """Parameters of the parametric log cabin (defaults: the cabin of the UWB paper).
 
-    ``length`` runs along the world x axis (front and rear walls), ``width`` along
-    y (left and right walls, which carry the gables); ``height`` is the ridge
-    height, ``eave_height`` the height where the roof starts.
+    Cabin frame: origin at the outer corner of the front and right walls, x along
+    ``length`` (the left and right walls, which carry the eaves), y along
+    ``width`` (the front wall at x = 0 and the rear wall at x = length, which
+    carry the gables), z up; ``origin`` and ``heading_deg`` place it in the
+    world. ``height`` is the ridge height, ``eave_height`` the top of the four
+    walls; above it the front and rear walls continue as stepped gables.
+    ``parts`` names the part of each wall (and of each gable); the parts in
+    ``robot_parts`` are built by the robot, the others are pre-built.
     """
 
     origin: Vec3 = (0.0, 0.0, 0.0)
@@ -299,25 +321,75 @@ class CabinSpec(StrictModel):
     length: PositiveFloat = 4.00
     width: PositiveFloat = 3.30
     height: PositiveFloat = 4.20
-    eave_height: PositiveFloat = 2.52
+    eave_height: PositiveFloat = 3.15
     block: BlockSize = BlockSize()
     openings: list[Opening] = Field(default_factory=_default_openings)
+    lintel_bearing: PositiveFloat = 0.15
+    """How far a lintel reaches past each side of its opening (metres)."""
+    min_piece: PositiveFloat = 0.15
+    """Shortest cut block at the end of a row (metres)."""
+    parts: dict[CabinPiece, str] = Field(default_factory=_default_parts)
     robot_parts: list[str] = ["A", "B", "C"]
 
     @model_validator(mode="after")
-    def _heights(self) -> CabinSpec:
+    def _geometry(self) -> CabinSpec:
+        b = self.block
         if self.eave_height > self.height:
             raise ValueError("'eave_height' must not exceed 'height' (the ridge)")
+        if self.eave_height < b.height:
+            raise ValueError("'eave_height' must be at least one block height")
+        if min(self.length, self.width) < 2 * b.width + self.min_piece:
+            raise ValueError("'length' and 'width' must exceed two block widths plus 'min_piece'")
+        if self.min_piece > b.length / 2:
+            raise ValueError("'min_piece' must not exceed half the block length")
+        pieces = ("front", "rear", "left", "right", "front_gable", "rear_gable")
+        missing = [k for k in pieces if k not in self.parts]
+        if missing:
+            raise ValueError(f"'parts' lacks {', '.join(missing)}")
+        n_wall = math.floor(self.eave_height / b.height + 1e-6)
+        spans = {"front": self.width, "rear": self.width, "left": self.length, "right": self.length}
+        reach: dict[str, list[tuple[float, float, int]]] = {}
+        for i, o in enumerate(self.openings):
+            lo = o.center - o.width / 2 - self.lintel_bearing
+            hi = o.center + o.width / 2 + self.lintel_bearing
+            if lo < b.width - 1e-9 or hi > spans[o.wall] - b.width + 1e-9:
+                raise ValueError(
+                    f"openings[{i}]: the opening plus its lintel bearings "
+                    f"({lo:.3f}..{hi:.3f} m along the {o.wall} wall) must lie between the "
+                    f"corners ({b.width:.3f}..{spans[o.wall] - b.width:.3f} m)"
+                )
+            if math.ceil((o.sill + o.height) / b.height - 1e-6) >= n_wall:
+                raise ValueError(
+                    f"openings[{i}]: the top of the opening plus its lintel must stay below "
+                    f"the eave ({self.eave_height} m)"
+                )
+            for j_lo, j_hi, j in reach.get(o.wall, []):
+                if lo < j_hi and hi > j_lo:
+                    raise ValueError(
+                        f"openings[{i}] and openings[{j}] overlap (with lintel bearings) "
+                        f"on the {o.wall} wall"
+                    )
+            reach.setdefault(o.wall, []).append((lo, hi, i))
         return self
 
 
 class PrintPathSpec(StrictModel):
-    """Print paths from a DXF drawing (named layers) or a mesh (sliced into layers)."""
+    """Print paths from a DXF drawing (named layers) or a mesh (sliced into layers).
+
+    The drawing is a plan: its contours, placed at ``origin``, are printed
+    ``n_layers`` times, each ``layer_height`` higher. A mesh is sliced every
+    ``layer_height`` into closed contours (all of its height unless ``n_layers``
+    is given).
+    """
 
     dxf: ExistingPath | None = None
     mesh: ExistingPath | None = None
     layers: list[str] = []
     """DXF layers holding the path geometry (all layers when empty)."""
+    units: Literal["auto", "m", "cm", "mm", "in", "ft"] = "auto"
+    """Drawing units; ``auto``: $INSUNITS of a DXF (mm when unset), metres for a mesh."""
+    closed: bool = True
+    """Every contour must be closed (a wall outline); ``false`` allows open paths."""
     origin: PoseSpec = PoseSpec()
     """Where the drawing's origin sits in the world."""
     layer_height: PositiveFloat = 0.02
@@ -337,10 +409,12 @@ class PrintPathSpec(StrictModel):
 class TaskPoint(StrictModel):
     """An explicit tool frame with an action (drill, mark, measure)."""
 
-    id: str
+    id: Annotated[str, Field(min_length=1)]
     pose: PoseSpec
     action: Literal["drill", "mark", "measure"] = "mark"
     params: dict[str, float | str] = {}
+    layer: Annotated[int, Field(ge=0)] = 0
+    """Build-order layer (0 = first)."""
 
 
 class ElementSource(StrictModel):
