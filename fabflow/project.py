@@ -284,8 +284,10 @@ class Opening(StrictModel):
 def _default_openings() -> list[Opening]:
     return [
         Opening(wall="front", kind="door", center=1.65, width=0.9, sill=0.0, height=2.1),
-        Opening(wall="left", kind="window", center=2.0, width=1.0, sill=0.84, height=1.05),
-        Opening(wall="right", kind="window", center=2.0, width=1.0, sill=0.84, height=1.05),
+        Opening(wall="left", kind="window", center=1.0, width=0.9, sill=0.84, height=1.05),
+        Opening(wall="left", kind="window", center=3.0, width=0.9, sill=0.84, height=1.05),
+        Opening(wall="right", kind="window", center=1.0, width=0.9, sill=0.84, height=1.05),
+        Opening(wall="right", kind="window", center=3.0, width=0.9, sill=0.84, height=1.05),
     ]
 
 
