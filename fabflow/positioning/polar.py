@@ -1,0 +1,348 @@
+"""Total station polar observations: the instrument model, conversions and error propagation.
+
+A total station measures, for each target, a horizontal angle ``Hz``, a vertical
+(zenith) angle ``V`` and a slope distance ``sd``. In the instrument frame (origin
+at the station mark, ``z`` up, ``y`` the Hz zero direction, ``x`` = ``y`` turned
+90 degrees clockwise seen from above, i.e. east when ``y`` is north) a target is::
+
+    x = sd sin(V) sin(Hz)
+    y = sd sin(V) cos(Hz)
+    z = sd cos(V) + instrument_height - prism_height
+
+Hz grows clockwise from ``y``; ``V`` is 0 at the zenith and 90 degrees (100 gon)
+on the horizon. Angles are radians inside fabflow; gon and degrees are converted
+at the edges with :data:`GON` and :data:`DEG`.
+
+The accuracy model is the one on instrument data sheets: a distance standard
+deviation of ``a + b * sd`` (``a`` metres, ``b`` parts per million) and one angle
+standard deviation for both Hz and V.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fabflow.errors import InputError
+
+GON = math.pi / 200.0
+"""One gon in radians."""
+DEG = math.pi / 180.0
+"""One degree in radians."""
+ARCSEC = DEG / 3600.0
+"""One arc second in radians."""
+
+
+@dataclass(frozen=True)
+class Instrument:
+    """The stated accuracy of a total station.
+
+    Attributes
+    ----------
+    name
+        Instrument name, for reports.
+    distance_sigma
+        Constant part of the distance standard deviation (metres).
+    distance_ppm
+        Distance-proportional part (parts per million of the slope distance).
+    angle_sigma
+        Standard deviation of the Hz and V angle readings (radians).
+    """
+
+    name: str
+    distance_sigma: float
+    distance_ppm: float
+    angle_sigma: float
+
+    def sigma_distance(self, sd: np.ndarray | float) -> np.ndarray:
+        """Distance standard deviation (metres) at slope distances ``sd`` (metres)."""
+        return self.distance_sigma + self.distance_ppm * 1e-6 * np.asarray(sd, dtype=float)
+
+
+INSTRUMENTS: dict[str, Instrument] = {
+    "leica_ms50": Instrument("leica_ms50", 0.001, 1.5, 1.0 * ARCSEC),
+    "hilti_pos150": Instrument("hilti_pos150", 0.002, 0.0, 5.0 * ARCSEC),
+}
+"""Data-sheet accuracies: Leica Nova MS50 (1 mm + 1.5 ppm, 1"), Hilti POS 150 (2 mm, 5")."""
+
+
+def make_instrument(
+    name: str,
+    distance_sigma_mm: float | None = None,
+    distance_ppm: float | None = None,
+    angle_sigma_arcsec: float | None = None,
+) -> Instrument:
+    """An instrument by preset name, with any of its accuracies overridden.
+
+    Parameters
+    ----------
+    name
+        ``"leica_ms50"``, ``"hilti_pos150"`` or ``"custom"`` (then all three
+        accuracies must be given).
+    distance_sigma_mm, distance_ppm, angle_sigma_arcsec
+        Overrides in data-sheet units: millimetres, ppm, arc seconds.
+    """
+    if name == "custom":
+        missing = [
+            field
+            for field, value in (
+                ("distance_sigma_mm", distance_sigma_mm),
+                ("distance_ppm", distance_ppm),
+                ("angle_sigma_arcsec", angle_sigma_arcsec),
+            )
+            if value is None
+        ]
+        if missing:
+            raise InputError(
+                "instrument 'custom' needs its accuracies; missing " + ", ".join(missing)
+            )
+        base = Instrument("custom", 0.0, 0.0, 0.0)
+    elif name in INSTRUMENTS:
+        base = INSTRUMENTS[name]
+    else:
+        raise InputError(
+            f"unknown instrument {name!r}; expected one of " + ", ".join([*INSTRUMENTS, "custom"])
+        )
+    return Instrument(
+        name=base.name,
+        distance_sigma=base.distance_sigma
+        if distance_sigma_mm is None
+        else distance_sigma_mm * 1e-3,
+        distance_ppm=base.distance_ppm if distance_ppm is None else float(distance_ppm),
+        angle_sigma=base.angle_sigma if angle_sigma_arcsec is None else angle_sigma_arcsec * ARCSEC,
+    )
+
+
+def polar_to_cartesian(
+    hz: np.ndarray,
+    v: np.ndarray,
+    sd: np.ndarray,
+    instrument_height: float | np.ndarray = 0.0,
+    prism_height: float | np.ndarray = 0.0,
+) -> np.ndarray:
+    """Target positions in the instrument frame from polar observations.
+
+    Parameters
+    ----------
+    hz, v
+        Horizontal and zenith angles (radians), any matching shape ``(...)``.
+    sd
+        Slope distances (metres), same shape.
+    instrument_height, prism_height
+        Height of the trunnion axis above the station mark and of the prism
+        centre below the measured point (metres).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(..., 3)`` points in metres.
+    """
+    hz, v, sd = (np.asarray(a, dtype=float) for a in (hz, v, sd))
+    sv = np.sin(v)
+    dz = np.asarray(instrument_height, dtype=float) - np.asarray(prism_height, dtype=float)
+    return np.stack(
+        [sd * sv * np.sin(hz), sd * sv * np.cos(hz), sd * np.cos(v) + dz],
+        axis=-1,
+    )
+
+
+def cartesian_to_polar(
+    points: np.ndarray,
+    instrument_height: float | np.ndarray = 0.0,
+    prism_height: float | np.ndarray = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse of :func:`polar_to_cartesian`: ``(hz, v, sd)`` in radians and metres.
+
+    ``hz`` is in ``[0, 2 pi)``; ``points`` is ``(..., 3)`` in the instrument frame.
+    """
+    p = np.asarray(points, dtype=float)
+    dz = np.asarray(instrument_height, dtype=float) - np.asarray(prism_height, dtype=float)
+    x, y, z = p[..., 0], p[..., 1], p[..., 2] - dz
+    horizontal = np.hypot(x, y)
+    sd = np.hypot(horizontal, z)
+    hz = np.mod(np.arctan2(x, y), 2.0 * np.pi)
+    v = np.arctan2(horizontal, z)
+    return hz, v, sd
+
+
+def polar_jacobian(hz: np.ndarray, v: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """``(..., 3, 3)`` derivative of the Cartesian point by ``(hz, v, sd)``."""
+    hz, v, sd = (np.asarray(a, dtype=float) for a in (hz, v, sd))
+    sh, ch, sv, cv = np.sin(hz), np.cos(hz), np.sin(v), np.cos(v)
+    zero = np.zeros_like(sh)
+    return np.stack(
+        [
+            np.stack([sd * sv * ch, sd * cv * sh, sv * sh], axis=-1),
+            np.stack([-sd * sv * sh, sd * cv * ch, sv * ch], axis=-1),
+            np.stack([zero, -sd * sv, cv], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def polar_covariance(
+    hz: np.ndarray, v: np.ndarray, sd: np.ndarray, instrument: Instrument
+) -> np.ndarray:
+    """First-order covariance (m^2) of the Cartesian points, ``(..., 3, 3)``, instrument frame.
+
+    The angles and the distance are taken as independent with the instrument's
+    stated standard deviations.
+    """
+    J = polar_jacobian(hz, v, sd)
+    sig_a = instrument.angle_sigma
+    var = np.stack(
+        np.broadcast_arrays(
+            np.full(np.shape(sd), sig_a**2),
+            np.full(np.shape(sd), sig_a**2),
+            instrument.sigma_distance(sd) ** 2,
+        ),
+        axis=-1,
+    )
+    return np.einsum("...ik,...k,...jk->...ij", J, var, J)
+
+
+def simulate_polar(
+    points: np.ndarray,
+    instrument: Instrument,
+    rng: np.random.Generator,
+    instrument_height: float = 0.0,
+    prism_height: float | np.ndarray = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Noisy ``(hz, v, sd)`` readings of true target ``points`` (``(..., 3)``, instrument frame).
+
+    Angle and distance errors are drawn independently from zero-mean normals
+    with the instrument's stated standard deviations.
+    """
+    hz, v, sd = cartesian_to_polar(points, instrument_height, prism_height)
+    hz = hz + rng.normal(0.0, instrument.angle_sigma, np.shape(hz))
+    v = v + rng.normal(0.0, instrument.angle_sigma, np.shape(v))
+    sd = sd + rng.normal(0.0, 1.0, np.shape(sd)) * instrument.sigma_distance(sd)
+    return np.mod(hz, 2.0 * np.pi), v, sd
+
+
+def measure_points(
+    points_instrument: np.ndarray,
+    instrument: Instrument,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Simulate measuring ``points_instrument`` and return the measured points and covariances.
+
+    Parameters
+    ----------
+    points_instrument
+        ``(..., 3)`` true prism positions in the instrument frame (metres).
+    instrument
+        The accuracy model.
+    rng
+        Source of the measurement noise.
+
+    Returns
+    -------
+    points, cov
+        ``(..., 3)`` measured points and ``(..., 3, 3)`` their covariances from
+        the readings (instrument frame).
+    """
+    hz, v, sd = simulate_polar(points_instrument, instrument, rng)
+    return polar_to_cartesian(hz, v, sd), polar_covariance(hz, v, sd, instrument)
+
+
+def to_world(
+    T_world_instrument: np.ndarray, points: np.ndarray, cov: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Move instrument-frame points ``(..., 3)`` and covariances ``(..., 3, 3)`` into the world."""
+    T = np.asarray(T_world_instrument, dtype=float)
+    R = T[:3, :3]
+    p = np.asarray(points, dtype=float) @ R.T + T[:3, 3]
+    if cov is None:
+        return p, None
+    return p, R @ np.asarray(cov, dtype=float) @ R.T
+
+
+@dataclass(frozen=True, eq=False)
+class Observations:
+    """Observations of prism targets read from a file.
+
+    Each row has either polar readings (``hz``, ``v``, ``sd``) or, when the
+    instrument exported only computed coordinates, ``xyz``; missing values are NaN.
+
+    Attributes
+    ----------
+    point_ids
+        Target ids, matched against the robot points.
+    hz, v
+        ``(n,)`` horizontal and zenith angles (radians).
+    sd
+        ``(n,)`` slope distances (metres).
+    xyz
+        ``(n, 3)`` coordinates computed by the instrument in its job frame (metres).
+    prism_height
+        ``(n,)`` prism heights (metres).
+    instrument_height
+        Height of the instrument above the station mark (metres).
+    station_xyz
+        Station coordinates exported with the observations (job frame), if any.
+    source
+        The file the observations came from.
+    lines
+        1-based line of each row in ``source``.
+    """
+
+    point_ids: tuple[str, ...]
+    hz: np.ndarray
+    v: np.ndarray
+    sd: np.ndarray
+    xyz: np.ndarray
+    prism_height: np.ndarray
+    instrument_height: float = 0.0
+    station_xyz: np.ndarray | None = None
+    source: str | None = None
+    lines: tuple[int, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.point_ids)
+
+    def points(
+        self, instrument: Instrument, T_world_instrument: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """World points ``(n, 3)`` and their covariances ``(n, 3, 3)``.
+
+        Polar rows are converted with :func:`polar_to_cartesian` in the
+        instrument frame and moved by ``T_world_instrument`` (identity when
+        ``None``). Coordinate-only rows are taken as they are (the instrument's
+        job frame is then the world); their covariance is propagated from the
+        polar readings they imply, seen from the station (``station_xyz``, else
+        the translation of ``T_world_instrument``).
+        """
+        T = np.eye(4) if T_world_instrument is None else np.asarray(T_world_instrument, float)
+        n = len(self)
+        polar = np.isfinite(self.hz) & np.isfinite(self.v) & np.isfinite(self.sd)
+        coords = ~polar & np.all(np.isfinite(self.xyz), axis=1)
+        bad = ~(polar | coords)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(
+                f"target {self.point_ids[i]!r} has neither Hz, V and slope distance "
+                "nor coordinates",
+                self.source,
+                f"line {self.lines[i]}" if self.lines else None,
+            )
+        out = np.zeros((n, 3))
+        cov = np.zeros((n, 3, 3))
+        if polar.any():
+            local = polar_to_cartesian(
+                self.hz[polar],
+                self.v[polar],
+                self.sd[polar],
+                self.instrument_height,
+                self.prism_height[polar],
+            )
+            local_cov = polar_covariance(self.hz[polar], self.v[polar], self.sd[polar], instrument)
+            out[polar], cov[polar] = to_world(T, local, local_cov)
+        if coords.any():
+            station = T[:3, 3] if self.station_xyz is None else self.station_xyz
+            hz, v, sd = cartesian_to_polar(self.xyz[coords] - station)
+            out[coords] = self.xyz[coords]
+            cov[coords] = polar_covariance(hz, v, sd, instrument)
+        return out, cov

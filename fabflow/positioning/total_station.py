@@ -1,0 +1,695 @@
+"""Robot base localization with a robotic total station (paper 001, eqs 1-8).
+
+A prism on the robot's tool is moved to known points ``p_i`` of the robot base
+frame (from forward kinematics); the total station measures each one, giving
+``m_i`` in the world. The base pose ``T_world_base`` is the rigid motion taking
+the ``p_i`` onto the ``m_i``.
+
+Solvers
+-------
+- :func:`register_points`: the arbitrary-point localization (eqs 7-8). Closed
+  form by weighted Kabsch/Umeyama (reflection-safe); with per-point covariances
+  (a total station's are needle-shaped along the line of sight) a few
+  Gauss-Newton steps then minimise the full Mahalanobis cost. ``method="optimize"``
+  solves the paper's constrained problem over ``(O, X, Y)`` with SLSQP instead.
+  Either way the result carries the 6x6 covariance (fabflow convention, see
+  :mod:`fabflow.positioning.result`), residuals, RMSE and a leave-one-out test
+  for a single bad prism reading.
+- :func:`three_point_localization` / :func:`localize_three_point`: eqs 1-6 for
+  the points ``P1``, ``P1 + d x``, ``P1 + d y``.
+- :func:`localize_station`: the simulated instrument used by ``fabflow build``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from scipy import optimize, special
+
+from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.result import BasePose
+from fabflow.transforms.se3 import make_T
+from fabflow.transforms.so3 import exp_so3, log_so3, skew
+
+COLLINEAR_RATIO = 1e-3
+"""Smallest accepted ratio of the second to the first principal spread of the points."""
+MIN_SPREAD = 1e-4
+"""Smallest accepted second principal spread (RMS, metres) of the points."""
+
+
+@dataclass(frozen=True, eq=False)
+class OutlierTest:
+    """Leave-one-out test for one bad prism reading.
+
+    Each point is predicted from the fit to all the others; the prediction error
+    is normalised by its predicted covariance. With known measurement
+    covariances the statistic is chi-square with 3 degrees of freedom; with the
+    noise level estimated from the residuals it is F(3, 3(n-1)-6).
+
+    Attributes
+    ----------
+    index
+        The most suspicious point (largest statistic).
+    flagged
+        Whether that point fails the test at level ``alpha / n``.
+    statistics
+        ``(n,)`` test statistic per point.
+    threshold
+        Critical value the statistics are compared to.
+    p_value
+        p-value of the most suspicious point.
+    loo_residuals
+        ``(n, 3)`` measured minus predicted position of each point from the fit
+        without it (world frame, metres).
+    known_sigma
+        True when the statistic used the given covariances (chi-square), False
+        when the noise level came from the residuals (F).
+    """
+
+    index: int
+    flagged: bool
+    statistics: np.ndarray
+    threshold: float
+    p_value: float
+    loo_residuals: np.ndarray
+    known_sigma: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-compatible data."""
+        return {
+            "index": self.index,
+            "flagged": self.flagged,
+            "statistics": self.statistics.tolist(),
+            "threshold": self.threshold,
+            "p_value": self.p_value,
+            "loo_residuals": self.loo_residuals.tolist(),
+            "test": "chi2(3)" if self.known_sigma else "F(3, 3n-9)",
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class Registration:
+    """Result of a point registration.
+
+    Attributes
+    ----------
+    T_world_base
+        4x4 estimated pose of the robot base in the world (metres).
+    covariance
+        6x6 covariance over ``[dx, dy, dz, rx, ry, rz]`` (fabflow convention).
+    residuals
+        ``(n, 3)`` measured minus fitted world positions of every point (metres),
+        including a rejected one.
+    rmse
+        RMS of the 3D residual lengths of the points used in the fit (metres).
+    method
+        ``"closed_form"``, ``"optimize"`` or ``"three_point"``.
+    variance_factor
+        Weighted residual sum of squares over its degrees of freedom; about 1
+        when the given covariances are right (NaN without redundancy).
+    outlier_test
+        The leave-one-out test, or None with fewer than 4 points.
+    rejected
+        Indices of points left out of the final fit.
+    iterations
+        Gauss-Newton or optimizer iterations.
+    """
+
+    T_world_base: np.ndarray
+    covariance: np.ndarray
+    residuals: np.ndarray
+    rmse: float
+    method: str
+    variance_factor: float = float("nan")
+    outlier_test: OutlierTest | None = None
+    rejected: tuple[int, ...] = ()
+    iterations: int = 0
+
+    @property
+    def n_points(self) -> int:
+        """Number of points given (including rejected ones)."""
+        return int(self.residuals.shape[0])
+
+    def quality(self) -> dict[str, Any]:
+        """Quality figures for :attr:`BasePose.quality`."""
+        q: dict[str, Any] = {
+            "solver": self.method,
+            "n_points": self.n_points,
+            "n_inliers": self.n_points - len(self.rejected),
+            "rejected": list(self.rejected),
+            "variance_factor": None
+            if not np.isfinite(self.variance_factor)
+            else float(self.variance_factor),
+            "iterations": self.iterations,
+        }
+        if self.outlier_test is not None:
+            q["outlier_test"] = self.outlier_test.to_dict()
+        return q
+
+    def to_base_pose(
+        self, station: str | None = None, quality: dict[str, Any] | None = None
+    ) -> BasePose:
+        """The result as a :class:`~fabflow.positioning.result.BasePose` (``total_station``)."""
+        return BasePose(
+            T_world_base=self.T_world_base.copy(),
+            covariance=self.covariance.copy(),
+            method="total_station",
+            residuals=self.residuals.copy(),
+            rmse=self.rmse,
+            station=station,
+            quality={**self.quality(), **(quality or {})},
+        )
+
+
+# ------------------------------------------------------------------ validation
+
+
+def _as_points(a: Any, name: str, n: int | None = None) -> np.ndarray:
+    try:
+        p = np.asarray(a, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be an (n, 3) array of numbers") from None
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise InputError(f"{name} must have shape (n, 3), got {p.shape}")
+    if n is not None and p.shape[0] != n:
+        raise InputError(f"{name} has {p.shape[0]} points, expected {n} (one per base point)")
+    if not np.all(np.isfinite(p)):
+        row = int(np.flatnonzero(~np.all(np.isfinite(p), axis=1))[0])
+        raise InputError(f"{name} row {row} is not finite")
+    return p
+
+
+def check_geometry(points: np.ndarray, name: str = "points") -> None:
+    """Refuse point sets that cannot fix a rigid pose: fewer than 3, or (nearly) collinear.
+
+    Raises
+    ------
+    LocalizationError
+        When the second principal spread of ``points`` ((n, 3), metres) is below
+        :data:`MIN_SPREAD` or below :data:`COLLINEAR_RATIO` times the first.
+    """
+    n = points.shape[0]
+    if n < 3:
+        raise LocalizationError(f"{name}: need at least 3 points to fix a pose, got {n}")
+    centred = points - points.mean(axis=0)
+    s = np.linalg.svd(centred, compute_uv=False) / np.sqrt(n)
+    if s[1] < MIN_SPREAD or s[1] < COLLINEAR_RATIO * s[0]:
+        raise LocalizationError(
+            f"{name}: the {n} points are (nearly) collinear or coincident "
+            f"(principal spreads {s[0]:.4g} m, {s[1]:.3g} m); the rotation about their "
+            "line is undetermined. Use points that span a plane."
+        )
+
+
+# ------------------------------------------------------------------- solvers
+
+
+def _det3(A: np.ndarray) -> np.ndarray:
+    """Determinants of ``(..., 3, 3)`` matrices (cheaper than ``np.linalg.det`` on tiny ones)."""
+    return (
+        A[..., 0, 0] * (A[..., 1, 1] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 1])
+        - A[..., 0, 1] * (A[..., 1, 0] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 0])
+        + A[..., 0, 2] * (A[..., 1, 0] * A[..., 2, 1] - A[..., 1, 1] * A[..., 2, 0])
+    )
+
+
+def kabsch(
+    points_base: np.ndarray, points_world: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares rigid fit ``points_world ~ R @ points_base + t`` (no checks).
+
+    Reflection-safe Kabsch/Umeyama without scale, batch-capable.
+
+    Parameters
+    ----------
+    points_base, points_world
+        ``(..., n, 3)`` corresponding points (metres).
+    weights
+        ``(..., n)`` non-negative weights, or None for equal weights.
+
+    Returns
+    -------
+    R, t
+        ``(..., 3, 3)`` rotations and ``(..., 3)`` translations.
+    """
+    P = np.asarray(points_base, dtype=float)
+    M = np.asarray(points_world, dtype=float)
+    if P.ndim == 2:
+        w = np.full(P.shape[0], 1.0 / P.shape[0]) if weights is None else weights / np.sum(weights)
+        p0 = w @ P
+        m0 = w @ M
+        H = (P - p0).T @ ((M - m0) * w[:, None])
+    else:
+        w = np.ones(P.shape[:-1]) if weights is None else np.asarray(weights, dtype=float)
+        w = w / w.sum(axis=-1, keepdims=True)
+        p0 = np.einsum("...n,...ni->...i", w, P)
+        m0 = np.einsum("...n,...ni->...i", w, M)
+        H = np.einsum("...n,...ni,...nj->...ij", w, P - p0[..., None, :], M - m0[..., None, :])
+    U, _, Vt = np.linalg.svd(H)
+    # R = V diag(1, 1, det(V U^T)) U^T: flipping the weakest axis avoids a reflection
+    s = np.sign(_det3(U) * _det3(Vt))
+    s = np.where(s == 0, 1.0, s)
+    Vt = Vt.copy()
+    Vt[..., 2, :] *= s[..., None]
+    R = np.swapaxes(U @ Vt, -1, -2)
+    t = m0 - np.einsum("...ij,...j->...i", R, p0)
+    return R, t
+
+
+def _jacobians(R: np.ndarray, points_base: np.ndarray) -> np.ndarray:
+    """``(..., n, 3, 6)`` derivative of the fitted world points by ``[d, r]`` (fabflow convention).
+
+    ``R`` is ``(..., 3, 3)``, ``points_base`` ``(..., n, 3)``.
+    """
+    q = np.einsum("...ij,...nj->...ni", R, points_base)
+    J = np.zeros((*q.shape, 6))
+    J[..., :3] = np.eye(3)
+    J[..., 3:] = -skew(q)
+    return J
+
+
+def _normal_matrices(J: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """Per-point ``J^T W J``, ``(..., n, 6, 6)``."""
+    return np.einsum("...nki,...nkl,...nlj->...nij", J, W, J)
+
+
+def _gauss_newton(
+    R: np.ndarray,
+    t: np.ndarray,
+    P: np.ndarray,
+    M: np.ndarray,
+    W: np.ndarray,
+    max_iter: int = 5,
+    tol: float = 1e-12,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Minimise ``sum_i e_i^T W_i e_i``, ``e_i = R p_i + t - m_i``, from ``(R, t)``; batch-capable.
+
+    Shapes: ``R (..., 3, 3)``, ``t (..., 3)``, ``P, M (..., n, 3)``, ``W (..., n, 3, 3)``.
+    """
+    it = 0
+    while it < max_iter:
+        it += 1
+        e = np.einsum("...ij,...nj->...ni", R, P) + t[..., None, :] - M
+        J = _jacobians(R, P)
+        A = _normal_matrices(J, W).sum(axis=-3)
+        b = np.einsum("...nki,...nkl,...nl->...i", J, W, e)
+        delta = -np.linalg.solve(A, b[..., None])[..., 0]
+        R = exp_so3(delta[..., 3:]) @ R
+        t = t + delta[..., :3]
+        if np.max(np.einsum("...i,...i->...", delta, delta)) < tol**2:
+            break
+    return R, t, it
+
+
+def optimize_registration(
+    points_base: np.ndarray,
+    points_world: np.ndarray,
+    weights: np.ndarray | None = None,
+    T_init: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The paper's eqs 7-8: constrained least squares over origin ``O`` and axes ``X``, ``Y``.
+
+    Minimises ``sum w_i |O + P_ix X + P_iy Y + P_iz (X x Y) - M_i|^2`` subject to
+    ``X . Y = 0``, ``|X| = |Y| = 1`` with SciPy's SLSQP and analytic gradients.
+
+    Parameters
+    ----------
+    points_base, points_world
+        ``(n, 3)`` points (metres), already validated.
+    weights
+        ``(n,)`` weights or None.
+    T_init
+        Initial pose. Without one, the best of eight headings about the world z
+        axis (each with its least-squares origin) starts the search, which
+        plays the role of the paper's "initial guess close to the solution".
+
+    Returns
+    -------
+    R, t, iterations
+    """
+    P = points_base
+    M = points_world
+    w = np.ones(len(P)) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    if T_init is None:
+        yaw = np.arange(8) * (np.pi / 4)
+        Rs = exp_so3(np.outer(yaw, [0.0, 0.0, 1.0]))
+        p0, m0 = w @ P, w @ M
+        ts = m0 - Rs @ p0
+        e = np.einsum("kij,nj->kni", Rs, P) + ts[:, None, :] - M
+        k = int(np.argmin(np.einsum("n,kni,kni->k", w, e, e)))
+        R0, t0 = Rs[k], ts[k]
+    else:
+        R0, t0 = T_init[:3, :3], T_init[:3, 3]
+    x0 = np.concatenate([t0, R0[:, 0], R0[:, 1]])
+    px, py, pz = P[:, 0], P[:, 1], P[:, 2]
+
+    def residual(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        origin, X, Y = x[:3], x[3:6], x[6:]
+        e = origin + np.outer(px, X) + np.outer(py, Y) + np.outer(pz, np.cross(X, Y)) - M
+        return e, X, Y
+
+    def fun(x: np.ndarray) -> float:
+        e, _, _ = residual(x)
+        return float(np.einsum("n,ni,ni->", w, e, e))
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        e, X, Y = residual(x)
+        we = w[:, None] * e
+        gO = 2 * we.sum(axis=0)
+        gX = 2 * (px @ we + pz @ np.cross(Y, we))
+        gY = 2 * (py @ we + pz @ np.cross(we, X))
+        return np.concatenate([gO, gX, gY])
+
+    def cons(x: np.ndarray) -> np.ndarray:
+        X, Y = x[3:6], x[6:]
+        return np.array([X @ Y, X @ X - 1.0, Y @ Y - 1.0])
+
+    def cons_jac(x: np.ndarray) -> np.ndarray:
+        X, Y = x[3:6], x[6:]
+        z = np.zeros(3)
+        return np.array(
+            [
+                np.concatenate([z, Y, X]),
+                np.concatenate([z, 2 * X, z]),
+                np.concatenate([z, z, 2 * Y]),
+            ]
+        )
+
+    res = optimize.minimize(
+        fun,
+        x0,
+        jac=jac,
+        method="SLSQP",
+        constraints=[{"type": "eq", "fun": cons, "jac": cons_jac}],
+        options={"ftol": 1e-16, "maxiter": 200},
+    )
+    origin, X, Y = res.x[:3], res.x[3:6], res.x[6:]
+    U, _, Vt = np.linalg.svd(np.column_stack([X, Y, np.cross(X, Y)]))
+    return U @ Vt, origin, int(res.nit)
+
+
+# --------------------------------------------------------------- registration
+
+
+def _loo_test(
+    P: np.ndarray,
+    M: np.ndarray,
+    w: np.ndarray,
+    W: np.ndarray,
+    R: np.ndarray,
+    known_sigma: bool,
+    refine: bool,
+    alpha: float,
+) -> OutlierTest | None:
+    """Leave-one-out prediction test over all points at once (see :class:`OutlierTest`)."""
+    n = P.shape[0]
+    if n < 4:
+        return None
+    idx = np.nonzero(~np.eye(n, dtype=bool))[1].reshape(n, n - 1)
+    Rs, ts = kabsch(P[idx], M[idx], w[idx])
+    if refine:
+        Rs, ts, _ = _gauss_newton(Rs, ts, P[idx], M[idx], W[idx])
+    d = M - (np.einsum("nij,nj->ni", Rs, P) + ts)
+    J = _jacobians(R, P)
+    N = _normal_matrices(J, W)
+    cov_without = np.linalg.inv(N.sum(axis=0) - N)
+    C = np.linalg.inv(W) + np.einsum("nij,njk,nlk->nil", J, cov_without, J)
+    stat = np.einsum("ni,ni->n", d, np.linalg.solve(C, d[..., None])[..., 0])
+    level = alpha / n
+    if known_sigma:
+        threshold = float(special.chdtri(3, level))
+        k = int(np.argmax(stat))
+        p_value = float(special.chdtrc(3, stat[k]))
+    else:
+        dof = 3 * (n - 1) - 6
+        e = np.einsum("nij,nkj->nki", Rs, P[idx]) + ts[:, None, :] - M[idx]
+        ssr = np.einsum("nkij,nki,nkj->n", W[idx], e, e)
+        stat = stat / (3.0 * np.maximum(ssr / dof, 1e-24))
+        threshold = float(special.fdtri(3, dof, 1.0 - level))
+        k = int(np.argmax(stat))
+        p_value = float(special.fdtrc(3, dof, stat[k]))
+    return OutlierTest(
+        index=k,
+        flagged=bool(stat[k] > threshold),
+        statistics=stat,
+        threshold=threshold,
+        p_value=p_value,
+        loo_residuals=d,
+        known_sigma=known_sigma,
+    )
+
+
+def register_points(
+    points_base: Any,
+    points_world: Any,
+    weights: Any = None,
+    *,
+    point_cov: Any = None,
+    sigma: float | None = None,
+    base_sigma: float = 0.0,
+    method: Literal["closed_form", "optimize"] = "closed_form",
+    reject_outlier: bool = False,
+    alpha: float = 1e-3,
+) -> Registration:
+    """Localize the robot base from prism points known in the base frame and measured in the world.
+
+    Parameters
+    ----------
+    points_base
+        ``(n, 3)`` prism positions in the robot base frame (metres), n >= 3.
+    points_world
+        ``(n, 3)`` the same prisms measured in the world frame (metres).
+    weights
+        ``(n,)`` relative weights (used when ``point_cov`` is not given).
+    point_cov
+        ``(n, 3, 3)`` covariance of each measured point (m^2, world frame), e.g.
+        from :func:`fabflow.positioning.polar.polar_covariance`. Makes the fit
+        minimise the Mahalanobis cost and the covariance absolute.
+    sigma
+        Isotropic standard deviation of the measured points (metres) when
+        ``point_cov`` is not given. Without either, the noise level is
+        estimated from the residuals.
+    base_sigma
+        Isotropic standard deviation of the base-frame points (robot
+        positioning error, metres), added to every point's covariance.
+    method
+        ``"closed_form"`` (weighted Kabsch, then Gauss-Newton on the full
+        covariances) or ``"optimize"`` (the paper's SLSQP problem, eqs 7-8).
+    reject_outlier
+        Refit without the point the leave-one-out test flags (needs n >= 4).
+    alpha
+        Significance level of the outlier test (Bonferroni-corrected over n).
+
+    Returns
+    -------
+    Registration
+        ``T_world_base``, ``covariance`` (6x6), ``residuals`` (n x 3), ``rmse``, ...
+
+    Raises
+    ------
+    InputError
+        Arrays of the wrong shape, non-finite values, bad weights.
+    LocalizationError
+        Fewer than 3 points, or collinear/coincident points.
+    """
+    P = _as_points(points_base, "points_base")
+    M = _as_points(points_world, "points_world", n=P.shape[0])
+    n = P.shape[0]
+    check_geometry(P, "points_base")
+    check_geometry(M, "points_world")
+    if method not in ("closed_form", "optimize"):
+        raise InputError(f"unknown method {method!r}; expected 'closed_form' or 'optimize'")
+    known_sigma = point_cov is not None or sigma is not None
+    if point_cov is not None:
+        C = np.asarray(point_cov, dtype=float)
+        if C.shape != (n, 3, 3) or not np.all(np.isfinite(C)):
+            raise InputError(f"point_cov must be a finite ({n}, 3, 3) array, got {C.shape}")
+        C = C + base_sigma**2 * np.eye(3)
+        w = 3.0 / np.trace(C, axis1=1, axis2=2)
+    else:
+        w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
+        if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+            raise InputError(f"weights must be {n} non-negative finite numbers, not all zero")
+        s2 = (1.0 if sigma is None else sigma**2) + base_sigma**2
+        with np.errstate(divide="ignore"):
+            C = (s2 / w)[:, None, None] * np.eye(3)
+    try:
+        np.linalg.cholesky(C[w > 0])
+    except np.linalg.LinAlgError:
+        raise InputError("point_cov must be positive definite for every point") from None
+    keep = w > 0
+    if keep.sum() < 3:
+        raise LocalizationError(f"only {int(keep.sum())} points have positive weight; need 3")
+    W = np.zeros_like(C)
+    W[keep] = np.linalg.inv(C[keep])
+
+    def solve(sel: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        if method == "optimize":
+            return optimize_registration(P[sel], M[sel], w[sel])
+        R, t = kabsch(P[sel], M[sel], w[sel])
+        if point_cov is not None:
+            return _gauss_newton(R, t, P[sel], M[sel], W[sel])
+        return R, t, 0
+
+    R, t, iters = solve(keep)
+    sel_idx = np.flatnonzero(keep)
+    test = _loo_test(
+        P[keep], M[keep], w[keep], W[keep], R, known_sigma, point_cov is not None, alpha
+    )
+    rejected: tuple[int, ...] = tuple(int(i) for i in np.flatnonzero(~keep))
+    if test is not None:
+        test = OutlierTest(
+            index=int(sel_idx[test.index]),
+            flagged=test.flagged,
+            statistics=_scatter(test.statistics, sel_idx, n, np.nan),
+            threshold=test.threshold,
+            p_value=test.p_value,
+            loo_residuals=_scatter(test.loo_residuals, sel_idx, n, np.nan),
+            known_sigma=test.known_sigma,
+        )
+        if reject_outlier and test.flagged:
+            keep = keep.copy()
+            keep[test.index] = False
+            check_geometry(P[keep], "points_base without the rejected point")
+            R, t, iters = solve(keep)
+            rejected = tuple(int(i) for i in np.flatnonzero(~keep))
+
+    J = _jacobians(R, P[keep])
+    info = _normal_matrices(J, W[keep]).sum(axis=0)
+    cov = np.linalg.inv(info)
+    residuals = M - (P @ R.T + t)
+    r_in = residuals[keep]
+    dof = 3 * int(keep.sum()) - 6
+    chi2 = float(np.einsum("ni,nij,nj->", r_in, W[keep], r_in))
+    vf = chi2 / dof if dof > 0 else float("nan")
+    if not known_sigma:
+        # relative weights only: scale the covariance by the estimated variance
+        cov = cov * (vf if dof > 0 else 0.0)
+    return Registration(
+        T_world_base=make_T(R, t),
+        covariance=0.5 * (cov + cov.T),
+        residuals=residuals,
+        rmse=float(np.sqrt(np.mean(np.einsum("ni,ni->n", r_in, r_in)))),
+        method=method,
+        variance_factor=vf,
+        outlier_test=test,
+        rejected=rejected,
+        iterations=iters,
+    )
+
+
+def _scatter(values: np.ndarray, idx: np.ndarray, n: int, fill: float) -> np.ndarray:
+    out = np.full((n, *values.shape[1:]), fill)
+    out[idx] = values
+    return out
+
+
+# ------------------------------------------------------------------ three point
+
+
+def three_point_base_points(p1: Any, d: float) -> np.ndarray:
+    """The localization points of eqs 1-6 in the base frame: ``P1``, ``P1 + d x``, ``P1 + d y``."""
+    p1 = np.asarray(p1, dtype=float)
+    return p1 + np.array([[0.0, 0.0, 0.0], [d, 0.0, 0.0], [0.0, d, 0.0]])
+
+
+def three_point_localization(
+    points_world: np.ndarray, p2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eqs 1-6: base pose from the measured ``M1, M2, M3`` of ``P1, P1 + d x, P1 + d y``.
+
+    ``X = M2 - M1``, ``Y = M3 - M1``, ``Z = X x Y`` (eq 1), normalised (eq 2);
+    the paper leaves ``X`` and ``Y`` as measured, here ``Y`` is re-orthogonalised
+    as ``Z x X`` so the result is a rotation. The origin is eq 3:
+    ``O = M2 - P2x X - P2y Y - P2z Z``.
+
+    Parameters
+    ----------
+    points_world
+        ``(..., 3, 3)`` measured ``M1, M2, M3`` (metres, rows).
+    p2
+        ``(..., 3)`` the base-frame point ``P2 = P1 + d x``.
+
+    Returns
+    -------
+    R, t
+        ``(..., 3, 3)`` and ``(..., 3)``: the pose of the base in the world.
+    """
+    Mw = np.asarray(points_world, dtype=float)
+    X = Mw[..., 1, :] - Mw[..., 0, :]
+    Y = Mw[..., 2, :] - Mw[..., 0, :]
+    Z = np.cross(X, Y)
+    X = X / np.linalg.norm(X, axis=-1, keepdims=True)
+    Z = Z / np.linalg.norm(Z, axis=-1, keepdims=True)
+    Y = np.cross(Z, X)
+    R = np.stack([X, Y, Z], axis=-1)
+    p2 = np.asarray(p2, dtype=float)
+    t = Mw[..., 1, :] - np.einsum("...ij,...j->...i", R, p2)
+    return R, t
+
+
+def localize_three_point(
+    points_world: Any,
+    p1: Any,
+    d: float,
+    point_cov: Any = None,
+    base_sigma: float = 0.0,
+) -> Registration:
+    """Three-point localization (eqs 1-6) with first-order covariance.
+
+    Parameters
+    ----------
+    points_world
+        ``(3, 3)`` measured prism positions at ``P1``, ``P1 + d x``, ``P1 + d y`` (metres).
+    p1
+        ``(3,)`` the first point in the base frame (metres).
+    d
+        Step along the base x and y axes (metres, > 0).
+    point_cov
+        ``(3, 3, 3)`` covariances of the measured points (m^2); zero when None.
+    base_sigma
+        Robot positioning standard deviation (metres), added to each point.
+    """
+    M = _as_points(points_world, "points_world", n=3)
+    if not d > 0:
+        raise InputError(f"the three-point step d must be positive, got {d}")
+    P = three_point_base_points(p1, d)
+    check_geometry(M, "points_world")
+    R, t = three_point_localization(M, P[1])
+    C = np.zeros((3, 3, 3)) if point_cov is None else np.asarray(point_cov, dtype=float)
+    C = C + base_sigma**2 * np.eye(3)
+    # numerical Jacobian of [d, r] by the 9 measured coordinates (one batched call)
+    eps = 1e-6
+    Mp = np.repeat(M[None], 9, axis=0)
+    Mp.reshape(9, 9)[np.arange(9), np.arange(9)] += eps
+    Rp, tp = three_point_localization(Mp, P[1])
+    dR = Rp @ R.T
+    Jn = np.concatenate([tp - t, log_so3(dR)], axis=1).T / eps
+    C9 = np.zeros((9, 9))
+    for k in range(3):
+        C9[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = C[k]
+    cov = Jn @ C9 @ Jn.T
+    residuals = M - (P @ R.T + t)
+    return Registration(
+        T_world_base=make_T(R, t),
+        covariance=0.5 * (cov + cov.T),
+        residuals=residuals,
+        rmse=float(np.sqrt(np.mean(np.einsum("ni,ni->n", residuals, residuals)))),
+        method="three_point",
+    )
+
+
+__all__ = [
+    "OutlierTest",
+    "Registration",
+    "check_geometry",
+    "kabsch",
+    "localize_three_point",
+    "optimize_registration",
+    "register_points",
+    "three_point_base_points",
+    "three_point_localization",
+]
