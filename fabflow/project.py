@@ -452,9 +452,16 @@ class Planning(StrictModel):
     """Station planning settings."""
 
     max_stations: Annotated[int, Field(ge=1)] | None = None
+    """Fail when the plan needs more stations than this (no limit when absent)."""
     candidate_spacing: PositiveFloat = 0.25
     """Grid spacing of candidate platform positions (metres)."""
-    headings_deg: list[float] = [0.0, 90.0, 180.0, 270.0]
+    headings_deg: Annotated[list[float], Field(min_length=1)] = [0.0, 90.0, 180.0, 270.0]
+    lift_step: PositiveFloat = 0.25
+    """Spacing of the lift heights the planner considers (metres)."""
+    reach_margin: NonNegativeFloat = 0.05
+    """Every target stays this far inside the arm's reach (metres), for parking error."""
+    start: Vec2 | None = None
+    """Where the platform enters the site; the tour starts near it (default: extent_min)."""
 
 
 class ProgramSettings(StrictModel):
