@@ -1,0 +1,200 @@
+"""UWB ranging calibration and range outlier rejection (seeds/003, section 3.3.1).
+
+The calibration fits the measured range ``y`` against the true distance ``x``
+per anchor as a line ``y = a + b x`` and corrects measurements with the
+inverse ``x = (y - a) / b``. Outlier rejection drops ranges outside physical
+bounds and ranges far from the running median of their own series (NLOS
+excess delays are positive and short-lived, so a median over a short window
+is not pulled by them).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from fabflow.errors import InputError
+
+
+@dataclass(frozen=True)
+class RangeCalibration:
+    """Per-anchor linear range calibration ``y = offset + scale * x``.
+
+    Attributes
+    ----------
+    offset
+        (n_anchors,) ``a`` in metres.
+    scale
+        (n_anchors,) ``b`` (dimensionless, near 1).
+    rms
+        (n_anchors,) RMS of the fit residuals (metres); zeros when not fitted.
+    """
+
+    offset: np.ndarray
+    scale: np.ndarray
+    rms: np.ndarray | None = None
+
+    @classmethod
+    def identity(cls, n_anchors: int) -> RangeCalibration:
+        """No correction."""
+        return cls(offset=np.zeros(n_anchors), scale=np.ones(n_anchors))
+
+    @classmethod
+    def fit(cls, true_distances: np.ndarray, measured: np.ndarray) -> RangeCalibration:
+        """Fit the line per anchor from a calibration campaign.
+
+        Parameters
+        ----------
+        true_distances
+            (k,) true tag-anchor distances (metres), at least two distinct values.
+        measured
+            (k, samples, n_anchors) or (k, n_anchors) measured ranges (metres); NaN
+            marks a missing sample. Each position's samples are reduced to their
+            median (robust to stray outliers), then a line is fitted.
+        """
+        x = np.asarray(true_distances, dtype=float)
+        y = np.asarray(measured, dtype=float)
+        if y.ndim == 3:
+            y = np.nanmedian(y, axis=1)
+        if y.ndim != 2 or y.shape[0] != x.size:
+            raise InputError(
+                "calibration data must be (k, n_anchors) or (k, samples, n_anchors) with k "
+                f"matching the {x.size} true distances (got {np.shape(measured)})"
+            )
+        if np.unique(x).size < 2:
+            raise InputError("calibration needs at least two distinct true distances")
+        offset = np.empty(y.shape[1])
+        scale = np.empty(y.shape[1])
+        rms = np.empty(y.shape[1])
+        for j in range(y.shape[1]):
+            ok = np.isfinite(y[:, j])
+            if np.unique(x[ok]).size < 2:
+                raise InputError(f"calibration of anchor {j}: fewer than two distances measured")
+            A = np.column_stack([np.ones(ok.sum()), x[ok]])
+            (a, b), *_ = np.linalg.lstsq(A, y[ok, j], rcond=None)
+            if b <= 0:
+                raise InputError(f"calibration of anchor {j}: fitted scale {b:.3f} is not positive")
+            offset[j], scale[j] = a, b
+            rms[j] = float(np.sqrt(np.mean((y[ok, j] - a - b * x[ok]) ** 2)))
+        return cls(offset=offset, scale=scale, rms=rms)
+
+    def apply(self, ranges: np.ndarray) -> np.ndarray:
+        """Corrected ranges ``(y - a) / b``; the last axis indexes anchors."""
+        return (np.asarray(ranges, dtype=float) - self.offset) / self.scale
+
+    def to_dict(self, anchor_ids: list[str]) -> dict[str, dict[str, float]]:
+        """``{anchor_id: {"offset": a, "scale": b}}``."""
+        return {
+            k: {"offset": float(a), "scale": float(b)}
+            for k, a, b in zip(anchor_ids, self.offset, self.scale, strict=True)
+        }
+
+    @classmethod
+    def from_mapping(
+        cls, data: Mapping[str, Any], anchor_ids: list[str], source: str = "calibration"
+    ) -> RangeCalibration:
+        """Read ``{anchor_id: {"offset": a, "scale": b}}``; missing anchors are uncorrected."""
+        unknown = sorted(set(data) - set(anchor_ids))
+        if unknown:
+            raise InputError(f"calibration names unknown anchors {unknown}", source)
+        cal = cls.identity(len(anchor_ids))
+        for j, k in enumerate(anchor_ids):
+            if k in data:
+                entry = data[k]
+                cal.offset[j] = float(entry.get("offset", 0.0))
+                cal.scale[j] = float(entry.get("scale", 1.0))
+                if cal.scale[j] <= 0:
+                    raise InputError(f"calibration of {k}: scale must be positive", source)
+        return cal
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """Result of :func:`reject_outliers`.
+
+    Attributes
+    ----------
+    ranges
+        The input with rejected ranges set to NaN.
+    rejected
+        Boolean mask of ranges rejected by this call (not those already NaN).
+    out_of_bounds
+        Boolean mask of the rejected ranges that were physically impossible.
+    """
+
+    ranges: np.ndarray
+    rejected: np.ndarray
+    out_of_bounds: np.ndarray
+
+
+def running_median(series: np.ndarray, window: int, causal: bool = False) -> np.ndarray:
+    """NaN-aware running median along axis 0.
+
+    Parameters
+    ----------
+    series
+        (N, ...) samples in time order.
+    window
+        Window length in samples (odd for a centred window).
+    causal
+        Use only the current and past samples (for online use) instead of a
+        centred window.
+    """
+    x = np.asarray(series, dtype=float)
+    window = max(1, int(window))
+    if causal:
+        pad = [(window - 1, 0)] + [(0, 0)] * (x.ndim - 1)
+    else:
+        pad = [(window // 2, window - 1 - window // 2)] + [(0, 0)] * (x.ndim - 1)
+    padded = np.pad(x, pad, mode="constant", constant_values=np.nan)
+    view = sliding_window_view(padded, window, axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows give NaN
+        return np.nanmedian(view, axis=-1)
+
+
+def reject_outliers(
+    ranges: np.ndarray,
+    sigma: np.ndarray | float,
+    window: int = 15,
+    k: float = 3.0,
+    min_range: float = 0.0,
+    max_range: float = 100.0,
+    floor: float = 0.1,
+    causal: bool = False,
+) -> Rejection:
+    """Reject physically impossible ranges and ranges far from their running median.
+
+    Parameters
+    ----------
+    ranges
+        (N, ...) calibrated ranges in time order (metres), one series per trailing
+        index (anchor, or tag and anchor); NaN for missing.
+    sigma
+        Range noise standard deviation (metres), scalar or broadcastable to ``ranges``.
+    window
+        Running median window (samples). Keep it short against the motion: at
+        60 Hz and 0.3 m/s, 15 samples span 7.5 cm of travel.
+    k
+        A range is rejected when ``|range - median| > max(k * sigma, floor)``.
+    min_range, max_range
+        Physical bounds (metres): below ``min_range`` or beyond ``max_range`` is rejected.
+    floor
+        Smallest rejection threshold (metres).
+    causal
+        Use a causal window (online processing).
+    """
+    y = np.asarray(ranges, dtype=float)
+    finite = np.isfinite(y)
+    oob = finite & ((y < min_range) | (y > max_range))
+    clean = np.where(oob, np.nan, y)
+    med = running_median(clean, window, causal=causal)
+    thr = np.maximum(k * np.asarray(sigma, dtype=float), floor)
+    far = np.isfinite(clean) & (np.abs(clean - med) > thr)
+    rejected = oob | far
+    return Rejection(ranges=np.where(rejected, np.nan, y), rejected=rejected, out_of_bounds=oob)

@@ -1,0 +1,526 @@
+"""UWB ranging simulator: error model, per-anchor bias, calibration campaign, trajectories.
+
+The error model follows the UWB paper (seeds/003, section 3.3.1) and common
+two-way-ranging behaviour: a measured range is
+
+``y = a + b * d + sigma(d) * n + e_nlos``
+
+with ``d`` the true tag-anchor distance (metres), ``(a, b)`` an unknown linear
+bias per anchor (what the ranging calibration fits), ``sigma(d)`` a noise
+standard deviation growing with distance and ``e_nlos`` a positive excess
+delay on a small fraction of ranges (non-line-of-sight).
+
+Trajectories are planar paths at a fixed height with rounded corners, driven
+with a smooth (cosine ramp) speed profile, so position, velocity and
+acceleration are all analytic; the IMU simulator (:mod:`fabflow.sim.imu`)
+differentiates nothing numerically.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fabflow.errors import InputError
+
+
+@dataclass(frozen=True)
+class UwbErrorModel:
+    """How a simulated UWB range deviates from the true distance.
+
+    Attributes
+    ----------
+    sigma_1m
+        Range noise standard deviation at 1 m (metres).
+    growth
+        Increase of the noise standard deviation per metre of range (m/m).
+    nlos_prob
+        Probability that a line-of-sight range carries an NLOS excess.
+    nlos_excess
+        (low, high) bounds of the uniform NLOS excess (metres, positive).
+    nlos_prob_occluded
+        Probability of an NLOS excess on a range whose line of sight is blocked.
+    offset_range
+        (low, high) bounds of the uniform per-anchor range offset ``a`` (metres).
+    scale_sigma
+        Standard deviation of the per-anchor scale ``b - 1``.
+    """
+
+    sigma_1m: float = 0.05
+    growth: float = 0.01
+    nlos_prob: float = 0.02
+    nlos_excess: tuple[float, float] = (0.3, 1.5)
+    nlos_prob_occluded: float = 0.5
+    offset_range: tuple[float, float] = (0.05, 0.25)
+    scale_sigma: float = 0.005
+
+    @classmethod
+    def gaussian(cls, sigma: float) -> UwbErrorModel:
+        """Unbiased Gaussian noise of constant standard deviation ``sigma``, no outliers."""
+        return cls(
+            sigma_1m=sigma,
+            growth=0.0,
+            nlos_prob=0.0,
+            nlos_prob_occluded=0.0,
+            offset_range=(0.0, 0.0),
+            scale_sigma=0.0,
+        )
+
+    def without_outliers(self) -> UwbErrorModel:
+        """The same model with the NLOS outliers switched off."""
+        return UwbErrorModel(
+            sigma_1m=self.sigma_1m,
+            growth=self.growth,
+            nlos_prob=0.0,
+            nlos_excess=self.nlos_excess,
+            nlos_prob_occluded=0.0,
+            offset_range=self.offset_range,
+            scale_sigma=self.scale_sigma,
+        )
+
+    def sigma(self, distance: np.ndarray | float) -> np.ndarray:
+        """Range noise standard deviation (metres) at ``distance`` (metres)."""
+        d = np.asarray(distance, dtype=float)
+        return np.maximum(self.sigma_1m + self.growth * (d - 1.0), 0.25 * self.sigma_1m)
+
+
+@dataclass(frozen=True)
+class AnchorBias:
+    """Per-anchor linear range bias: measured mean ``= offset + scale * distance``."""
+
+    offset: np.ndarray
+    scale: np.ndarray
+
+    @classmethod
+    def none(cls, n_anchors: int) -> AnchorBias:
+        """No bias (offset 0, scale 1)."""
+        return cls(offset=np.zeros(n_anchors), scale=np.ones(n_anchors))
+
+
+def draw_bias(n_anchors: int, model: UwbErrorModel, rng: np.random.Generator) -> AnchorBias:
+    """Draw the unknown per-anchor bias of one UWB installation."""
+    lo, hi = model.offset_range
+    return AnchorBias(
+        offset=rng.uniform(lo, hi, n_anchors),
+        scale=1.0 + model.scale_sigma * rng.standard_normal(n_anchors),
+    )
+
+
+@dataclass(frozen=True)
+class SimulatedRanges:
+    """Simulated ranges and the truth behind them.
+
+    Attributes
+    ----------
+    ranges
+        Measured ranges (..., n_anchors), metres.
+    true_ranges
+        True distances, same shape.
+    nlos
+        Boolean mask of ranges that carry an NLOS excess.
+    """
+
+    ranges: np.ndarray
+    true_ranges: np.ndarray
+    nlos: np.ndarray
+
+
+def simulate_ranges(
+    anchors: np.ndarray,
+    tags: np.ndarray,
+    model: UwbErrorModel,
+    rng: np.random.Generator,
+    bias: AnchorBias | None = None,
+    occluded: np.ndarray | None = None,
+) -> SimulatedRanges:
+    """Simulate UWB ranges from tag positions to every anchor.
+
+    Parameters
+    ----------
+    anchors
+        (n_anchors, dim) anchor positions (metres).
+    tags
+        (..., dim) tag positions in the same frame (metres).
+    model
+        The error model.
+    rng
+        Random generator.
+    bias
+        Per-anchor bias; none when omitted.
+    occluded
+        Optional boolean mask (..., n_anchors) of blocked lines of sight, which get
+        ``model.nlos_prob_occluded`` instead of ``model.nlos_prob``.
+    """
+    anchors = np.asarray(anchors, dtype=float)
+    tags = np.asarray(tags, dtype=float)
+    d = np.linalg.norm(tags[..., None, :] - anchors, axis=-1)
+    if bias is None:
+        bias = AnchorBias.none(anchors.shape[0])
+    p = np.full(d.shape, model.nlos_prob)
+    if occluded is not None:
+        p = np.where(occluded, model.nlos_prob_occluded, p)
+    nlos = rng.random(d.shape) < p
+    excess = np.where(nlos, rng.uniform(*model.nlos_excess, d.shape), 0.0)
+    noise = model.sigma(d) * rng.standard_normal(d.shape)
+    y = bias.offset + bias.scale * d + noise + excess
+    return SimulatedRanges(ranges=y, true_ranges=d, nlos=nlos)
+
+
+def calibration_campaign(
+    model: UwbErrorModel,
+    bias: AnchorBias,
+    rng: np.random.Generator,
+    distances: np.ndarray | None = None,
+    samples: int = 200,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Simulate the paper's line-of-sight ranging calibration (section 3.3.1).
+
+    A tag is placed at known distances from each anchor (default 0.5 to 10 m in
+    0.5 m steps) and ``samples`` ranges are recorded at each.
+
+    Returns
+    -------
+    distances
+        (k,) true distances (metres).
+    measured
+        (k, samples, n_anchors) measured ranges (metres).
+    """
+    if distances is None:
+        distances = np.arange(0.5, 10.0 + 1e-9, 0.5)
+    distances = np.asarray(distances, dtype=float)
+    n = bias.offset.shape[0]
+    d = np.broadcast_to(distances[:, None, None], (distances.size, samples, n))
+    noise = model.sigma(d) * rng.standard_normal(d.shape)
+    return distances, bias.offset + bias.scale * d + noise
+
+
+def segments_occluded(
+    starts: np.ndarray, ends: np.ndarray, T_world_boxes: np.ndarray, extents: np.ndarray
+) -> np.ndarray:
+    """Whether each line segment passes through any of a set of oriented boxes.
+
+    Parameters
+    ----------
+    starts, ends
+        (m, 3) segment end points in the world (metres).
+    T_world_boxes
+        (k, 4, 4) box centre frames in the world.
+    extents
+        (k, 3) box side lengths along the box axes (metres).
+
+    Returns
+    -------
+    np.ndarray
+        (m,) boolean.
+    """
+    starts = np.asarray(starts, dtype=float)
+    ends = np.asarray(ends, dtype=float)
+    if len(T_world_boxes) == 0:
+        return np.zeros(starts.shape[0], dtype=bool)
+    R = T_world_boxes[:, :3, :3]
+    t = T_world_boxes[:, :3, 3]
+    # segment end points in every box frame: (m, k, 3)
+    p0 = np.einsum("kji,mkj->mki", R, starts[:, None, :] - t[None])
+    p1 = np.einsum("kji,mkj->mki", R, ends[:, None, :] - t[None])
+    half = 0.5 * np.asarray(extents, dtype=float)[None]
+    dirv = p1 - p0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / dirv
+        ta = (-half - p0) * inv
+        tb = (half - p0) * inv
+    parallel = np.abs(dirv) < 1e-12
+    inside_slab = np.abs(p0) <= half
+    tmin = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(ta, tb))
+    tmax = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(ta, tb))
+    enter = np.maximum(tmin.max(axis=-1), 0.0)
+    leave = np.minimum(tmax.min(axis=-1), 1.0)
+    return np.any(enter < leave, axis=1)
+
+
+# ---------------------------------------------------------------- trajectories
+
+
+@dataclass(frozen=True)
+class TrajectorySample:
+    """Kinematic truth at given times (world frame, platform level: roll = pitch = 0).
+
+    Attributes
+    ----------
+    t
+        (N,) times (s).
+    p, v, a
+        (N, 3) position (m), velocity (m/s), acceleration (m/s^2).
+    yaw, yaw_rate
+        (N,) heading about the world z axis (rad) and its rate (rad/s).
+    """
+
+    t: np.ndarray
+    p: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+    yaw: np.ndarray
+    yaw_rate: np.ndarray
+
+    @property
+    def R_world_body(self) -> np.ndarray:
+        """(N, 3, 3) body attitude (rotation about z by ``yaw``)."""
+        c, s = np.cos(self.yaw), np.sin(self.yaw)
+        R = np.zeros((self.yaw.size, 3, 3))
+        R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+        return R
+
+
+@dataclass(frozen=True)
+class PlanarTrajectory:
+    """A planar path at height ``z`` through waypoints, corners rounded, driven smoothly.
+
+    The platform rests ``rest_s`` seconds, accelerates with a cosine ramp of
+    ``ramp_s`` seconds to ``speed``, follows the path (lines and circular arcs of
+    ``corner_radius``), decelerates and rests again. The heading follows the
+    path tangent.
+
+    Attributes
+    ----------
+    waypoints
+        (k, 2) plan waypoints (metres), k >= 2.
+    z
+        Height of the path (metres).
+    speed, corner_radius, ramp_s, rest_s
+        Cruise speed (m/s), corner fillet radius (m), ramp and rest durations (s).
+    name
+        Label used in reports.
+    """
+
+    waypoints: np.ndarray
+    z: float
+    speed: float = 0.3
+    corner_radius: float = 0.3
+    ramp_s: float = 1.5
+    rest_s: float = 3.0
+    name: str = "path"
+    _segs: dict[str, np.ndarray] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        w = np.asarray(self.waypoints, dtype=float)
+        if w.ndim != 2 or w.shape[1] != 2 or w.shape[0] < 2:
+            raise InputError("a trajectory needs at least two (x, y) waypoints")
+        object.__setattr__(self, "waypoints", w)
+        object.__setattr__(self, "_segs", self._build(w))
+
+    def _build(self, w: np.ndarray) -> dict[str, np.ndarray]:
+        u = np.diff(w, axis=0)
+        lengths = np.linalg.norm(u, axis=1)
+        if np.any(lengths <= 0):
+            raise InputError("trajectory waypoints must be distinct")
+        u = u / lengths[:, None]
+        trim = np.zeros(len(w))
+        kinds, starts, lens, origin, direction, center, theta0, turn = (
+            [],
+            [],
+            [],
+            [],
+            [],
+            [],
+            [],
+            [],
+        )
+        r = self.corner_radius
+        arcs = []
+        for i in range(1, len(w) - 1):
+            cross = u[i - 1, 0] * u[i, 1] - u[i - 1, 1] * u[i, 0]
+            phi = np.arccos(np.clip(u[i - 1] @ u[i], -1.0, 1.0))
+            L = r * np.tan(phi / 2)
+            trim[i] = L
+            arcs.append((phi, L, np.sign(cross)))
+        if np.any(trim[1:] + trim[:-1] > lengths + 1e-12):
+            raise InputError("trajectory corner radius is too large for the waypoint spacing")
+        s = 0.0
+        for i in range(len(w) - 1):
+            p0 = w[i] + u[i] * trim[i]
+            seg_len = lengths[i] - trim[i] - trim[i + 1]
+            kinds.append(0)
+            starts.append(s)
+            lens.append(seg_len)
+            origin.append(p0)
+            direction.append(u[i])
+            center.append((0.0, 0.0))
+            theta0.append(0.0)
+            turn.append(0.0)
+            s += seg_len
+            if i < len(w) - 2 and arcs[i][2] != 0:
+                phi, L, sign = arcs[i]
+                p1 = w[i + 1] - u[i] * L
+                normal = np.array([-u[i, 1], u[i, 0]])
+                c = p1 + sign * r * normal
+                kinds.append(1)
+                starts.append(s)
+                lens.append(r * phi)
+                origin.append(p1)
+                direction.append(u[i])
+                center.append(c)
+                theta0.append(np.arctan2(p1[1] - c[1], p1[0] - c[0]))
+                turn.append(sign)
+                s += r * phi
+        return {
+            "kind": np.array(kinds),
+            "start": np.array(starts),
+            "length": np.array(lens),
+            "origin": np.array(origin),
+            "dir": np.array(direction),
+            "center": np.array(center),
+            "theta0": np.array(theta0),
+            "turn": np.array(turn),
+        }
+
+    @property
+    def path_length(self) -> float:
+        """Length of the path (metres)."""
+        return float(self._segs["start"][-1] + self._segs["length"][-1])
+
+    @property
+    def _profile(self) -> tuple[float, float, float]:
+        """(cruise speed, ramp time, cruise time) for this path length."""
+        L = self.path_length
+        v, Tr = self.speed, self.ramp_s
+        if v * Tr > L:
+            v = L / Tr
+        return v, Tr, (L - v * Tr) / v
+
+    @property
+    def duration(self) -> float:
+        """Total duration including both rests (s)."""
+        _, Tr, Tc = self._profile
+        return 2 * self.rest_s + 2 * Tr + Tc
+
+    def _arclength(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        v, Tr, Tc = self._profile
+        L = self.path_length
+        tau = t - self.rest_s
+        s = np.zeros_like(t)
+        sd = np.zeros_like(t)
+        sdd = np.zeros_like(t)
+        up = (tau > 0) & (tau <= Tr)
+        x = np.pi * tau[up] / Tr
+        s[up] = 0.5 * v * (tau[up] - Tr / np.pi * np.sin(x))
+        sd[up] = 0.5 * v * (1 - np.cos(x))
+        sdd[up] = 0.5 * v * np.pi / Tr * np.sin(x)
+        cruise = (tau > Tr) & (tau <= Tr + Tc)
+        s[cruise] = 0.5 * v * Tr + v * (tau[cruise] - Tr)
+        sd[cruise] = v
+        down = (tau > Tr + Tc) & (tau < 2 * Tr + Tc)
+        tr = 2 * Tr + Tc - tau[down]
+        x = np.pi * tr / Tr
+        s[down] = L - 0.5 * v * (tr - Tr / np.pi * np.sin(x))
+        sd[down] = 0.5 * v * (1 - np.cos(x))
+        sdd[down] = -0.5 * v * np.pi / Tr * np.sin(x)
+        s[tau >= 2 * Tr + Tc] = L
+        return s, sd, sdd
+
+    def sample(self, t: np.ndarray) -> TrajectorySample:
+        """Position, velocity, acceleration and heading at times ``t`` (seconds)."""
+        t = np.asarray(t, dtype=float)
+        s, sd, sdd = self._arclength(t)
+        g = self._segs
+        i = np.clip(np.searchsorted(g["start"], s, side="right") - 1, 0, len(g["start"]) - 1)
+        ds = np.clip(s - g["start"][i], 0.0, g["length"][i])
+        arc = g["kind"][i] == 1
+        r = self.corner_radius
+        sign = g["turn"][i]
+        theta = g["theta0"][i] + sign * ds / r
+        cth, sth = np.cos(theta), np.sin(theta)
+        pos_arc = g["center"][i] + r * np.stack([cth, sth], axis=1)
+        tan_arc = sign[:, None] * np.stack([-sth, cth], axis=1)
+        curv_arc = -np.stack([cth, sth], axis=1) / r
+        pos_line = g["origin"][i] + ds[:, None] * g["dir"][i]
+        pos = np.where(arc[:, None], pos_arc, pos_line)
+        tangent = np.where(arc[:, None], tan_arc, g["dir"][i])
+        curvature = np.where(arc[:, None], curv_arc, 0.0)
+        n = t.size
+        p = np.column_stack([pos, np.full(n, self.z)])
+        v = np.column_stack([tangent * sd[:, None], np.zeros(n)])
+        a = np.column_stack([curvature * (sd**2)[:, None] + tangent * sdd[:, None], np.zeros(n)])
+        yaw = np.arctan2(tangent[:, 1], tangent[:, 0])
+        yaw_rate = np.where(arc, sign * sd / r, 0.0)
+        return TrajectorySample(t=t, p=p, v=v, a=a, yaw=yaw, yaw_rate=yaw_rate)
+
+
+def ranging_schedule(
+    duration: float, rate_hz: float, n_anchors: int, n_tags: int = 1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Timestamps of a two-way-ranging schedule: rounds at ``rate_hz``, ranges staggered.
+
+    Each round ranges every (tag, anchor) pair in turn, evenly spread over the
+    round, so every range has its own timestamp.
+
+    Returns
+    -------
+    t
+        (n_rounds, n_tags, n_anchors) timestamps (s).
+    tag_index, anchor_index
+        Index arrays of the same shape.
+    """
+    n_rounds = int(np.floor(duration * rate_hz))
+    k = n_tags * n_anchors
+    slot = np.arange(k).reshape(n_tags, n_anchors) / (k * rate_hz)
+    t = np.arange(n_rounds)[:, None, None] / rate_hz + slot[None]
+    tag_index = np.broadcast_to(np.arange(n_tags)[None, :, None], t.shape)
+    anchor_index = np.broadcast_to(np.arange(n_anchors)[None, None, :], t.shape)
+    return t, tag_index, anchor_index
+
+
+# The paper's layouts (seeds/003, sections 4.1 and 4.2), in metres.
+PAPER_ANCHORS_3D = np.array(
+    [[0.0, 0.0, 1.00], [4.80, 0.0, 1.00], [4.80, 6.00, 1.00], [0.0, 6.00, 3.20]]
+)
+"""Table 2 layout: A1..A4."""
+PAPER_POINTS_3D = np.array(
+    [
+        [1.85, 1.70, 2.00],
+        [1.85, 3.20, 2.00],
+        [0.75, 3.80, 2.20],
+        [2.25, 3.80, 2.20],
+        [1.85, 1.70, 2.40],
+        [1.85, 3.20, 2.40],
+    ]
+)
+"""Table 2 test points."""
+PAPER_ANCHORS_2D = np.array(
+    [[0.0, 0.0, 2.20], [6.60, 0.0, 2.20], [6.60, 7.00, 2.20], [0.0, 7.00, 2.20]]
+)
+"""The 6.6 x 7.0 m layout of section 4.1.1, anchors at 2.20 m (corners assumed; the paper
+gives only the extent)."""
+PAPER_POINTS_2D = np.array(
+    [
+        [1.60, 1.96],
+        [1.60, 3.46],
+        [1.60, 4.96],
+        [2.35, 1.96],
+        [2.35, 4.96],
+        [3.10, 1.96],
+        [3.10, 3.46],
+        [3.10, 4.96],
+    ]
+)
+"""Table 1 test points."""
+
+
+def paper_trajectories() -> dict[str, list[PlanarTrajectory]]:
+    """The moving experiments of the paper as simulated trajectories.
+
+    ``rect2d`` (table 3: 1.5 x 3.0 m rectangle at 2.10/2.20/2.30 m, 2D layout),
+    ``line3d`` (table 4: straight line at 1.60/2.00/2.40 m), ``rect3d`` (table 5:
+    rectangle at 2.00/2.10/2.20 m) and ``u`` (table 7: U-shape driven by the
+    platform, tag at 2.0 m, 2D layout). The paper gives the shapes and heights,
+    not their placement; they are centred in the anchor area here.
+    """
+    rect3 = np.array([[1.65, 1.5], [3.15, 1.5], [3.15, 4.5], [1.65, 4.5], [1.65, 1.6]])
+    rect2 = rect3 + np.array([0.9, 0.5])
+    line = np.array([[1.2, 1.5], [3.6, 4.5]])
+    u = np.array([[2.0, 5.0], [2.0, 2.0], [4.4, 2.0], [4.4, 5.0]])
+    return {
+        "rect2d": [PlanarTrajectory(rect2, h, name=f"rect2d H={h:.2f}") for h in (2.1, 2.2, 2.3)],
+        "line3d": [PlanarTrajectory(line, h, name=f"line3d H={h:.2f}") for h in (1.6, 2.0, 2.4)],
+        "rect3d": [PlanarTrajectory(rect3, h, name=f"rect3d H={h:.2f}") for h in (2.0, 2.1, 2.2)],
+        "u": [PlanarTrajectory(u, 2.0, name="u H=2.00")],
+    }
