@@ -1,0 +1,413 @@
+"""Iterative Closest Point registration (point-to-point and point-to-plane).
+
+:func:`icp` aligns a source cloud to a target cloud: it returns the 4x4 transform
+``T`` mapping source points into the target frame (for scan-to-map
+localization: ``T_world_lidar``), with the quality figures fitness and inlier
+RMSE and a 6x6 covariance of the pose in fabflow's convention (see
+:mod:`fabflow.positioning.result`: errors ``[dx, dy, dz, rx, ry, rz]`` expressed in
+the target frame, ``T_true = [Exp(r) R, t + d]``).
+
+The algorithm: nearest-neighbour correspondences from a KD-tree over the target
+(:class:`scipy.spatial.cKDTree`, all cores, pruned at the current maximum
+correspondence distance); a coarse-to-fine schedule of maximum correspondence
+distances; a robust kernel (iteratively reweighted least squares); each step is
+the closed-form weighted Kabsch solution (point-to-point) or one Gauss-Newton
+step of the linearized point-to-plane problem. A stage ends when the relative
+changes of fitness and inlier RMSE both drop below their tolerances, or the step
+becomes negligible, or after ``max_iterations``.
+
+Build the target once with :func:`prepare_target` when the same map is used for
+many registrations (scan-to-map localization): its KD-tree and normals are then
+not recomputed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.pointcloud import as_points, estimate_normals
+from fabflow.transforms.se3 import apply_T
+from fabflow.transforms.so3 import exp_so3, skew
+
+FloatArray = NDArray[np.float64]
+Method = Literal["point_to_point", "point_to_plane"]
+Kernel = Literal["none", "huber", "tukey", "cauchy"]
+
+MIN_CORRESPONDENCES = 10
+"""Fewer inlier correspondences than this is a failed registration."""
+
+
+@dataclass(frozen=True, eq=False)
+class IcpTarget:
+    """A target cloud prepared for repeated registration.
+
+    Attributes
+    ----------
+    points
+        ``(M, 3)`` target points (metres, target frame).
+    normals
+        ``(M, 3)`` unit normals, or ``None`` (point-to-point only).
+    tree
+        KD-tree over ``points``.
+    """
+
+    points: FloatArray
+    normals: FloatArray | None
+    tree: cKDTree
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def prepare_target(
+    points: ArrayLike,
+    normals: ArrayLike | None = None,
+    *,
+    with_normals: bool = True,
+    normal_k: int = 20,
+) -> IcpTarget:
+    """Build the KD-tree (and normals, if not given) of a target cloud.
+
+    Parameters
+    ----------
+    points
+        ``(M, 3)`` target points (metres).
+    normals
+        ``(M, 3)`` normals to use; estimated by PCA over ``normal_k`` neighbours when
+        ``None`` and ``with_normals`` is true.
+    with_normals
+        Whether normals are needed (point-to-plane).
+    normal_k
+        Neighbourhood size for normal estimation.
+    """
+    p = as_points(points, "target")
+    if len(p) < MIN_CORRESPONDENCES:
+        raise InputError(f"target cloud needs at least {MIN_CORRESPONDENCES} points, has {len(p)}")
+    tree = cKDTree(p)
+    n: FloatArray | None = None
+    if normals is not None:
+        n = as_points(normals, "target normals")
+        if len(n) != len(p):
+            raise InputError("target normals must have one row per target point")
+    elif with_normals:
+        n = estimate_normals(p, k=normal_k, tree=tree)  # type: ignore[assignment]
+    return IcpTarget(points=p, normals=n, tree=tree)
+
+
+@dataclass(frozen=True, eq=False)
+class IcpResult:
+    """The outcome of one ICP registration.
+
+    Attributes
+    ----------
+    T
+        4x4 transform mapping source points into the target frame.
+    fitness
+        Fraction of source points with a correspondence within the final maximum
+        correspondence distance (0..1).
+    inlier_rmse
+        RMS distance of those correspondences (metres; point-to-plane distances for
+        ``point_to_plane``, Euclidean for ``point_to_point``).
+    iterations
+        Total iterations over all stages.
+    covariance
+        6x6 covariance of ``T`` over ``[dx, dy, dz, rx, ry, rz]`` (target frame;
+        m^2, rad^2), from the Gauss-Newton information and the residual variance.
+    information
+        The 6x6 information matrix (inverse covariance, from the final correspondences).
+    n_inliers
+        Number of inlier correspondences at the end.
+    converged
+        Whether the final stage met its convergence tolerances before ``max_iterations``.
+    condition
+        Ratio of smallest to largest eigenvalue of the information matrix
+        (0 = degenerate geometry, e.g. a single plane).
+    residuals
+        ``(n_inliers,)`` final residuals (metres; signed point-to-plane distances or
+        Euclidean distances).
+    """
+
+    T: FloatArray
+    fitness: float
+    inlier_rmse: float
+    iterations: int
+    covariance: FloatArray
+    information: FloatArray
+    n_inliers: int
+    converged: bool
+    condition: float
+    residuals: FloatArray
+
+    @property
+    def transformation(self) -> FloatArray:
+        """Alias of :attr:`T` (Open3D's name)."""
+        return self.T
+
+
+def _kernel_weights(r: FloatArray, kernel: Kernel, scale: float) -> FloatArray:
+    if kernel == "none":
+        return np.ones_like(r)
+    a = np.abs(r) / scale
+    if kernel == "huber":
+        return np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))
+    if kernel == "tukey":
+        return np.where(a < 1.0, (1.0 - a * a) ** 2, 0.0)
+    return 1.0 / (1.0 + a * a)
+
+
+def _kabsch(p: FloatArray, q: FloatArray, w: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Weighted rigid transform (R, t) minimizing sum w |R p + t - q|^2."""
+    ws = w.sum()
+    cp = (w[:, None] * p).sum(axis=0) / ws
+    cq = (w[:, None] * q).sum(axis=0) / ws
+    H = (w[:, None] * (p - cp)).T @ (q - cq)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ D @ U.T
+    return R, cq - R @ cp
+
+
+def _plane_system(
+    p: FloatArray, n: FloatArray, r: FloatArray, w: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Weighted normal equations of point-to-plane residuals r = n.(p - q).
+
+    Rows of the Jacobian for the update ``p <- Exp(w) p + v`` are ``[n, p x n]``.
+    """
+    J = np.empty((len(p), 6))
+    J[:, :3] = n
+    J[:, 3:] = np.cross(p, n)
+    Jw = J * w[:, None]
+    return Jw.T @ J, Jw.T @ r
+
+
+def _covariance(info_unit: FloatArray, sigma2: float) -> tuple[FloatArray, FloatArray, float]:
+    evals, evecs = np.linalg.eigh(info_unit)
+    top = max(float(evals[-1]), 1e-300)
+    condition = float(max(evals[0], 0.0) / top)
+    floor = top * 1e-12
+    inv = (evecs / np.maximum(evals, floor)) @ evecs.T
+    info = info_unit / max(sigma2, 1e-18)
+    return inv * sigma2, info, condition
+
+
+def icp(
+    source: ArrayLike,
+    target: ArrayLike | IcpTarget,
+    init: ArrayLike | None = None,
+    method: Method = "point_to_plane",
+    max_correspondence_distance: float | Sequence[float] = (1.0, 0.3, 0.1),
+    max_iterations: int = 30,
+    relative_fitness: float = 1e-4,
+    relative_rmse: float = 1e-4,
+    kernel: Kernel = "huber",
+    kernel_scale: float | None = None,
+    target_normals: ArrayLike | None = None,
+) -> IcpResult:
+    """Register ``source`` to ``target`` with ICP.
+
+    Parameters
+    ----------
+    source
+        ``(N, 3)`` source points (metres, source frame).
+    target
+        ``(M, 3)`` target points (metres, target frame), or an :class:`IcpTarget` from
+        :func:`prepare_target` (reuses its KD-tree and normals).
+    init
+        Initial 4x4 guess of the source-to-target transform (identity when ``None``).
+    method
+        ``"point_to_plane"`` (needs target normals; estimated if absent) or
+        ``"point_to_point"``.
+    max_correspondence_distance
+        Maximum correspondence distance in metres, or a coarse-to-fine schedule of
+        them (one ICP stage per value, in the given order). Fitness and RMSE refer to
+        the last value.
+    max_iterations
+        Iteration limit per stage.
+    relative_fitness, relative_rmse
+        A stage has converged when the relative changes of fitness and of inlier
+        RMSE between iterations both fall below these.
+    kernel
+        Robust kernel for iteratively reweighted least squares: ``"huber"``,
+        ``"tukey"``, ``"cauchy"`` or ``"none"``.
+    kernel_scale
+        Kernel scale (metres); default: a third of the stage's correspondence distance.
+    target_normals
+        ``(M, 3)`` target normals when ``target`` is an array (else estimated).
+
+    Returns
+    -------
+    IcpResult
+        ``.T``, ``.fitness``, ``.inlier_rmse``, ``.iterations``, ``.covariance`` and more.
+
+    Raises
+    ------
+    InputError
+        Malformed inputs (shapes, non-finite values, an unknown method or kernel).
+    LocalizationError
+        Fewer than 10 correspondences within the correspondence distance at any
+        stage: the initial guess is too far off or the clouds do not overlap.
+    """
+    if method not in ("point_to_point", "point_to_plane"):
+        raise InputError(
+            f"unknown ICP method {method!r}; expected point_to_plane or point_to_point"
+        )
+    if kernel not in ("none", "huber", "tukey", "cauchy"):
+        raise InputError(f"unknown robust kernel {kernel!r}; expected huber, tukey, cauchy or none")
+    src = as_points(source, "source")
+    if isinstance(target, IcpTarget):
+        tgt = target
+        if method == "point_to_plane" and tgt.normals is None:
+            tgt = prepare_target(tgt.points)
+    else:
+        tgt = prepare_target(target, target_normals, with_normals=method == "point_to_plane")
+    schedule = np.atleast_1d(np.asarray(max_correspondence_distance, dtype=float))
+    if schedule.ndim != 1 or len(schedule) == 0 or np.any(schedule <= 0):
+        raise InputError("max_correspondence_distance must be positive (or a list of them)")
+    T = np.eye(4) if init is None else np.array(init, dtype=float).reshape(4, 4)
+    if not np.all(np.isfinite(T)):
+        raise InputError("init must be a finite 4x4 matrix")
+    if len(src) < MIN_CORRESPONDENCES:
+        raise InputError(
+            f"source cloud needs at least {MIN_CORRESPONDENCES} points, has {len(src)}"
+        )
+
+    plane = method == "point_to_plane"
+    q_all = tgt.points
+    n_all = tgt.normals
+    iterations = 0
+    converged = False
+    for dmax in schedule:
+        scale = float(kernel_scale) if kernel_scale is not None else float(dmax) / 3.0
+        prev: tuple[float, float] | None = None
+        converged = False
+        for _ in range(max_iterations):
+            p = apply_T(T, src)
+            d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=-1)
+            ok = np.isfinite(d)
+            n_ok = int(ok.sum())
+            if n_ok < MIN_CORRESPONDENCES:
+                raise LocalizationError(
+                    f"ICP found only {n_ok} correspondences within {dmax:g} m; "
+                    "the initial pose is too far off or the clouds do not overlap"
+                )
+            p, ii = p[ok], idx[ok]
+            q = q_all[ii]
+            if plane:
+                assert n_all is not None
+                nn = n_all[ii]
+                r = np.einsum("ij,ij->i", p - q, nn)
+            else:
+                r = d[ok]
+            fitness = n_ok / len(src)
+            rmse = float(np.sqrt(np.mean(r * r)))
+            if prev is not None:
+                df = abs(fitness - prev[0]) / max(fitness, 1e-12)
+                dr = abs(rmse - prev[1]) / max(rmse, 1e-12)
+                if df < relative_fitness and dr < relative_rmse:
+                    converged = True
+                    break
+            prev = (fitness, rmse)
+            w = _kernel_weights(r, kernel, scale)
+            iterations += 1
+            if plane:
+                A, b = _plane_system(p, nn, r, w)
+                try:
+                    x = -np.linalg.solve(A + 1e-12 * np.trace(A) * np.eye(6), b)
+                except np.linalg.LinAlgError:
+                    raise LocalizationError(
+                        "ICP normal equations are singular (degenerate geometry)"
+                    ) from None
+                dT = np.eye(4)
+                dT[:3, :3] = exp_so3(x[3:])
+                dT[:3, 3] = x[:3]
+                step = x
+            else:
+                R, t = _kabsch(p, q, w)
+                dT = np.eye(4)
+                dT[:3, :3] = R
+                dT[:3, 3] = t
+                step = np.concatenate([t, [np.linalg.norm(R - np.eye(3))]])
+            T = dT @ T
+            if np.max(np.abs(step)) < 1e-9:
+                converged = True
+                break
+
+    return _final_result(
+        src, tgt, T, float(schedule[-1]), plane, kernel, scale, iterations, converged
+    )
+
+
+def _final_result(
+    src: FloatArray,
+    tgt: IcpTarget,
+    T: FloatArray,
+    dmax: float,
+    plane: bool,
+    kernel: Kernel,
+    scale: float,
+    iterations: int,
+    converged: bool,
+) -> IcpResult:
+    p = apply_T(T, src)
+    d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=-1)
+    ok = np.isfinite(d)
+    n_ok = int(ok.sum())
+    if n_ok < MIN_CORRESPONDENCES:
+        raise LocalizationError(f"ICP ended with only {n_ok} correspondences within {dmax:g} m")
+    p, ii = p[ok], idx[ok]
+    q = tgt.points[ii]
+    # Jacobian w.r.t. fabflow's pose error [d, r] applied as [Exp(r) R, t + d]:
+    # p_true = Exp(r) R s + t + d, so dp/dd = I and dp/dr = -skew(R s).
+    Rs = p - T[:3, 3]
+    if plane:
+        assert tgt.normals is not None
+        nn = tgt.normals[ii]
+        r = np.einsum("ij,ij->i", p - q, nn)
+        w = _kernel_weights(r, kernel, scale)
+        J = np.empty((n_ok, 6))
+        J[:, :3] = nn
+        J[:, 3:] = np.cross(Rs, nn)
+        info_unit = (J * w[:, None]).T @ J
+        dof = max(n_ok - 6, 1)
+        sigma2 = float(np.sum(w * r * r) / dof)
+        rmse = float(np.sqrt(np.mean(r * r)))
+        residuals = r
+    else:
+        e = p - q
+        r = np.linalg.norm(e, axis=1)
+        w = _kernel_weights(r, kernel, scale)
+        S = skew(Rs)
+        sw = w.sum()
+        Ssum = (w[:, None, None] * S).sum(axis=0)
+        StS = np.einsum("n,nji,njk->ik", w, S, S)
+        info_unit = np.zeros((6, 6))
+        info_unit[:3, :3] = sw * np.eye(3)
+        info_unit[:3, 3:] = -Ssum
+        info_unit[3:, :3] = -Ssum.T
+        info_unit[3:, 3:] = StS
+        dof = max(3 * n_ok - 6, 1)
+        sigma2 = float(np.sum(w * r * r) / dof)
+        rmse = float(np.sqrt(np.mean(r * r)))
+        residuals = r
+    cov, info, condition = _covariance(info_unit, sigma2)
+    return IcpResult(
+        T=T,
+        fitness=n_ok / len(src),
+        inlier_rmse=rmse,
+        iterations=iterations,
+        covariance=cov,
+        information=info,
+        n_inliers=n_ok,
+        converged=converged,
+        condition=condition,
+        residuals=residuals,
+    )
