@@ -67,21 +67,10 @@ class PoseSpec(StrictModel):
 
     def matrix(self) -> np.ndarray:
         """The pose as a 4x4 homogeneous matrix (metres)."""
-        a, b, c = (math.radians(v) for v in self.abc_deg)
-        ca, sa, cb, sb, cc, sc = (
-            math.cos(a),
-            math.sin(a),
-            math.cos(b),
-            math.sin(b),
-            math.cos(c),
-            math.sin(c),
-        )
+        from fabflow.transforms.so3 import matrix_from_abc
+
         T = np.eye(4)
-        T[:3, :3] = [
-            [ca * cb, ca * sb * sc - sa * cc, ca * sb * cc + sa * sc],
-            [sa * cb, sa * sb * sc + ca * cc, sa * sb * cc - ca * sc],
-            [-sb, cb * sc, cb * cc],
-        ]
+        T[:3, :3] = matrix_from_abc(*np.radians(self.abc_deg))
         T[:3, 3] = self.xyz
         return T
 
