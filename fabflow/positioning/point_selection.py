@@ -1,0 +1,415 @@
+"""Choosing the prism points for a total station localization (paper 001, eqs 9-11).
+
+The points should be spread as far as the robot's workspace allows: eq 10
+maximises ``sum |P_i|^2 + sum_{i<j} |P_i - P_j|^2`` subject to eq 11, every point
+inside the reach sphere ``|P_i - c| <= r`` (``c = (0, 0, h)`` in the paper), in
+front of the robot (``x > 0``) and above the ground (``z > 0``).
+
+Near a structure under construction a chosen point may be unusable. The
+obstacle-avoiding search of the paper grows spheres around the desired point
+in 10 cm steps, puts an equally spaced grid of candidates on each sphere and
+takes the first candidate for which the tool's bounding box is clear of the
+structure, the segment from the arm's shoulder to the point is clear (the arm
+passes there), the point lies in the workspace and, beyond the paper, the line
+of sight from the instrument is clear and the point keeps a minimum distance
+from the points already chosen.
+
+All coordinates are in the robot base frame, metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import optimize
+
+from fabflow.design.elements import Element
+from fabflow.errors import InputError, LocalizationError
+
+REACH_SPHERES: dict[str, tuple[tuple[float, float, float], float]] = {
+    "kuka_kr60_3": ((0.35, 0.0, 0.815), 2.03),
+    "ur10e": ((0.0, 0.0, 0.181), 1.30),
+    "abb_irb4600_60_205": ((0.175, 0.0, 0.495), 2.05),
+    "brokk_170": ((0.0, 0.0, 0.6), 2.8),
+}
+"""Fallback reach spheres ``(shoulder centre, radius)`` per robot model (base frame, metres)."""
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """Where the prism may be placed (eq 11), in the base frame.
+
+    Attributes
+    ----------
+    center
+        Centre of the reach sphere (the shoulder; ``(0, 0, h)`` in the paper), metres.
+    reach
+        Reach sphere radius ``r`` (metres).
+    x_min
+        Points must have ``x > x_min`` (in front of the robot).
+    z_min
+        Points must have ``z > z_min`` (above the ground or deck).
+    margin
+        Fraction of the reach kept free so the arm is never fully stretched.
+    min_radius
+        Points must be at least this far from ``center`` (metres).
+    """
+
+    center: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    reach: float = 2.55
+    x_min: float = 0.0
+    z_min: float = 0.0
+    margin: float = 0.1
+    min_radius: float = 0.3
+
+    @property
+    def radius(self) -> float:
+        """Usable radius ``reach * (1 - margin)`` (metres)."""
+        return self.reach * (1.0 - self.margin)
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Boolean mask of the ``(..., 3)`` points that satisfy eq 11 (with margin)."""
+        p = np.asarray(points, dtype=float)
+        r = np.linalg.norm(p - np.asarray(self.center), axis=-1)
+        return (
+            (r <= self.radius + 1e-6)
+            & (r >= self.min_radius)
+            & (p[..., 0] > self.x_min)
+            & (p[..., 2] > self.z_min)
+        )
+
+
+def workspace_for_robot(model: str, z_min: float = 0.0, margin: float = 0.1) -> Workspace:
+    """The workspace of a robot model from the robot catalogue, else :data:`REACH_SPHERES`.
+
+    Uses ``fabflow.robots.get_robot(model)`` when it exists (reach sphere about
+    the shoulder: the origin of DH frame 1); the table otherwise.
+    """
+    try:
+        from fabflow.robots import get_robot
+
+        robot = get_robot(model)
+        T1 = robot.fk_frames(np.zeros(robot.dof))[1] if hasattr(robot, "fk_frames") else None
+        center = tuple(float(v) for v in T1[:3, 3]) if T1 is not None else None
+        reach = float(robot.reach)
+    except (ImportError, AttributeError, KeyError, IndexError, TypeError):
+        center, reach = None, None
+    if center is None or reach is None:
+        if model not in REACH_SPHERES:
+            raise InputError(f"no reach sphere known for robot model {model!r}")
+        center, reach = REACH_SPHERES[model]
+    return Workspace(center=center, reach=reach, z_min=z_min, margin=margin)
+
+
+# ------------------------------------------------------------ eqs 9-11
+
+
+def spread_objective(points: np.ndarray) -> float:
+    """Eq 10: ``sum |P_i|^2 + sum_{i<j} |P_i - P_j|^2`` (m^2) of ``(n, 3)`` points."""
+    P = np.asarray(points, dtype=float)
+    n = P.shape[0]
+    s = P.sum(axis=0)
+    return float((n + 1) * np.sum(P * P) - s @ s)
+
+
+def optimal_points(
+    n: int,
+    workspace: Workspace,
+    rng: np.random.Generator,
+    n_starts: int = 4,
+) -> np.ndarray:
+    """Solve eqs 9-11: ``n`` localization points of maximal spread in the workspace.
+
+    SLSQP from ``n_starts`` random feasible starts (analytic gradients); the
+    best local optimum is returned.
+
+    Parameters
+    ----------
+    n
+        Number of points (>= 3).
+    workspace
+        Reach sphere and half-space constraints (base frame).
+    rng
+        Source of the random starts.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n, 3)`` points in the base frame (metres).
+    """
+    if n < 3:
+        raise InputError(f"need at least 3 localization points, got {n}")
+    c = np.asarray(workspace.center, dtype=float)
+    rad = workspace.radius - 1e-6
+    eps = 1e-3
+
+    def fun(x: np.ndarray) -> float:
+        return -spread_objective(x.reshape(n, 3))
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        P = x.reshape(n, 3)
+        return -(2.0 * (n + 1) * P - 2.0 * P.sum(axis=0)).ravel()
+
+    def ineq(x: np.ndarray) -> np.ndarray:
+        P = x.reshape(n, 3)
+        d = P - c
+        return np.concatenate(
+            [
+                rad**2 - np.einsum("ni,ni->n", d, d),
+                P[:, 0] - workspace.x_min - eps,
+                P[:, 2] - workspace.z_min - eps,
+            ]
+        )
+
+    def ineq_jac(x: np.ndarray) -> np.ndarray:
+        P = x.reshape(n, 3)
+        Jc = np.zeros((3 * n, n, 3))
+        rows = np.arange(n)
+        Jc[rows, rows] = -2.0 * (P - c)
+        Jc[n + rows, rows, 0] = 1.0
+        Jc[2 * n + rows, rows, 2] = 1.0
+        return Jc.reshape(3 * n, 3 * n)
+
+    best: np.ndarray | None = None
+    best_f = np.inf
+    for _ in range(n_starts):
+        x0 = sample_workspace(workspace, n, rng).ravel()
+        res = optimize.minimize(
+            fun,
+            x0,
+            jac=jac,
+            method="SLSQP",
+            constraints=[{"type": "ineq", "fun": ineq, "jac": ineq_jac}],
+            options={"maxiter": 200, "ftol": 1e-8},
+        )
+        if res.fun < best_f and np.all(ineq(res.x) >= -1e-6):
+            best_f, best = float(res.fun), res.x.reshape(n, 3)
+    if best is None:
+        raise LocalizationError(
+            "the point selection found no feasible configuration; check the workspace "
+            f"(reach {workspace.reach} m, z_min {workspace.z_min} m)"
+        )
+    return best
+
+
+def sample_workspace(workspace: Workspace, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``(n, 3)`` points drawn uniformly from the workspace (rejection sampling)."""
+    c = np.asarray(workspace.center, dtype=float)
+    out = np.zeros((0, 3))
+    for _ in range(100):
+        cand = c + rng.uniform(-workspace.radius, workspace.radius, (max(4 * n, 64), 3))
+        out = np.concatenate([out, cand[workspace.contains(cand)]])
+        if len(out) >= n:
+            return out[:n]
+    raise LocalizationError(
+        f"the workspace (reach {workspace.reach} m about {workspace.center}, "
+        f"z > {workspace.z_min}, x > {workspace.x_min}) is empty"
+    )
+
+
+# ------------------------------------------------------------ obstacle avoidance
+
+
+@dataclass(frozen=True, eq=False)
+class Boxes:
+    """Oriented boxes (the structure built so far) in the base frame.
+
+    Attributes
+    ----------
+    T_base_box
+        ``(k, 4, 4)`` box centre frames.
+    extents
+        ``(k, 3)`` full side lengths along the box axes (metres).
+    """
+
+    T_base_box: np.ndarray
+    extents: np.ndarray
+
+    @classmethod
+    def empty(cls) -> Boxes:
+        """No obstacles."""
+        return cls(np.zeros((0, 4, 4)), np.zeros((0, 3)))
+
+    def __len__(self) -> int:
+        return int(self.extents.shape[0])
+
+
+def boxes_from_elements(elements: Sequence[Element], T_world_base: np.ndarray) -> Boxes:
+    """The box-shaped elements (blocks with ``extents``) as :class:`Boxes` in the base frame."""
+    boxed = [e for e in elements if getattr(e, "extents", None) is not None]
+    if not boxed:
+        return Boxes.empty()
+    frames = np.stack([np.asarray(e.T_world_element, float) for e in boxed])
+    ext = np.stack([np.asarray(e.extents, float) for e in boxed])
+    T_base_world = np.linalg.inv(np.asarray(T_world_base, dtype=float))
+    return Boxes(T_base_world @ frames, ext)
+
+
+def boxes_overlap(centers: np.ndarray, half_extents: np.ndarray, boxes: Boxes) -> np.ndarray:
+    """Whether axis-aligned boxes at ``centers`` overlap any oriented box (separating axes).
+
+    Parameters
+    ----------
+    centers
+        ``(m, 3)`` centres of the axis-aligned (base frame) boxes.
+    half_extents
+        ``(3,)`` half side lengths of those boxes.
+    boxes
+        The oriented obstacles.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(m,)`` boolean.
+    """
+    m = centers.shape[0]
+    if len(boxes) == 0:
+        return np.zeros(m, dtype=bool)
+    R = boxes.T_base_box[:, :3, :3]
+    eb = 0.5 * boxes.extents
+    ha = np.asarray(half_extents, dtype=float)
+    A = np.broadcast_to(np.eye(3), R.shape)
+    B = np.swapaxes(R, 1, 2)  # rows: box axes in the base frame
+    cross = np.cross(A[:, :, None, :], B[:, None, :, :]).reshape(-1, 9, 3)
+    axes = np.concatenate([A, B, cross], axis=1)  # (k, 15, 3)
+    rA = np.abs(axes) @ ha  # (k, 15)
+    rB = np.einsum("kab,kb->ka", np.abs(np.einsum("kai,kbi->kab", axes, B)), eb)
+    d = boxes.T_base_box[None, :, :3, 3] - centers[:, None, :]  # (m, k, 3)
+    sep = np.abs(np.einsum("mki,kai->mka", d, axes)) > (rA + rB)[None] + 1e-12
+    return np.any(~np.any(sep, axis=2), axis=1)
+
+
+def segments_hit(starts: np.ndarray, ends: np.ndarray, boxes: Boxes) -> np.ndarray:
+    """Whether segments ``starts -> ends`` ((m, 3); ``starts`` may be (3,)) cross any box."""
+    ends = np.asarray(ends, dtype=float)
+    starts = np.broadcast_to(np.asarray(starts, dtype=float), ends.shape)
+    if len(boxes) == 0:
+        return np.zeros(ends.shape[0], dtype=bool)
+    R = boxes.T_base_box[:, :3, :3]
+    t = boxes.T_base_box[:, :3, 3]
+    p0 = np.einsum("kji,mkj->mki", R, starts[:, None, :] - t[None])
+    p1 = np.einsum("kji,mkj->mki", R, ends[:, None, :] - t[None])
+    half = 0.5 * boxes.extents[None]
+    direction = p1 - p0
+    parallel = np.abs(direction) < 1e-12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (-half - p0) / direction
+        tb = (half - p0) / direction
+    inside = np.abs(p0) <= half
+    tmin = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb))
+    tmax = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb))
+    enter = np.maximum(tmin.max(axis=-1), 0.0)
+    leave = np.minimum(tmax.min(axis=-1), 1.0)
+    return np.any(enter < leave, axis=1)
+
+
+def sphere_grid(n: int) -> np.ndarray:
+    """``(n, 3)`` nearly equally spaced unit vectors (Fibonacci lattice)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+@dataclass(frozen=True)
+class ClearanceRules:
+    """The criteria a localization point must meet (step 2c of the paper's search).
+
+    Attributes
+    ----------
+    tool_half_extents
+        Half side lengths of the tool's bounding box centred on the prism (metres).
+    sight_from
+        Instrument position in the base frame; the line of sight to it must be clear.
+    min_separation
+        Smallest distance between two chosen points (metres).
+    """
+
+    tool_half_extents: tuple[float, float, float] = (0.15, 0.15, 0.2)
+    sight_from: tuple[float, float, float] | None = None
+    min_separation: float = 0.25
+
+
+def clear_mask(
+    candidates: np.ndarray,
+    workspace: Workspace,
+    boxes: Boxes,
+    rules: ClearanceRules,
+    chosen: np.ndarray | None = None,
+) -> np.ndarray:
+    """``(m,)`` mask of candidate points meeting every criterion of :class:`ClearanceRules`."""
+    ok = workspace.contains(candidates)
+    ok &= ~boxes_overlap(candidates, np.asarray(rules.tool_half_extents), boxes)
+    ok &= ~segments_hit(np.asarray(workspace.center, float), candidates, boxes)
+    if rules.sight_from is not None:
+        ok &= ~segments_hit(np.asarray(rules.sight_from, float), candidates, boxes)
+    if chosen is not None and len(chosen):
+        gap = np.linalg.norm(candidates[:, None, :] - chosen[None], axis=-1).min(axis=1)
+        ok &= gap >= rules.min_separation
+    return ok
+
+
+def avoid_obstacles(
+    points: np.ndarray,
+    workspace: Workspace,
+    boxes: Boxes,
+    rules: ClearanceRules | None = None,
+    step: float = 0.10,
+    max_radius: float = 1.5,
+    spacing: float = 0.10,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Move each desired point to the nearest clear one (the paper's growing-sphere search).
+
+    For a point that fails a criterion, spheres of radius ``step``,
+    ``2 step``, ... around it are tried; each carries an equally spaced grid
+    of about one candidate per ``spacing^2`` of area (at least 12). The first
+    clear candidate of the smallest sphere is taken.
+
+    Parameters
+    ----------
+    points
+        ``(n, 3)`` desired points (base frame, metres).
+    workspace, boxes, rules
+        The criteria (see :func:`clear_mask`).
+    step, max_radius, spacing
+        Search sphere growth, largest radius, grid spacing (metres).
+
+    Returns
+    -------
+    points, moved
+        ``(n, 3)`` clear points and ``(n,)`` how far each was moved (metres).
+
+    Raises
+    ------
+    LocalizationError
+        When no clear point lies within ``max_radius`` of a desired point.
+    """
+    rules = rules or ClearanceRules()
+    P = np.asarray(points, dtype=float)
+    out = np.zeros_like(P)
+    moved = np.zeros(P.shape[0])
+    for i, p in enumerate(P):
+        chosen = out[:i]
+        if clear_mask(p[None], workspace, boxes, rules, chosen)[0]:
+            out[i] = p
+            continue
+        r = step
+        while r <= max_radius + 1e-9:
+            k = max(12, int(np.ceil(4 * np.pi * r * r / spacing**2)))
+            cand = p + r * sphere_grid(k)
+            ok = clear_mask(cand, workspace, boxes, rules, chosen)
+            if ok.any():
+                out[i] = cand[int(np.argmax(ok))]
+                moved[i] = r
+                break
+            r += step
+        else:
+            raise LocalizationError(
+                f"no clear localization point within {max_radius} m of "
+                f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) in the base frame: the structure, "
+                "the workspace or the line of sight blocks every candidate"
+            )
+    return out, moved
