@@ -6,6 +6,7 @@ covariance convention of :mod:`fabflow.positioning.result`).
 """
 
 from fabflow.transforms.errors import (
+    DegenerateFrameError,
     DisconnectedFramesError,
     FrameCycleError,
     FrameError,
@@ -13,6 +14,8 @@ from fabflow.transforms.errors import (
     RotationError,
     UnknownFrameError,
 )
+from fabflow.transforms.graph import COVARIANCE_TOL, FrameGraph, check_covariance
+from fabflow.transforms.pose import Pose
 from fabflow.transforms.se3 import (
     adjoint,
     apply_R,
@@ -46,13 +49,25 @@ from fabflow.transforms.so3 import (
     rotvec_from_quat,
     skew,
 )
+from fabflow.transforms.vendors import (
+    from_abb_pose,
+    from_kuka_xyzabc,
+    from_ur_pose,
+    to_abb_pose,
+    to_kuka_xyzabc,
+    to_ur_pose,
+)
 
 __all__ = [
+    "COVARIANCE_TOL",
     "QUATERNION_TOL",
     "ROTATION_TOL",
+    "DegenerateFrameError",
     "DisconnectedFramesError",
     "FrameCycleError",
     "FrameError",
+    "FrameGraph",
+    "Pose",
     "QuaternionError",
     "RotationError",
     "UnknownFrameError",
@@ -60,6 +75,7 @@ __all__ = [
     "adjoint",
     "apply_R",
     "apply_T",
+    "check_covariance",
     "check_rotation",
     "compose_T",
     "compose_covariance",
@@ -67,6 +83,9 @@ __all__ = [
     "error_from_body_twist",
     "exp_T",
     "exp_so3",
+    "from_abb_pose",
+    "from_kuka_xyzabc",
+    "from_ur_pose",
     "inv_T",
     "inverse_covariance",
     "inverse_jacobian",
@@ -82,5 +101,8 @@ __all__ = [
     "relative_T",
     "rotvec_from_quat",
     "skew",
+    "to_abb_pose",
+    "to_kuka_xyzabc",
+    "to_ur_pose",
     "twist_from_error",
 ]

@@ -32,3 +32,7 @@ class FrameCycleError(FrameError):
 
 class DisconnectedFramesError(FrameError):
     """Two frames exist but are not connected by any chain of poses."""
+
+
+class DegenerateFrameError(InputError):
+    """Three points do not define a frame (coincident or collinear points)."""
