@@ -203,6 +203,30 @@ class TotalStationSetup(StrictModel):
     n_points: Annotated[int, Field(ge=3, le=50)] = 4
     observations: ExistingPath | None = None
     """Optional measured observations (CSV or Leica GSI); simulated when absent."""
+    robot_points: ExistingPath | None = None
+    """Prism positions in the base frame (CSV point_id,x_m,y_m,z_m) matching ``observations``."""
+    instrument_height: float = 0.0
+    """Trunnion height above ``T_world_instrument`` (metres; 0 when the pose is the trunnion)."""
+    three_point_step: PositiveFloat = 0.8
+    """Distance d of the three-point procedure: P1, P1 + d x, P1 + d y (metres)."""
+    z_min: float = 0.1
+    """Lowest allowed prism height above the arm base (metres)."""
+    tool_half_extents: tuple[PositiveFloat, PositiveFloat, PositiveFloat] = (0.15, 0.15, 0.2)
+    """Half sizes of the tool's bounding box around the prism, kept clear of the structure."""
+
+    @model_validator(mode="after")
+    def _custom_and_files(self) -> TotalStationSetup:
+        if self.instrument == "custom" and None in (
+            self.distance_sigma_mm,
+            self.distance_ppm,
+            self.angle_sigma_arcsec,
+        ):
+            raise ValueError(
+                "instrument 'custom' needs distance_sigma_mm, distance_ppm and angle_sigma_arcsec"
+            )
+        if (self.observations is None) != (self.robot_points is None):
+            raise ValueError("'observations' and 'robot_points' must be given together")
+        return self
 
 
 class IcpSetup(StrictModel):
