@@ -19,8 +19,8 @@ All coordinates are in the robot base frame, metres.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import optimize
@@ -55,6 +55,9 @@ class Workspace:
         Fraction of the reach kept free so the arm is never fully stretched.
     min_radius
         Points must be at least this far from ``center`` (metres).
+    reachable
+        Optional exact reach test ``(m, 3) -> (m,)`` bool (inverse kinematics),
+        applied on top of the sphere.
     """
 
     center: tuple[float, float, float] = (0.0, 0.0, 1.0)
@@ -63,6 +66,7 @@ class Workspace:
     z_min: float = 0.0
     margin: float = 0.1
     min_radius: float = 0.3
+    reachable: Callable[[np.ndarray], np.ndarray] | None = field(default=None, compare=False)
 
     @property
     def radius(self) -> float:
@@ -73,12 +77,16 @@ class Workspace:
         """Boolean mask of the ``(..., 3)`` points that satisfy eq 11 (with margin)."""
         p = np.asarray(points, dtype=float)
         r = np.linalg.norm(p - np.asarray(self.center), axis=-1)
-        return (
+        ok = (
             (r <= self.radius + 1e-6)
             & (r >= self.min_radius)
             & (p[..., 0] > self.x_min)
             & (p[..., 2] > self.z_min)
         )
+        if self.reachable is not None and ok.any():
+            flat = ok.reshape(-1)
+            flat[flat] = self.reachable(p.reshape(-1, 3)[flat])
+        return ok
 
 
 def workspace_for_robot(model: str, z_min: float = 0.0, margin: float = 0.1) -> Workspace:

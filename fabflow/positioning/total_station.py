@@ -22,16 +22,41 @@ Solvers
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Literal
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from scipy import optimize, special
 
 from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.point_selection import (
+    ClearanceRules,
+    Workspace,
+    avoid_obstacles,
+    boxes_from_elements,
+    clear_mask,
+    optimal_points,
+    workspace_for_robot,
+)
+from fabflow.positioning.polar import (
+    Instrument,
+    Observations,
+    make_instrument,
+    polar_covariance,
+    polar_to_cartesian,
+    simulate_polar,
+    to_world,
+)
 from fabflow.positioning.result import BasePose
-from fabflow.transforms.se3 import make_T
+from fabflow.project import TotalStationSetup
+from fabflow.transforms.se3 import apply_T, inv_T, make_T
 from fabflow.transforms.so3 import exp_so3, log_so3, skew
+
+if TYPE_CHECKING:
+    from fabflow.design.elements import Element
+    from fabflow.project import Project
 
 COLLINEAR_RATIO = 1e-3
 """Smallest accepted ratio of the second to the first principal spread of the points."""
@@ -682,14 +707,226 @@ def localize_three_point(
     )
 
 
-__all__ = [
-    "OutlierTest",
-    "Registration",
-    "check_geometry",
-    "kabsch",
-    "localize_three_point",
-    "optimize_registration",
-    "register_points",
-    "three_point_base_points",
-    "three_point_localization",
-]
+# --------------------------------------------------------------- observations
+
+
+def localize_observations(
+    observations: Observations,
+    robot_ids: Sequence[str],
+    robot_points: np.ndarray,
+    instrument: Instrument,
+    T_world_instrument: np.ndarray | None = None,
+    base_sigma: float = 0.0,
+    method: Literal["closed_form", "optimize"] = "closed_form",
+    reject_outlier: bool = True,
+) -> tuple[Registration, tuple[str, ...]]:
+    """Register measured observations against robot points matched by point id.
+
+    Parameters
+    ----------
+    observations
+        Polar readings or coordinates from a file (:mod:`fabflow.positioning.ts_io`).
+    robot_ids, robot_points
+        Ids and ``(n, 3)`` prism positions in the base frame (metres).
+    instrument
+        Accuracy model used for the point covariances.
+    T_world_instrument
+        Instrument pose in the world (identity: the instrument frame is the world).
+    base_sigma
+        Robot positioning standard deviation (metres).
+    method, reject_outlier
+        As in :func:`register_points`.
+
+    Returns
+    -------
+    registration, ids
+        The result and the matched point ids in the order of its residuals.
+    """
+    seen: dict[str, int] = {}
+    for k, pid in enumerate(observations.point_ids):
+        if pid in seen:
+            raise InputError(
+                f"point id {pid!r} is observed twice",
+                observations.source,
+                f"line {observations.lines[k]}" if observations.lines else None,
+            )
+        seen[pid] = k
+    index = {pid: k for k, pid in enumerate(robot_ids)}
+    matched = [pid for pid in observations.point_ids if pid in index]
+    if len(matched) < 3:
+        raise LocalizationError(
+            f"only {len(matched)} observed point id(s) match the robot points "
+            f"(observed: {', '.join(observations.point_ids[:8])}; robot: "
+            f"{', '.join(list(robot_ids)[:8])}); need at least 3",
+            observations.source,
+        )
+    M_all, C_all = observations.points(instrument, T_world_instrument)
+    rows = np.array([seen[pid] for pid in matched])
+    P = np.asarray(robot_points, dtype=float)[[index[pid] for pid in matched]]
+    reg = register_points(
+        P,
+        M_all[rows],
+        point_cov=C_all[rows],
+        base_sigma=base_sigma,
+        method=method,
+        reject_outlier=reject_outlier,
+    )
+    return reg, tuple(matched)
+
+
+# ------------------------------------------------------------------ simulator
+
+
+@dataclass(frozen=True, eq=False)
+class _Kinematics:
+    """Reach test and forward kinematics of the prism for one robot and tool."""
+
+    workspace: Workspace
+    robot: Any
+    T_flange_tool: np.ndarray
+
+    def reachable(self, points: np.ndarray) -> np.ndarray:
+        T = self._tool_poses(points)
+        _, valid = self.robot.ik_batch(T @ inv_T(self.T_flange_tool))
+        return valid.any(axis=1)
+
+    def _tool_poses(self, points: np.ndarray) -> np.ndarray:
+        # the prism sits at the TCP; the tool points down (as in the reach maps)
+        R_down = np.diag([1.0, -1.0, -1.0])
+        return make_T(np.broadcast_to(R_down, (len(points), 3, 3)), points)
+
+    def prism_points(self, points: np.ndarray) -> np.ndarray:
+        """Joint solutions for the desired points, then the prism positions by FK."""
+        T_base_flange = self._tool_poses(points) @ inv_T(self.T_flange_tool)
+        if self.robot.analytic_ik is not None:
+            q, valid = self.robot.ik_batch(T_base_flange)
+            bad = ~valid.any(axis=1)
+            q = q[np.arange(len(points)), np.argmax(valid, axis=1)]
+        else:
+            sols = [self.robot.ik(T) for T in T_base_flange]
+            bad = np.array([len(s) == 0 for s in sols])
+            q = np.stack([s[0] if s else np.zeros(self.robot.dof) for s in sols])
+        if bad.any():
+            p = points[int(np.argmax(bad))]
+            raise LocalizationError(
+                f"{self.robot.name} cannot reach the localization point "
+                f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) with the tool pointing down"
+            )
+        return (self.robot.fk(q) @ self.T_flange_tool)[:, :3, 3]
+
+
+def _kinematics(model: str, T_flange_tool: np.ndarray, z_min: float) -> _Kinematics | None:
+    try:
+        from fabflow.robots import get_robot
+    except ImportError:
+        return None
+    robot = get_robot(model)
+    shoulder = robot.frames(np.zeros(robot.dof))[1][:3, 3]
+    ws = Workspace(center=(0.0, 0.0, float(shoulder[2])), reach=float(robot.reach), z_min=z_min)
+    if robot.analytic_ik is None:
+        return _Kinematics(ws, robot, T_flange_tool)
+    kin = _Kinematics(ws, robot, T_flange_tool)
+    return _Kinematics(replace(ws, reachable=kin.reachable), robot, T_flange_tool)
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_optimal_points(n: int, workspace: Workspace) -> np.ndarray:
+    # a fixed seed: the same workspace always gets the same points
+    return optimal_points(n, replace(workspace, reachable=None), np.random.default_rng(0))
+
+
+def instrument_for(setup: TotalStationSetup) -> Instrument:
+    """The accuracy model of a project's total station setup."""
+    return make_instrument(
+        setup.instrument, setup.distance_sigma_mm, setup.distance_ppm, setup.angle_sigma_arcsec
+    )
+
+
+def localize_station(
+    project: Project,
+    T_world_base: np.ndarray,
+    rng: np.random.Generator,
+    station_id: str | None = None,
+    built: Sequence[Element] = (),
+) -> BasePose:
+    """Simulate a total station localization of the robot base at one station.
+
+    The prism points are chosen in the base frame (eqs 9-11 for the
+    ``arbitrary`` procedure, then moved clear of ``built`` and of the line of
+    sight; ``P1, P1 + d x, P1 + d y`` for ``three_point``), reached by
+    inverse kinematics and placed by forward kinematics of the project's robot.
+    The true prism positions (plus the robot's repeatability noise) are
+    observed from ``T_world_instrument`` with the instrument's noise, and the
+    base pose is estimated from the readings.
+
+    Parameters
+    ----------
+    project
+        The project (``localization.total_station``, ``robot``, ``simulation``).
+    T_world_base
+        True 4x4 pose of the robot base in the world (metres).
+    rng
+        Source of all noise.
+    station_id
+        Stored in the result.
+    built
+        Elements already built (obstacles for the prism, the arm and the line of sight).
+
+    Returns
+    -------
+    BasePose
+        Estimated pose with covariance, residuals and quality figures.
+    """
+    setup = project.localization.total_station or TotalStationSetup()
+    instrument = instrument_for(setup)
+    T_world_instrument = setup.T_world_instrument.matrix()
+    T_world_instrument[:3, 3] += T_world_instrument[:3, 2] * setup.instrument_height
+    T_world_base = np.asarray(T_world_base, dtype=float)
+    T_base_world = inv_T(T_world_base)
+    T_flange_tool = project.robot.tool.T_flange_tool.matrix()
+    kin = _kinematics(project.robot.model, T_flange_tool, setup.z_min)
+    ws = kin.workspace if kin is not None else workspace_for_robot(project.robot.model, setup.z_min)
+    boxes = boxes_from_elements(built, T_world_base)
+    rules = ClearanceRules(
+        tool_half_extents=setup.tool_half_extents,
+        sight_from=tuple(float(v) for v in apply_T(T_base_world, T_world_instrument[:3, 3])),
+    )
+    moved = np.zeros(0)
+    if setup.procedure == "three_point":
+        d = setup.three_point_step
+        c = np.asarray(ws.center)
+        p1 = c + np.array([0.55 * ws.radius - 0.5 * d, -0.5 * d, 0.0])
+        P_des = three_point_base_points(p1, d)
+        ok = clear_mask(P_des, ws, boxes, rules)
+        if not ok.all():
+            raise LocalizationError(
+                f"station {station_id}: three-point localization point P{int(np.argmin(ok)) + 1} "
+                "is blocked or out of reach; use procedure 'arbitrary'"
+            )
+    else:
+        P_des, moved = avoid_obstacles(_cached_optimal_points(setup.n_points, ws), ws, boxes, rules)
+    P_base = kin.prism_points(P_des) if kin is not None else P_des
+    sigma_robot = project.simulation.robot_repeatability
+    P_true = P_base + rng.normal(0.0, 1.0, P_base.shape) * sigma_robot
+    p_instr = apply_T(inv_T(T_world_instrument), apply_T(T_world_base, P_true))
+    hz, v, sd = simulate_polar(p_instr, instrument, rng)
+    M, C = to_world(
+        T_world_instrument, polar_to_cartesian(hz, v, sd), polar_covariance(hz, v, sd, instrument)
+    )
+    assert C is not None
+    if setup.procedure == "three_point":
+        reg = localize_three_point(M, P_base[0], setup.three_point_step, C, sigma_robot)
+    else:
+        reg = register_points(
+            P_base, M, point_cov=C, base_sigma=sigma_robot, reject_outlier=setup.n_points >= 5
+        )
+    quality = {
+        "procedure": setup.procedure,
+        "instrument": instrument.name,
+        "points_base": P_base.tolist(),
+        "points_world": M.tolist(),
+        "slope_distances": sd.tolist(),
+        "moved_for_obstacles": moved.tolist(),
+        "kinematics": "ik+fk" if kin is not None else "reach sphere",
+    }
+    return reg.to_base_pose(station=station_id, quality=quality)
