@@ -1,0 +1,489 @@
+"""The viser scene of a :class:`~fabflow.preview.model.PreviewModel`.
+
+Every mesh is sent once, when the scene is built. Moving to another step
+(:meth:`PreviewScene.set_step`) or changing the colour mode only updates
+instance scales (visibility), instance colours and node poses: all blocks are
+one batched mesh, and a block is hidden by giving its instance a zero scale.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import trimesh
+import viser
+
+from fabflow.errors import InputError
+from fabflow.preview.model import STATION_PALETTE, PreviewModel
+from fabflow.project import Project, TotalStationSetup
+from fabflow.transforms.so3 import quat_from_matrix
+
+BLOCK_GAP = 0.003
+"""Blocks are drawn this much smaller (metres) so neighbouring blocks read as separate."""
+GHOST_COLOUR = (205, 210, 218)
+GHOST_OPACITY = 0.18
+ARM_COLOUR = (255, 112, 0)
+JOINT_COLOUR = (60, 60, 66)
+PLATFORM_COLOUR = (74, 80, 92)
+LINK_RADIUS = 0.07
+
+
+def _quat_z_to(directions: np.ndarray) -> np.ndarray:
+    """(N, 4) quaternions (w, x, y, z) turning +z onto each unit direction (N, 3)."""
+    d = directions
+    q = np.stack([1.0 + d[:, 2], -d[:, 1], d[:, 0], np.zeros(len(d))], axis=1)
+    flipped = q[:, 0] < 1e-9
+    q[flipped] = (0.0, 1.0, 0.0, 0.0)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _wxyz(T: np.ndarray) -> np.ndarray:
+    return quat_from_matrix(np.asarray(T, dtype=float)[..., :3, :3])
+
+
+class PreviewScene:
+    """The construction sequence of one project, drawn on a viser server.
+
+    Parameters
+    ----------
+    server
+        The viser server to draw on (live, or used only to record an export).
+    model
+        The precomputed preview model.
+    project
+        The project, for the site (grid, obstacles) and the localization setup
+        (UWB anchors, total station, ICP map); omitted parts are not drawn.
+    colour_mode
+        Initial colour mode (see :data:`~fabflow.preview.model.COLOUR_MODES`).
+    ghost
+        Show the elements not built yet as a faint ghost.
+    step
+        Initial step (``None``: the last step, the finished building).
+    """
+
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        model: PreviewModel,
+        project: Project | None = None,
+        colour_mode: str = "station",
+        ghost: bool = True,
+        step: int | None = None,
+    ) -> None:
+        if colour_mode not in model.colour_modes():
+            raise InputError(
+                f"colour mode '{colour_mode}' is not available; expected one of "
+                f"{model.colour_modes()}"
+            )
+        self.server = server
+        self.model = model
+        self.colour_mode = colour_mode
+        self.ghost_enabled = ghost
+        self.step = model.n_steps if step is None else model.check_step(step)
+        self._colour_cache: dict[str, np.ndarray] = {}
+        self._visible = model.visible(self.step)
+        self._draw_extents = np.maximum(model.block_extents - BLOCK_GAP, 1e-4).astype(np.float32)
+        scene = server.scene
+        scene.set_up_direction("+z")
+        with server.atomic():
+            self._add_site(project)
+            self._add_design()
+            self._add_stations()
+            self._add_platform_and_arm()
+            if project is not None:
+                self._add_localization(project)
+            self._set_camera(project)
+        self.set_step(self.step, force=True)
+
+    # ------------------------------------------------------------------ building
+
+    def _add_site(self, project: Project | None) -> None:
+        scene = self.server.scene
+        lo, hi = self._bounds_xy(project)
+        size = hi - lo
+        centre = (lo + hi) / 2
+        self.grid = scene.add_grid(
+            "/site/grid",
+            width=float(size[0]),
+            height=float(size[1]),
+            cell_size=0.5,
+            section_size=1.0,
+            position=(float(centre[0]), float(centre[1]), 0.0),
+            plane_color=(244, 242, 236),
+            plane_opacity=1.0,
+            shadow_opacity=0.2,
+        )
+        if project is None:
+            return
+        for i, obstacle in enumerate(project.site.obstacles):
+            if obstacle.box is not None:
+                b = obstacle.box
+                mn, mx = np.array(b.min), np.array(b.max)
+                scene.add_box(
+                    f"/site/obstacles/{i}_{b.name}",
+                    color=(120, 120, 128),
+                    dimensions=tuple(mx - mn),
+                    position=tuple((mn + mx) / 2),
+                    opacity=0.6,
+                )
+            elif obstacle.polygon is not None:
+                import shapely
+
+                poly = obstacle.polygon
+                mesh = trimesh.creation.extrude_polygon(
+                    shapely.Polygon(poly.points), poly.z_max - poly.z_min
+                )
+                scene.add_mesh_simple(
+                    f"/site/obstacles/{i}_{poly.name}",
+                    vertices=mesh.vertices,
+                    faces=mesh.faces,
+                    color=(120, 120, 128),
+                    opacity=0.6,
+                    flat_shading=True,
+                    position=(0.0, 0.0, poly.z_min),
+                )
+
+    def _bounds_xy(self, project: Project | None) -> tuple[np.ndarray, np.ndarray]:
+        pts = [self.model.block_positions[:, :2], self.model.T_world_platform[:, :2, 3]]
+        pts += [p[:, :2] for p in self.model.path_points]
+        stacked = np.concatenate([np.asarray(p, dtype=float).reshape(-1, 2) for p in pts])
+        if project is not None:
+            lo = np.array(project.site.extent_min, dtype=float)
+            hi = np.array(project.site.extent_max, dtype=float)
+        elif stacked.size:
+            lo, hi = stacked.min(axis=0) - 3.0, stacked.max(axis=0) + 3.0
+        else:
+            lo, hi = np.array([-5.0, -5.0]), np.array([5.0, 5.0])
+        return np.floor(lo), np.ceil(hi)
+
+    def _add_design(self) -> None:
+        scene = self.server.scene
+        m = self.model
+        box = trimesh.creation.box((1.0, 1.0, 1.0))
+        colours = self._colours(self.colour_mode, self.step)
+        self.blocks = scene.add_batched_meshes_simple(
+            "/design/blocks",
+            vertices=box.vertices,
+            faces=box.faces,
+            batched_wxyzs=m.block_wxyz,
+            batched_positions=m.block_positions,
+            batched_scales=self._draw_extents,
+            batched_colors=colours[m.block_index],
+            flat_shading=True,
+            lod="off",
+        )
+        self.ghost = scene.add_batched_meshes_simple(
+            "/design/ghost",
+            vertices=box.vertices,
+            faces=box.faces,
+            batched_wxyzs=m.block_wxyz,
+            batched_positions=m.block_positions,
+            batched_scales=self._draw_extents,
+            batched_colors=GHOST_COLOUR,
+            opacity=GHOST_OPACITY,
+            flat_shading=True,
+            cast_shadow=False,
+            receive_shadow=False,
+            lod="off",
+            visible=self.ghost_enabled,
+        )
+        self.paths: list[viser.LineSegmentsHandle] = []
+        for idx, pts in zip(m.path_index, m.path_points, strict=True):
+            e = m.elements[idx]
+            seg = np.stack([pts[:-1], pts[1:]], axis=1) if len(pts) > 1 else np.zeros((0, 2, 3))
+            width = float(e.attributes.get("bead_width", 0.02))
+            self.paths.append(
+                scene.add_line_segments(
+                    f"/design/paths/{e.id}",
+                    points=seg.astype(np.float32),
+                    colors=tuple(int(c) for c in colours[idx]),
+                    thickness=width,
+                    thickness_units="world",
+                )
+            )
+        self.task_points = None
+        if m.point_index.size:
+            self.task_points = scene.add_batched_axes(
+                "/design/task_points",
+                batched_wxyzs=m.point_wxyz,
+                batched_positions=m.point_positions,
+                batched_scales=np.ones(m.point_index.size, dtype=np.float32),
+                axes_length=0.08,
+                axes_radius=0.006,
+            )
+
+    def _add_stations(self) -> None:
+        scene = self.server.scene
+        m = self.model
+        first = [int(np.flatnonzero(m.package_station == s)[0]) for s in range(len(m.station_ids))]
+        T = m.T_world_platform[first] if first else np.zeros((0, 4, 4))
+        if not first:
+            return
+        scene.add_batched_axes(
+            "/stations/frames",
+            batched_wxyzs=_wxyz(T),
+            batched_positions=T[:, :3, 3],
+            axes_length=0.4,
+            axes_radius=0.015,
+        )
+        for s, sid in enumerate(m.station_ids):
+            scene.add_label(
+                f"/stations/labels/{sid}",
+                text=sid,
+                position=tuple(T[s, :3, 3] + (0.0, 0.0, 0.05)),
+            )
+
+    def _add_platform_and_arm(self) -> None:
+        scene = self.server.scene
+        m = self.model
+        pf = m.platform
+        base_z = float(pf.T_platform_base.xyz[2])
+        body_h = max(0.15, min(0.5, 0.6 * base_z))
+        length, width = pf.footprint
+        self.platform = scene.add_frame("/platform", show_axes=False)
+        scene.add_box(
+            "/platform/body",
+            color=PLATFORM_COLOUR,
+            dimensions=(length, width, body_h),
+            position=(0.0, 0.0, body_h / 2),
+        )
+        margin = pf.safety_margin
+        hx, hy = length / 2 + margin, width / 2 + margin
+        corners = np.array([[-hx, -hy, 0.01], [hx, -hy, 0.01], [hx, hy, 0.01], [-hx, hy, 0.01]])
+        scene.add_line_segments(
+            "/platform/safety_margin",
+            points=np.stack([corners, np.roll(corners, -1, axis=0)], axis=1).astype(np.float32),
+            colors=(230, 170, 30),
+            thickness=0.02,
+        )
+        T_pb = pf.T_platform_base.matrix()
+        self._lift_xy = T_pb[:2, 3]
+        self._body_h = body_h
+        self.lift = scene.add_box(
+            "/platform/lift",
+            color=(150, 156, 168),
+            dimensions=(0.35, 0.35, 1.0),
+            position=(float(self._lift_xy[0]), float(self._lift_xy[1]), body_h + 0.5),
+        )
+
+        n_links = max(m.arm_points.shape[1] - 1, 0)
+        self.arm_links = None
+        self.arm_joints = None
+        if n_links:
+            cyl = trimesh.creation.cylinder(radius=1.0, height=1.0, sections=20)
+            self.arm_links = scene.add_batched_meshes_simple(
+                "/arm/links",
+                vertices=cyl.vertices,
+                faces=cyl.faces,
+                batched_wxyzs=np.tile([1.0, 0.0, 0.0, 0.0], (n_links, 1)),
+                batched_positions=np.zeros((n_links, 3)),
+                batched_scales=np.ones((n_links, 3)),
+                batched_colors=ARM_COLOUR,
+                lod="off",
+            )
+            sphere = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+            self.arm_joints = scene.add_batched_meshes_simple(
+                "/arm/joints",
+                vertices=sphere.vertices,
+                faces=sphere.faces,
+                batched_wxyzs=np.tile([1.0, 0.0, 0.0, 0.0], (n_links + 1, 1)),
+                batched_positions=np.zeros((n_links + 1, 3)),
+                batched_scales=np.full(n_links + 1, LINK_RADIUS * 1.25),
+                batched_colors=JOINT_COLOUR,
+                lod="off",
+            )
+        self.tool = scene.add_frame("/arm/tool", axes_length=0.15, axes_radius=0.008)
+        self.target_warning = scene.add_label(
+            "/arm/tool/unreachable", text="target not reachable", visible=False
+        )
+
+    def _add_localization(self, project: Project) -> None:
+        scene = self.server.scene
+        loc = project.localization
+        if loc.uwb is not None:
+            T_wu = loc.uwb.T_world_uwb.matrix()
+            names = list(loc.uwb.anchors)
+            p = np.array([loc.uwb.anchors[n] for n in names], dtype=float)
+            p = p @ T_wu[:3, :3].T + T_wu[:3, 3]
+            sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.06)
+            scene.add_batched_meshes_simple(
+                "/localization/uwb_anchors",
+                vertices=sphere.vertices,
+                faces=sphere.faces,
+                batched_wxyzs=np.tile([1.0, 0.0, 0.0, 0.0], (len(names), 1)),
+                batched_positions=p,
+                batched_colors=(200, 40, 160),
+                lod="off",
+            )
+            for name, pos in zip(names, p, strict=True):
+                scene.add_label(f"/localization/uwb_labels/{name}", text=name, position=tuple(pos))
+        if loc.method == "total_station" or loc.total_station is not None:
+            ts = loc.total_station or TotalStationSetup()
+            T = ts.T_world_instrument.matrix()
+            scene.add_frame(
+                "/localization/total_station",
+                axes_length=0.3,
+                axes_radius=0.01,
+                wxyz=tuple(_wxyz(T)),
+                position=tuple(T[:3, 3]),
+            )
+            scene.add_cylinder(
+                "/localization/total_station/tripod",
+                radius=0.03,
+                height=float(T[2, 3]),
+                color=(240, 200, 0),
+                position=(0.0, 0.0, -float(T[2, 3]) / 2),
+            )
+            scene.add_label(
+                "/localization/total_station/label", text=f"total station ({ts.instrument})"
+            )
+        if loc.icp is not None and loc.icp.map is not None:
+            pts = _load_points(loc.icp.map)
+            if pts.size:
+                scene.add_point_cloud(
+                    "/localization/icp_map",
+                    points=pts.astype(np.float32),
+                    colors=(90, 140, 200),
+                    point_size=0.02,
+                )
+        for sid, result in self.model.localization.items():
+            T = np.asarray(result.T_world_base, dtype=float)
+            scene.add_frame(
+                f"/localization/results/{sid}",
+                axes_length=0.25,
+                axes_radius=0.01,
+                wxyz=tuple(_wxyz(T)),
+                position=tuple(T[:3, 3]),
+            )
+
+    def _set_camera(self, project: Project | None) -> None:
+        m = self.model
+        pts = [m.block_positions, *m.path_points, m.T_world_platform[:, :3, 3]]
+        stacked = np.concatenate([np.asarray(p, dtype=float).reshape(-1, 3) for p in pts])
+        if stacked.size == 0:
+            stacked = np.zeros((1, 3))
+        lo, hi = stacked.min(axis=0), stacked.max(axis=0)
+        centre = (lo + hi) / 2
+        radius = max(float(np.linalg.norm(hi - lo)) / 2, 1.0)
+        direction = np.array([-0.55, -1.0, 0.7])
+        direction /= np.linalg.norm(direction)
+        cam = self.server.initial_camera
+        cam.up = (0.0, 0.0, 1.0)
+        cam.look_at = tuple(centre)
+        cam.position = tuple(centre + direction * radius * 2.4)
+
+    # ------------------------------------------------------------------ updates
+
+    def _colours(self, mode: str, step: int) -> np.ndarray:
+        if mode == "state":
+            return self.model.element_colours(mode, step)
+        if mode not in self._colour_cache:
+            self._colour_cache[mode] = self.model.element_colours(mode, step)
+        return self._colour_cache[mode]
+
+    def set_step(self, step: int, force: bool = False) -> None:
+        """Show the scene after ``step`` placements (poses, visibility, colours only).
+
+        Parameters
+        ----------
+        step
+            0..n_steps.
+        force
+            Send every per-step property even if unchanged.
+        """
+        m = self.model
+        step = m.check_step(step)
+        visible = m.visible(step)
+        changed = force or not np.array_equal(visible, self._visible)
+        with self.server.atomic():
+            if changed:
+                vb = visible[m.block_index]
+                self.blocks.batched_scales = self._draw_extents * vb[:, None]
+                self.ghost.batched_scales = self._draw_extents * ~vb[:, None]
+                for handle, idx in zip(self.paths, m.path_index, strict=True):
+                    handle.visible = bool(visible[idx])
+                if self.task_points is not None:
+                    self.task_points.batched_scales = visible[m.point_index].astype(np.float32)
+            if force or self.colour_mode == "state":
+                self._apply_colours(self._colours(self.colour_mode, step))
+            self._pose_platform_and_arm(step)
+        self._visible = visible
+        self.step = step
+
+    def _pose_platform_and_arm(self, step: int) -> None:
+        m = self.model
+        p = m.package_at(step)
+        if p < 0:
+            return
+        T = m.T_world_platform[p]
+        self.platform.position = tuple(T[:3, 3])
+        self.platform.wxyz = tuple(_wxyz(T))
+        base_z = float(m.platform.T_platform_base.xyz[2]) + float(m.lift[p])
+        column = max(base_z - self._body_h, 0.01)
+        self.lift.scale = (1.0, 1.0, column)
+        self.lift.position = (
+            float(self._lift_xy[0]),
+            float(self._lift_xy[1]),
+            self._body_h + column / 2,
+        )
+        if self.arm_links is not None and self.arm_joints is not None:
+            pts = m.arm_points[step]
+            seg = pts[1:] - pts[:-1]
+            length = np.linalg.norm(seg, axis=1)
+            direction = seg / np.maximum(length, 1e-9)[:, None]
+            radius = np.where(length > 1e-6, LINK_RADIUS, 0.0)
+            self.arm_links.batched_positions = (pts[1:] + pts[:-1]) / 2
+            self.arm_links.batched_wxyzs = _quat_z_to(direction)
+            self.arm_links.batched_scales = np.stack([radius, radius, length], axis=1)
+            self.arm_joints.batched_positions = pts
+        Tt = m.T_world_tool[step]
+        self.tool.position = tuple(Tt[:3, 3])
+        self.tool.wxyz = tuple(_wxyz(Tt))
+        self.target_warning.visible = not bool(m.arm_reached[step])
+
+    def _apply_colours(self, colours: np.ndarray) -> None:
+        m = self.model
+        self.blocks.batched_colors = colours[m.block_index]
+        for handle, idx in zip(self.paths, m.path_index, strict=True):
+            handle.colors = np.broadcast_to(colours[idx], handle.colors.shape).copy()
+
+    def set_colour_mode(self, mode: str) -> None:
+        """Recolour the elements (colours only; nothing else is sent)."""
+        if mode not in self.model.colour_modes():
+            raise InputError(
+                f"colour mode '{mode}' is not available; expected one of "
+                f"{self.model.colour_modes()}"
+            )
+        self.colour_mode = mode
+        with self.server.atomic():
+            self._apply_colours(self._colours(mode, self.step))
+
+    def set_ghost(self, enabled: bool) -> None:
+        """Show or hide the faint ghost of the elements not built yet."""
+        self.ghost_enabled = bool(enabled)
+        self.ghost.visible = self.ghost_enabled
+
+    def station_colour(self, station_id: str) -> tuple[int, int, int]:
+        """The colour a station has in the ``station`` colour mode."""
+        s = self.model.station_ids.index(station_id)
+        return tuple(int(c) for c in STATION_PALETTE[s % len(STATION_PALETTE)])  # type: ignore[return-value]
+
+
+def _load_points(path: Any) -> np.ndarray:
+    """(N, 3) points of a PLY/XYZ/PCD point-cloud file, empty if it cannot be read."""
+    from pathlib import Path
+
+    path = Path(path)
+    if path.suffix.lower() in (".xyz", ".txt", ".csv"):
+        delimiter = "," if path.suffix.lower() == ".csv" else None
+        try:
+            data = np.loadtxt(path, delimiter=delimiter, ndmin=2)
+        except ValueError as exc:
+            raise InputError(f"cannot read point cloud: {exc}", source=path) from None
+        return data[:, :3]
+    try:
+        cloud = trimesh.load(path)
+    except Exception as exc:
+        raise InputError(f"cannot read point cloud: {exc}", source=path) from None
+    return np.asarray(getattr(cloud, "vertices", np.zeros((0, 3))), dtype=float)
