@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from fabflow import __version__
+from fabflow.design.stage import stage_design
 from fabflow.output import atomic_output_dir, write_json
 from fabflow.project import Project
 
@@ -62,7 +63,7 @@ def stage_project(ctx: BuildContext) -> None:
 
 def stages() -> list[tuple[str, Stage]]:
     """The stages of ``fabflow build``, in order."""
-    return [("project", stage_project)]
+    return [("project", stage_project), ("design", stage_design)]
 
 
 def run_build(

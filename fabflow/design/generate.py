@@ -1,0 +1,95 @@
+"""Turn the ``elements`` sources of a project into :class:`Element` objects."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import Counter
+
+import numpy as np
+
+from fabflow.design.cabin import cabin_elements
+from fabflow.design.elements import Element
+from fabflow.design.print_path import print_path_elements
+from fabflow.design.supports import compute_supports
+from fabflow.errors import InputError
+from fabflow.project import Project, TaskPoint
+
+
+def task_point_elements(points: list[TaskPoint], source_index: int = 0) -> list[Element]:
+    """Task points as ``task_point`` elements (the pose is the tool frame to reach)."""
+    return [
+        Element(
+            id=p.id,
+            type="task_point",
+            T_world_element=p.pose.matrix(),
+            layer=p.layer,
+            part=None,
+            robot_built=True,
+            attributes={"action": p.action, "params": dict(p.params), "source_index": source_index},
+        )
+        for p in points
+    ]
+
+
+def with_block_supports(elements: list[Element]) -> list[Element]:
+    """Fill in ``supports`` of every block from the geometry of all blocks.
+
+    A block rests on the blocks whose top faces touch its bottom face
+    (:func:`fabflow.design.supports.compute_supports`). Other elements are returned
+    unchanged.
+    """
+    idx = [i for i, e in enumerate(elements) if e.type == "block"]
+    if not idx:
+        return list(elements)
+    T = np.stack([elements[i].T_world_element for i in idx])
+    ext = np.stack([np.asarray(elements[i].extents, dtype=float) for i in idx])
+    sup = compute_supports(T, ext)
+    ids = np.array([elements[i].id for i in idx], dtype=object)
+    out = list(elements)
+    for k, i in enumerate(idx):
+        out[i] = dataclasses.replace(elements[i], supports=tuple(ids[sup[k]].tolist()))
+    return out
+
+
+def generate_elements(project: Project) -> list[Element]:
+    """Every element of a project, sources in file order, with unique ids.
+
+    Block ids are ``B0000``, ``B0001``, ... counted over all cabins; print path
+    layers are ``P000``, ... counted over all print path sources; task points
+    keep their ids from the project file.
+
+    Raises
+    ------
+    InputError
+        When a task point id is used twice or collides with a generated id, or a
+        source's drawing or mesh is bad.
+    """
+    elements: list[Element] = []
+    n_blocks = n_paths = 0
+    for i, source in enumerate(project.elements):
+        if source.cabin is not None:
+            new = cabin_elements(source.cabin, id_start=n_blocks)
+            n_blocks += len(new)
+        elif source.print_path is not None:
+            new = print_path_elements(source.print_path, id_start=n_paths, source_index=i)
+            n_paths += len(new)
+        else:
+            assert source.task_points is not None
+            new = task_point_elements(source.task_points, source_index=i)
+        elements.extend(new)
+    counts = Counter(e.id for e in elements)
+    dup = [k for k, v in counts.items() if v > 1]
+    if dup:
+        where = next(
+            f"elements[{i}].task_points[{j}].id"
+            for i, s in enumerate(project.elements)
+            for j, p in enumerate(s.task_points or [])
+            if p.id in dup
+        )
+        raise InputError(
+            f"element id {dup[0]!r} is used twice (task point ids must be unique and "
+            "differ from generated ids such as B0000 and P000)",
+            project.path,
+            where,
+        )
+    return with_block_supports(elements)

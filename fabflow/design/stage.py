@@ -1,0 +1,85 @@
+"""The ``design`` stage of ``fabflow build``: elements, ``elements.json``, site plan."""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from fabflow.design.elements import Element, elements_to_json
+from fabflow.design.generate import generate_elements
+from fabflow.design.site_plan import write_site_plan
+from fabflow.output import write_json
+from fabflow.project import Project
+
+if TYPE_CHECKING:
+    from fabflow.pipeline import BuildContext
+
+
+def site_sensors(project: Project) -> tuple[dict[str, np.ndarray] | None, np.ndarray | None]:
+    """UWB anchors (world frame, metres) and the total-station pose from the project."""
+    loc = project.localization
+    anchors = None
+    if loc.uwb is not None:
+        T_world_uwb = loc.uwb.T_world_uwb.matrix()
+        anchors = {
+            name: T_world_uwb[:3, :3] @ np.asarray(xyz) + T_world_uwb[:3, 3]
+            for name, xyz in loc.uwb.anchors.items()
+        }
+    instrument = None
+    if loc.total_station is not None or loc.method == "total_station":
+        setup = loc.total_station
+        if setup is None:
+            setup = loc.setup()
+        instrument = setup.T_world_instrument.matrix()  # type: ignore[union-attr]
+    return anchors, instrument
+
+
+def design_summary(elements: list[Element]) -> list[tuple[str, Any]]:
+    """Summary rows: counts per type and part, layers, print path lengths."""
+    rows: list[tuple[str, Any]] = []
+    types = Counter(e.type for e in elements)
+    blocks = [e for e in elements if e.type == "block"]
+    if blocks:
+        parts = Counter(e.part for e in blocks)
+        robot = sum(e.robot_built for e in blocks)
+        robot_layers = {e.layer for e in blocks if e.robot_built}
+        rows.append(("blocks", f"{len(blocks)} ({robot} robot-built)"))
+        rows.append(("blocks per part", ", ".join(f"{p} {n}" for p, n in sorted(parts.items()))))
+        rows.append(
+            (
+                "block layers",
+                f"{max(e.layer for e in blocks) + 1} ({len(robot_layers)} with robot-built blocks)",
+            )
+        )
+    paths = [e for e in elements if e.type == "print_path"]
+    if paths:
+        length = sum(float(e.attributes.get("length", 0.0)) for e in paths)
+        rows.append(("print path layers", len(paths)))
+        rows.append(("print path length", f"{length:.2f} m"))
+    if types.get("task_point"):
+        rows.append(("task points", types["task_point"]))
+    return rows
+
+
+def stage_design(ctx: BuildContext) -> None:
+    """Generate the elements; write ``elements.json`` and ``site_plan.dxf``.
+
+    Sets ``ctx.results["elements"]`` (list of :class:`Element`, world frame).
+    """
+    elements = generate_elements(ctx.project)
+    ctx.results["elements"] = elements
+    write_json(
+        ctx.out / "elements.json",
+        {
+            "frame": "world",
+            "units": "m",
+            "count": len(elements),
+            "elements": elements_to_json(elements),
+        },
+    )
+    anchors, instrument = site_sensors(ctx.project)
+    write_site_plan(ctx.out / "site_plan.dxf", elements, anchors=anchors, instrument=instrument)
+    for item, value in design_summary(elements):
+        ctx.add("design", item, value)
