@@ -121,5 +121,86 @@ def build(
     console.print(f"[green]wrote[/] {Path(out).resolve()}")
 
 
+@localize_app.command("total-station")
+@user_errors
+def localize_total_station(
+    observations: Annotated[
+        Path, typer.Argument(help="Observations: CSV (hz_gon,v_gon,...) or Leica GSI-8/16.")
+    ],
+    robot_points: Annotated[
+        Path,
+        typer.Option("--robot-points", help="CSV point_id,x_m,y_m,z_m: prisms in the base frame."),
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+    project: Annotated[
+        Path | None, typer.Option("--project", help="Take instrument and pose from a project.")
+    ] = None,
+    instrument: Annotated[
+        str | None, typer.Option(help="leica_ms50, hilti_pos150 or custom.")
+    ] = None,
+    distance_sigma_mm: Annotated[float | None, typer.Option(help="Distance sigma (mm).")] = None,
+    distance_ppm: Annotated[float | None, typer.Option(help="Distance ppm part.")] = None,
+    angle_sigma_arcsec: Annotated[float | None, typer.Option(help='Angle sigma (").')] = None,
+    instrument_xyz: Annotated[
+        str | None, typer.Option(help="Instrument position 'x,y,z' in the world (m).")
+    ] = None,
+    instrument_abc_deg: Annotated[
+        str | None, typer.Option(help="Instrument orientation 'A,B,C' (deg, Rz Ry Rx).")
+    ] = None,
+    instrument_height: Annotated[
+        float | None, typer.Option(help="Trunnion height above the given pose (m).")
+    ] = None,
+    robot_sigma: Annotated[float, typer.Option(help="Robot positioning sigma (m).")] = 0.0,
+    optimize: Annotated[
+        bool, typer.Option("--optimize", help="Solve eqs 7-8 with SLSQP, not closed form.")
+    ] = False,
+    keep_outliers: Annotated[
+        bool, typer.Option("--keep-outliers", help="Do not drop a flagged bad prism reading.")
+    ] = False,
+    station: Annotated[str | None, typer.Option(help="Station id stored in the result.")] = None,
+) -> None:
+    """Localize the robot base from total station readings of prisms on the robot."""
+    import numpy as np
+
+    from fabflow.output import atomic_output_dir
+    from fabflow.positioning.total_station import localize_files
+    from fabflow.project import load_project
+
+    pose = localize_files(
+        observations,
+        robot_points,
+        project=None if project is None else load_project(project),
+        instrument=instrument,
+        distance_sigma_mm=distance_sigma_mm,
+        distance_ppm=distance_ppm,
+        angle_sigma_arcsec=angle_sigma_arcsec,
+        instrument_xyz=instrument_xyz,
+        instrument_abc_deg=instrument_abc_deg,
+        instrument_height=instrument_height,
+        robot_sigma=robot_sigma,
+        method="optimize" if optimize else "closed_form",
+        reject_outlier=not keep_outliers,
+        station=station,
+    )
+    with atomic_output_dir(out) as staging:
+        pose.write(staging / "base_pose.json")
+    T = pose.T_world_base
+    sd = np.sqrt(np.diag(pose.covariance))
+    q = pose.quality
+    rows = [
+        ("total-station", "points used", f"{q['n_inliers']} of {q['n_points']}"),
+        ("total-station", "position (m)", ", ".join(f"{v:.4f}" for v in T[:3, 3])),
+        ("total-station", "heading (deg)", f"{np.degrees(np.arctan2(T[1, 0], T[0, 0])):.4f}"),
+        ("total-station", "sigma xyz (mm)", ", ".join(f"{1e3 * v:.2f}" for v in sd[:3])),
+        ("total-station", "rmse (mm)", f"{1e3 * pose.rmse:.2f}"),
+    ]
+    test = q.get("outlier_test")
+    if test is not None and test["flagged"]:
+        bad = q["point_ids"][test["index"]]
+        rows.append(("total-station", "bad reading", f"{bad} (p = {test['p_value']:.2g})"))
+    print_summary(rows, title="fabflow localize total-station")
+    console.print(f"[green]wrote[/] {(Path(out) / 'base_pose.json').resolve()}")
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()
