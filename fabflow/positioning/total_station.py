@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
@@ -50,9 +51,10 @@ from fabflow.positioning.polar import (
     to_world,
 )
 from fabflow.positioning.result import BasePose
+from fabflow.positioning.ts_io import read_observations, read_robot_points
 from fabflow.project import TotalStationSetup
 from fabflow.transforms.se3 import apply_T, inv_T, make_T
-from fabflow.transforms.so3 import exp_so3, log_so3, skew
+from fabflow.transforms.so3 import exp_so3, log_so3, matrix_from_abc, skew
 
 if TYPE_CHECKING:
     from fabflow.design.elements import Element
@@ -930,3 +932,70 @@ def localize_station(
         "kinematics": "ik+fk" if kin is not None else "reach sphere",
     }
     return reg.to_base_pose(station=station_id, quality=quality)
+
+
+def _triple(text: str | None, name: str, default: tuple[float, float, float]) -> np.ndarray:
+    if text is None:
+        return np.asarray(default, dtype=float)
+    try:
+        values = [float(v) for v in text.replace(";", ",").split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(np.isfinite(values)):
+        raise InputError(f"{name} must be three numbers 'a,b,c', got {text!r}")
+    return np.asarray(values, dtype=float)
+
+
+def localize_files(
+    observations_path: str | Path,
+    robot_points_path: str | Path,
+    *,
+    project: Project | None = None,
+    instrument: str | None = None,
+    distance_sigma_mm: float | None = None,
+    distance_ppm: float | None = None,
+    angle_sigma_arcsec: float | None = None,
+    instrument_xyz: str | None = None,
+    instrument_abc_deg: str | None = None,
+    instrument_height: float | None = None,
+    robot_sigma: float = 0.0,
+    method: Literal["closed_form", "optimize"] = "closed_form",
+    reject_outlier: bool = True,
+    station: str | None = None,
+) -> BasePose:
+    """Localize from an observation file and a robot point file (CLI ``localize total-station``).
+
+    The instrument and its pose come from the project's
+    ``localization.total_station`` section when ``project`` is given, else from
+    the defaults (Leica MS50, instrument frame = world); the keyword arguments
+    override either. Pose strings are ``"x,y,z"`` (metres) and ``"A,B,C"``
+    (degrees, R = Rz(A) Ry(B) Rx(C)).
+    """
+    setup = TotalStationSetup()
+    if project is not None and project.localization.total_station is not None:
+        setup = project.localization.total_station
+    T0 = setup.T_world_instrument if project is not None else None
+    inst = make_instrument(
+        instrument or setup.instrument,
+        distance_sigma_mm if distance_sigma_mm is not None else setup.distance_sigma_mm,
+        distance_ppm if distance_ppm is not None else setup.distance_ppm,
+        angle_sigma_arcsec if angle_sigma_arcsec is not None else setup.angle_sigma_arcsec,
+    )
+    xyz = _triple(instrument_xyz, "--instrument-xyz", T0.xyz if T0 else (0.0, 0.0, 0.0))
+    abc = _triple(instrument_abc_deg, "--instrument-abc-deg", T0.abc_deg if T0 else (0.0, 0.0, 0.0))
+    T_world_instrument = make_T(matrix_from_abc(*np.radians(abc)), xyz)
+    hi = setup.instrument_height if instrument_height is None else instrument_height
+    T_world_instrument[:3, 3] += T_world_instrument[:3, 2] * hi
+    obs = read_observations(observations_path)
+    ids, pts = read_robot_points(robot_points_path)
+    reg, matched = localize_observations(
+        obs, ids, pts, inst, T_world_instrument, robot_sigma, method, reject_outlier
+    )
+    quality = {
+        "instrument": inst.name,
+        "point_ids": list(matched),
+        "observations": str(observations_path),
+        "robot_points": str(robot_points_path),
+        "T_world_instrument": T_world_instrument.tolist(),
+    }
+    return reg.to_base_pose(station=station, quality=quality)
