@@ -1,0 +1,322 @@
+"""Build order across stations: supports first, few visits, short arm travel.
+
+Every element is assigned to one chosen station that reaches it: the earliest
+station on the tour that is not earlier than the stations of everything it
+rests on (so a part that spans stations is usually finished in one pass); when
+no such station reaches it, the latest one that does (the plan then returns to
+that station).
+
+The sequence is then built like a topological sort with one ready queue per
+station. The platform stays at a station while anything there is ready, taking
+the lowest ready layer first and, inside a layer, the nearest next target
+(short arm travel); when nothing is ready there it moves to the nearest
+station with ready work. A station whose footprint covers robot-built
+elements must be finished before those elements are built.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from fabflow.errors import InfeasibleError
+
+
+@dataclass(frozen=True)
+class Visit:
+    """One stay of the platform at a station.
+
+    Attributes
+    ----------
+    station
+        Index into the chosen stations.
+    elements
+        Element indices in build order.
+    """
+
+    station: int
+    elements: np.ndarray
+
+
+def support_indices(
+    ids: Sequence[str], supports: Sequence[Sequence[str]], known: set[str]
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Support edges among the scheduled elements.
+
+    Parameters
+    ----------
+    ids
+        Ids of the scheduled elements (index = position).
+    supports
+        For every scheduled element, the ids it rests on.
+    known
+        Ids of every element of the project (pre-built ones count as present).
+
+    Returns
+    -------
+    src, dst
+        Edge arrays: element ``dst`` rests on element ``src`` (scheduled indices).
+    missing
+        Messages for supports that name no element.
+    """
+    index = {e: i for i, e in enumerate(ids)}
+    src: list[int] = []
+    dst: list[int] = []
+    missing: list[str] = []
+    for i, sup in enumerate(supports):
+        for s in sup:
+            j = index.get(s)
+            if j is not None:
+                src.append(j)
+                dst.append(i)
+            elif s not in known:
+                missing.append(f"{ids[i]} rests on '{s}', which is not an element of the project")
+    return np.array(src, dtype=np.intp), np.array(dst, dtype=np.intp), missing
+
+
+def find_support_cycle(n: int, src: np.ndarray, dst: np.ndarray) -> list[int]:
+    """A cycle in the support graph (element indices), or ``[]`` when there is none."""
+    order = np.argsort(src, kind="stable")
+    starts = np.searchsorted(src[order], np.arange(n + 1))
+    out = dst[order]
+    state = np.zeros(n, dtype=np.int8)
+    for root in range(n):
+        if state[root]:
+            continue
+        stack = [(root, starts[root])]
+        path = [root]
+        state[root] = 1
+        while stack:
+            v, k = stack[-1]
+            if k < starts[v + 1]:
+                stack[-1] = (v, k + 1)
+                w = int(out[k])
+                if state[w] == 1:
+                    return path[path.index(w) :]
+                if state[w] == 0:
+                    state[w] = 1
+                    stack.append((w, starts[w]))
+                    path.append(w)
+            else:
+                state[v] = 2
+                stack.pop()
+                path.pop()
+    return []
+
+
+def assign(
+    n: int,
+    reach_sets: list[np.ndarray],
+    src: np.ndarray,
+    dst: np.ndarray,
+    topo: np.ndarray,
+) -> np.ndarray:
+    """Assign every element to a station (indices into the tour order).
+
+    Parameters
+    ----------
+    n
+        Number of scheduled elements.
+    reach_sets
+        For every element, the sorted tour positions of the stations that reach it.
+    src, dst
+        Support edges (dst rests on src).
+    topo
+        A topological order of the elements.
+    """
+    order = np.argsort(dst, kind="stable")
+    starts = np.searchsorted(dst[order], np.arange(n + 1))
+    sup_of = src[order]
+    station = np.full(n, -1, dtype=np.intp)
+    for e in topo:
+        opts = reach_sets[e]
+        sups = sup_of[starts[e] : starts[e + 1]]
+        need = int(station[sups].max()) if len(sups) else 0
+        k = np.searchsorted(opts, need)
+        station[e] = opts[k] if k < len(opts) else opts[-1]
+    return station
+
+
+def topological_order(n: int, src: np.ndarray, dst: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """Kahn's order of an acyclic support graph, smallest ``key`` first among ready ones."""
+    indeg = np.bincount(dst, minlength=n)
+    order = np.argsort(src, kind="stable")
+    starts = np.searchsorted(src[order], np.arange(n + 1))
+    out = dst[order]
+    heap = [(key[i], i) for i in np.flatnonzero(indeg == 0)]
+    heapq.heapify(heap)
+    res = []
+    while heap:
+        _, v = heapq.heappop(heap)
+        res.append(v)
+        for w in out[starts[v] : starts[v + 1]]:
+            indeg[w] -= 1
+            if indeg[w] == 0:
+                heapq.heappush(heap, (key[w], int(w)))
+    return np.array(res, dtype=np.intp)
+
+
+def schedule(
+    station: np.ndarray,
+    layer: np.ndarray,
+    p_target: np.ndarray,
+    src: np.ndarray,
+    dst: np.ndarray,
+    blocked_by: list[np.ndarray],
+    station_xy: np.ndarray,
+    ids: Sequence[str],
+) -> list[Visit]:
+    """Sequence the elements into station visits.
+
+    Parameters
+    ----------
+    station
+        (n,) station (tour position) of every element.
+    layer
+        (n,) layer index of every element.
+    p_target
+        (n, 3) tool target positions (metres), for short arm travel.
+    src, dst
+        Support edges (dst rests on src).
+    blocked_by
+        For every station, the element indices under its footprint (built only
+        after that station is finished).
+    station_xy
+        (k, 2) platform positions of the stations (metres).
+    ids
+        Element ids (for error messages).
+
+    Raises
+    ------
+    InfeasibleError
+        When no order satisfies the supports together with the footprint constraints.
+    """
+    n = len(station)
+    k = len(station_xy)
+    indeg = np.bincount(dst, minlength=n).astype(np.int64)
+    for blk in blocked_by:
+        indeg[blk] += 1
+    order = np.argsort(src, kind="stable")
+    starts = np.searchsorted(src[order], np.arange(n + 1))
+    out = dst[order]
+    remaining = np.bincount(station, minlength=k)
+    ready: list[list[tuple[int, int]]] = [[] for _ in range(k)]
+    for e in np.flatnonzero(indeg == 0):
+        ready[station[e]].append((int(layer[e]), int(e)))
+    for q in ready:
+        heapq.heapify(q)
+    built = np.zeros(n, dtype=bool)
+    visits: list[Visit] = []
+    current = int(np.argmax([len(q) > 0 for q in ready])) if n else 0
+    pos = p_target[0] if n else np.zeros(3)
+    n_done = 0
+    while n_done < n:
+        if not ready[current]:
+            have = np.array([len(q) > 0 for q in ready])
+            if not have.any():
+                _raise_stuck(built, indeg, station, src, dst, blocked_by, ids)
+            d = np.hypot(*(station_xy - station_xy[current]).T)
+            current = int(np.argmin(np.where(have, d, np.inf)))
+        seq: list[int] = []
+        q = ready[current]
+        while q:
+            lay = q[0][0]
+            batch = []
+            while q and q[0][0] == lay:
+                batch.append(heapq.heappop(q)[1])
+            for e in _nearest_order(np.array(batch), p_target, pos):
+                seq.append(int(e))
+                built[e] = True
+                n_done += 1
+                pos = p_target[e]
+                for w in out[starts[e] : starts[e + 1]]:
+                    indeg[w] -= 1
+                    if indeg[w] == 0:
+                        heapq.heappush(ready[station[w]], (int(layer[w]), int(w)))
+                remaining[station[e]] -= 1
+                if remaining[station[e]] == 0:
+                    for w in blocked_by[station[e]]:
+                        indeg[w] -= 1
+                        if indeg[w] == 0:
+                            heapq.heappush(ready[station[w]], (int(layer[w]), int(w)))
+            q = ready[current]
+        visits.append(Visit(station=current, elements=np.array(seq, dtype=np.intp)))
+    return visits
+
+
+def _nearest_order(batch: np.ndarray, p: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Greedy nearest-neighbour order of ``batch`` starting near ``start``."""
+    if len(batch) <= 1:
+        return batch
+    pts = p[batch]
+    free = np.ones(len(batch), dtype=bool)
+    out = np.empty(len(batch), dtype=np.intp)
+    here = start
+    for i in range(len(batch)):
+        d = np.where(free, np.sum((pts - here) ** 2, axis=1), np.inf)
+        j = int(np.argmin(d))
+        out[i] = batch[j]
+        free[j] = False
+        here = pts[j]
+    return out
+
+
+def _raise_stuck(
+    built: np.ndarray,
+    indeg: np.ndarray,
+    station: np.ndarray,
+    src: np.ndarray,
+    dst: np.ndarray,
+    blocked_by: list[np.ndarray],
+    ids: Sequence[str],
+) -> None:
+    stuck = np.flatnonzero(~built)
+    blocked_elem = {int(e): s for s, blk in enumerate(blocked_by) for e in blk}
+    reasons = []
+    for e in stuck[:10]:
+        sups = src[(dst == e) & ~built[src]]
+        parts = []
+        if len(sups):
+            parts.append("rests on " + ", ".join(ids[s] for s in sups[:3]) + " (not yet built)")
+        if int(e) in blocked_elem:
+            parts.append(f"lies under the footprint of station S{blocked_elem[int(e)] + 1}")
+        reasons.append(f"{ids[e]}: " + "; ".join(parts or ["waits on another element"]))
+    more = f" (and {len(stuck) - 10} more)" if len(stuck) > 10 else ""
+    raise InfeasibleError(
+        "no build order satisfies the supports: a station's footprint covers elements that "
+        "other elements of that station rest on. Unbuildable: " + "; ".join(reasons) + more
+    )
+
+
+def lift_bands(masks: np.ndarray) -> np.ndarray:
+    """Choose one lift level per element of a visit with as few changes as possible.
+
+    Parameters
+    ----------
+    masks
+        (m,) int bit masks of the lift levels reaching each element, in build order
+        (every mask nonzero).
+
+    Returns
+    -------
+    np.ndarray
+        (m,) chosen lift level index per element. Greedy: keep the current level
+        while it reaches; else switch to the level that reaches the longest run ahead.
+    """
+    m = len(masks)
+    out = np.empty(m, dtype=np.intp)
+    n_levels = int(masks.max()).bit_length() if m else 0
+    bits = ((masks[:, None] >> np.arange(n_levels)[None, :]) & 1).astype(bool)
+    # run[i, l]: how many consecutive elements from i on level l reaches.
+    run = np.zeros((m + 1, n_levels), dtype=np.int64)
+    for i in range(m - 1, -1, -1):
+        run[i] = np.where(bits[i], run[i + 1] + 1, 0)
+    cur = -1
+    for i in range(m):
+        if cur < 0 or not bits[i, cur]:
+            cur = int(np.argmax(run[i]))
+        out[i] = cur
+    return out

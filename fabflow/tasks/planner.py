@@ -1,0 +1,377 @@
+"""Slice a project into per-station work packages.
+
+:func:`plan_project` runs the whole planning chain on the elements of a project:
+
+1. tool targets of every robot-built element (:mod:`fabflow.tasks.targets`);
+2. the arm's reach model, shrunk by ``planning.reach_margin`` (:mod:`fabflow.tasks.reach`);
+3. collision-free candidate platform poses and which elements each reaches at
+   which lift heights (:mod:`fabflow.tasks.stations`);
+4. few stations with short travel (:mod:`fabflow.tasks.cover`);
+5. the build order across stations and the lift height of every visit
+   (:mod:`fabflow.tasks.order`);
+6. :class:`~fabflow.tasks.plan.WorkPackage` objects: one per stay of the
+   platform at one lift height.
+
+Station ids (``S1``, ``S2``, ...) follow the order of first visit. A station
+visited at two lift heights gives two work packages with the same station id
+and position and different ``lift``; the travel between them is 0.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import shapely
+
+from fabflow.design.elements import Element
+from fabflow.errors import InfeasibleError, InputError, UnsupportedError
+from fabflow.project import Project
+from fabflow.tasks.cover import select_stations
+from fabflow.tasks.order import (
+    assign,
+    find_support_cycle,
+    lift_bands,
+    schedule,
+    support_indices,
+    topological_order,
+)
+from fabflow.tasks.plan import Plan, Station, WorkPackage
+from fabflow.tasks.reach import ReachModel, reach_model
+from fabflow.tasks.stations import (
+    Candidates,
+    coverage,
+    element_polygons,
+    footprint_polygons,
+    generate_candidates,
+    lift_levels,
+    obstacle_polygons,
+)
+from fabflow.tasks.targets import tool_frames
+
+MAX_LISTED = 12
+"""How many element ids an error message lists."""
+
+
+def _check_ids(elements: Sequence[Element]) -> None:
+    seen: set[str] = set()
+    dup: list[str] = []
+    for e in elements:
+        if e.id in seen:
+            dup.append(e.id)
+        seen.add(e.id)
+    if dup:
+        raise InputError(f"element ids must be unique; repeated: {', '.join(sorted(set(dup)))}")
+
+
+def _list(ids: Sequence[str]) -> str:
+    shown = ", ".join(ids[:MAX_LISTED])
+    return shown + (f" (and {len(ids) - MAX_LISTED} more)" if len(ids) > MAX_LISTED else "")
+
+
+def _platform_check(project: Project) -> None:
+    T_pb = project.robot.platform.T_platform_base.matrix()
+    if abs(T_pb[2, 2]) < math.cos(math.radians(1.0)):
+        raise UnsupportedError(
+            "the planner needs the arm base z axis vertical on the platform "
+            "(robot.platform.T_platform_base tilts it)"
+        )
+
+
+def _explain_unreachable(
+    project: Project,
+    elements: Sequence[Element],
+    work: Sequence[Element],
+    missing: np.ndarray,
+    p_target: np.ndarray,
+    cands: Candidates,
+    reach: ReachModel,
+    lifts: np.ndarray,
+) -> InfeasibleError:
+    """Say for each unreachable element why no station reaches it."""
+    site = project.site
+    platform = project.robot.platform
+    z_lo, z_hi = reach.z_range
+    obstacles = obstacle_polygons(site)
+    names = [ob.box.name if ob.box is not None else ob.polygon.name for ob in site.obstacles]  # type: ignore[union-attr]
+    lo = np.asarray(site.extent_min)
+    hi = np.asarray(site.extent_max)
+    el_tree = shapely.STRtree(element_polygons(elements))
+    robot_built = np.array([e.robot_built for e in elements], dtype=bool)
+    groups: dict[str, list[str]] = {}
+    for i in missing:
+        p = p_target[i]
+        z_rel = p[2] - cands.base_z0 - lifts
+        if z_rel.max() < z_lo or z_rel.min() > z_hi:
+            why = (
+                f"its target height {p[2]:.2f} m is outside what the arm reaches with the "
+                f"lift ({cands.base_z0 + lifts[0] + z_lo:.2f} to "
+                f"{cands.base_z0 + lifts[-1] + z_hi:.2f} m)"
+            )
+        elif (p[:2] < lo - reach.r_max).any() or (p[:2] > hi + reach.r_max).any():
+            why = "it lies farther than the arm's reach outside the site extent"
+        else:
+            # Platform poses around the element that would reach it, ignoring collisions.
+            ang = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+            rad = np.arange(0.5 * reach.r_step, reach.r_max, 0.05)
+            A, Rr = np.meshgrid(ang, rad)
+            ok_any = reach.reachable(Rr.ravel()[:, None], z_rel[None, :]).any(axis=1)
+            if not ok_any.any():
+                why = "no platform pose reaches it with the tool pointing down"
+            else:
+                r_ok = float(Rr.ravel()[ok_any].max())
+                base = (
+                    p[:2]
+                    + np.stack([Rr.ravel() * np.cos(A.ravel()), Rr.ravel() * np.sin(A.ravel())], 1)[
+                        ok_any
+                    ]
+                )
+                causes: set[str] = set()
+                off = platform.T_platform_base.matrix()[:2, 3]
+                for h in np.radians(project.planning.headings_deg):
+                    c, s = math.cos(h), math.sin(h)
+                    xy = base - np.array([c * off[0] - s * off[1], s * off[0] + c * off[1]])
+                    fp = footprint_polygons(
+                        xy, np.full(len(xy), h), platform.footprint, platform.safety_margin
+                    )
+                    coords = shapely.get_coordinates(fp).reshape(len(fp), -1, 2)
+                    if (~np.all((coords >= lo) & (coords <= hi), axis=(1, 2))).any():
+                        causes.add("the site boundary")
+                    for name, ob in zip(names, obstacles, strict=True):
+                        if shapely.intersects(fp, ob).any():
+                            causes.add(f"obstacle '{name}'")
+                    hit = el_tree.query(fp, predicate="intersects")[1]
+                    if (~robot_built[hit]).any():
+                        causes.add("pre-built elements")
+                    if robot_built[hit].any():
+                        causes.add("robot-built elements")
+                why = (
+                    f"at its height the arm reaches {r_ok:.1f} m at most, and every platform "
+                    f"pose that close (footprint plus {platform.safety_margin:.2f} m margin) "
+                    f"collides with {' or '.join(sorted(causes)) or 'something'}"
+                )
+        groups.setdefault(why, []).append(work[i].id)
+    lines = [f"{_list(ids)}: {why}" for why, ids in groups.items()]
+    return InfeasibleError(
+        f"{len(missing)} element(s) cannot be reached from any collision-free station:\n  "
+        + "\n  ".join(lines)
+    )
+
+
+def plan_project(
+    project: Project,
+    elements: Sequence[Element],
+    reach: ReachModel | None = None,
+) -> Plan:
+    """Plan stations, build order and work packages for a project.
+
+    Parameters
+    ----------
+    project
+        The validated project (site, robot, platform, planning settings).
+    elements
+        All elements of the design in the world frame; pre-built ones
+        (``robot_built=False``) are obstacles that exist from the start.
+    reach
+        Reach model to use (default: :func:`~fabflow.tasks.reach.reach_model` for
+        the project's robot and tool, shrunk by ``planning.reach_margin``).
+
+    Returns
+    -------
+    Plan
+        Work packages in execution order, ``summary`` figures and ``notes``.
+
+    Raises
+    ------
+    InfeasibleError
+        When an element is not reachable from any collision-free station, the
+        supports form a cycle or cannot be ordered with the station footprints,
+        or the plan needs more than ``planning.max_stations`` stations. The
+        message lists the element ids and why; nothing is planned.
+    InputError
+        For repeated element ids or supports naming unknown elements.
+    """
+    t0 = time.perf_counter()
+    _check_ids(elements)
+    planning = project.planning
+    platform = project.robot.platform
+    _platform_check(project)
+    T_flange_tool = project.robot.tool.T_flange_tool.matrix()
+    if reach is None:
+        reach = reach_model(project.robot.model, T_flange_tool).shrunk(planning.reach_margin)
+
+    idx_work = [i for i, e in enumerate(elements) if e.robot_built]
+    work = [elements[i] for i in idx_work]
+    n = len(work)
+    notes: list[str] = []
+    if n == 0:
+        return Plan(
+            work_packages=(),
+            notes=("the project has no robot-built elements; nothing to plan",),
+            summary={"stations": 0, "visits": 0, "elements": 0, "travel_m": 0.0},
+        )
+
+    known = {e.id for e in elements}
+    ids = [e.id for e in work]
+    src, dst, missing_sup = support_indices(ids, [e.supports for e in work], known)
+    if missing_sup:
+        raise InputError("unknown supports: " + "; ".join(missing_sup[:MAX_LISTED]))
+    cycle = find_support_cycle(n, src, dst)
+    if cycle:
+        chain = " -> ".join(ids[i] for i in [*cycle, cycle[0]])
+        raise InfeasibleError(f"the supports form a cycle, so no build order exists: {chain}")
+
+    T_frames, owner = tool_frames(work)
+    first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    T_targets = T_frames[first]
+    p_target = T_targets[:, :3, 3]
+    tool_z = T_frames[:, :3, 2]
+    tilted = np.unique(owner[tool_z[:, 2] > -math.cos(math.radians(5.0))])
+    if len(tilted):
+        notes.append(
+            f"{len(tilted)} element(s) have tool frames more than 5 deg from pointing down "
+            f"({_list([ids[i] for i in tilted])}); their reach was judged by position only"
+        )
+
+    lifts = lift_levels(platform.lift, planning.lift_step)
+    cands = generate_candidates(
+        project.site,
+        platform,
+        elements,
+        T_frames[:, :2, 3],
+        reach.r_max,
+        planning.candidate_spacing,
+        planning.headings_deg,
+    )
+    t_cand = time.perf_counter()
+    # Coverage is over all elements so the blocked matrix lines up; columns of pre-built
+    # elements stay empty because they have no frames.
+    owner_all = np.asarray(idx_work, dtype=np.intp)[owner]
+    cov_all = coverage(cands, T_frames, owner_all, len(elements), reach, lifts)
+    A = cov_all[:, idx_work].tocsr()
+    blocked = cands.blocked[:, idx_work].tocsr()
+    t_cov = time.perf_counter()
+
+    reachable = np.diff(A.tocsc().indptr) > 0
+    if not reachable.all():
+        raise _explain_unreachable(
+            project, elements, work, np.flatnonzero(~reachable), p_target, cands, reach, lifts
+        )
+
+    start = np.asarray(planning.start if planning.start is not None else project.site.extent_min)
+    n_blocked = np.diff(blocked.indptr)
+    res = select_stations(
+        A, np.ones(n, dtype=bool), cands.base_xy, cands.xy, n_blocked, reach.r_max, start
+    )
+    chosen = res.chosen
+    k = len(chosen)
+    t_sel = time.perf_counter()
+    if planning.max_stations is not None and k > planning.max_stations:
+        raise InfeasibleError(
+            f"the plan needs {k} stations but planning.max_stations is {planning.max_stations}; "
+            f"at least {res.lower_bound} are needed because elements "
+            f"{_list([ids[i] for i in res.witnesses])} share no station"
+        )
+
+    A_ch = A[chosen].tocsc()
+    A_ch.sort_indices()
+    reach_sets = [A_ch.indices[A_ch.indptr[e] : A_ch.indptr[e + 1]] for e in range(n)]
+    layer = np.array([e.layer for e in work], dtype=np.int64)
+    topo = topological_order(n, src, dst, layer)
+    station_of = assign(n, reach_sets, src, dst, topo)
+    blocked_ch = blocked[chosen].tocsr()
+    blocked_by = [
+        blocked_ch.indices[blocked_ch.indptr[s] : blocked_ch.indptr[s + 1]] for s in range(k)
+    ]
+    visits = schedule(station_of, layer, p_target, src, dst, blocked_by, cands.xy[chosen], ids)
+    t_ord = time.perf_counter()
+
+    # Station ids in order of first visit.
+    first_visit: dict[int, int] = {}
+    for v in visits:
+        first_visit.setdefault(v.station, len(first_visit))
+    A_ch_r = A[chosen].tocsr()
+    packages: list[WorkPackage] = []
+    prev_xy: np.ndarray | None = None
+    travel_total = 0.0
+    for v in visits:
+        c = int(chosen[v.station])
+        masks = np.asarray(A_ch_r[v.station, v.elements].todense()).ravel().astype(np.int64)
+        levels = lift_bands(masks)
+        cuts = np.flatnonzero(np.diff(levels)) + 1
+        T_wp = cands.T_world_platform(c)
+        for seg in np.split(np.arange(len(v.elements)), cuts):
+            els = v.elements[seg]
+            station = Station(
+                id=f"S{first_visit[v.station] + 1}",
+                T_world_platform=T_wp,
+                lift=float(lifts[levels[seg[0]]]),
+            )
+            travel = 0.0 if prev_xy is None else float(np.hypot(*(cands.xy[c] - prev_xy)))
+            travel_total += travel
+            prev_xy = cands.xy[c]
+            packages.append(
+                WorkPackage(
+                    index=len(packages),
+                    station=station,
+                    elements=tuple(ids[i] for i in els),
+                    T_world_targets=T_targets[els],
+                    travel=travel,
+                )
+            )
+    t_end = time.perf_counter()
+
+    per_station: dict[str, int] = {}
+    for wp in packages:
+        per_station[wp.station.id] = per_station.get(wp.station.id, 0) + len(wp.elements)
+    station_visits = len(visits)
+    witnesses = _list([ids[i] for i in res.witnesses])
+    if res.optimal:
+        notes.append(
+            f"{k} stations is the fewest possible over the {len(cands)} collision-free "
+            f"candidates (integer program solved to optimality); e.g. elements {witnesses} "
+            "pairwise share no station"
+        )
+    else:
+        notes.append(
+            f"{k} stations ({res.method}); at least {res.lower_bound} are needed because "
+            f"elements {witnesses} pairwise share no station"
+        )
+    if station_visits > k:
+        notes.append(
+            f"{station_visits - k} return visit(s): elements rest on elements built from "
+            "another station, so the plan comes back for the layers above"
+        )
+    if reach.source != "ik":
+        notes.append(
+            "reach model: geometric fallback from the robot's published dimensions "
+            "(inverse kinematics of the robots module not available)"
+        )
+    summary: dict[str, Any] = {
+        "stations": k,
+        "station_lower_bound": res.lower_bound,
+        "greedy_stations": res.greedy_count,
+        "selection": res.method,
+        "stations_optimal": res.optimal,
+        "visits": station_visits,
+        "work_packages": len(packages),
+        "elements": n,
+        "elements_per_station": per_station,
+        "travel_m": round(travel_total, 3),
+        "candidates": {"grid": cands.n_grid, "collision_free": len(cands)},
+        "lift_levels_m": [round(float(x), 3) for x in lifts],
+        "reach_model": reach.source,
+        "reach_margin_m": planning.reach_margin,
+        "time_s": {
+            "candidates": round(t_cand - t0, 4),
+            "coverage": round(t_cov - t_cand, 4),
+            "selection": round(t_sel - t_cov, 4),
+            "order": round(t_ord - t_sel, 4),
+            "packages": round(t_end - t_ord, 4),
+            "total": round(t_end - t0, 4),
+        },
+    }
+    return Plan(work_packages=tuple(packages), notes=tuple(notes), summary=summary)

@@ -1,0 +1,240 @@
+"""Reach model of the arm: which tool-centre positions it reaches with the tool pointing down.
+
+An arm whose first axis is vertical and turns (almost) a full circle reaches
+the same set in every direction, so reachability with the tool pointing down
+(any rotation about the tool axis) depends only on the horizontal distance
+``r`` of the TCP from the base axis and its height ``z`` above the base. The
+model is a boolean table over a regular (r, z) grid, built once per robot and
+tool and cached:
+
+* from the robots module's inverse kinematics (``fabflow.robots.reach_map``),
+  when it is available (``source = "ik"``);
+* otherwise from the robot's published dimensions (``source = "geometric"``):
+  the wrist centre, ``d6 + tool offset`` above the TCP, must lie in the annulus
+  the shoulder and elbow links sweep (shrunk by a small margin), and the
+  forearm may rise at most ``A5_max - 90 deg`` above horizontal so the wrist
+  can still turn the tool straight down. Joint limits of A2 and A3 and the
+  tool's sideways offset are not modelled by this fallback.
+
+The table is eroded by one cell, so a grid lookup errs on the unreachable side.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from fabflow.errors import UnsupportedError
+
+# Published dimensions (metres, degrees) for the fallback model: DH d1, a1, a2,
+# a3, d4, d6 and the A5 limit.
+PUBLISHED_DIMENSIONS: dict[str, dict[str, float]] = {
+    "kuka_kr60_3": {
+        "d1": 0.815,
+        "a1": 0.350,
+        "a2": 0.850,
+        "a3": 0.145,
+        "d4": 0.820,
+        "d6": 0.170,
+        "a5_max_deg": 119.0,
+    },
+}
+
+R_STEP = 0.02
+Z_STEP = 0.02
+R_MAX_TABLE = 3.5
+Z_MIN_TABLE = -3.0
+Z_MAX_TABLE = 4.0
+ANNULUS_MARGIN = 0.02
+"""Fraction by which the fallback shrinks the link annulus (keeps away from full stretch)."""
+
+
+@dataclass(frozen=True, eq=False)
+class ReachModel:
+    """Tool-down reachability over (r, z) in the arm base frame.
+
+    Attributes
+    ----------
+    table
+        (nr, nz) bool; cell (i, j) covers r in [i, i+1) * r_step and
+        z in z_min + [j, j+1) * z_step (metres).
+    r_step, z_step, z_min
+        Grid spacing and origin (metres).
+    source
+        ``"ik"`` (from the robots module) or ``"geometric"`` (published dimensions).
+    robot
+        Robot model name.
+    """
+
+    table: np.ndarray
+    r_step: float
+    z_step: float
+    z_min: float
+    source: str
+    robot: str
+
+    @functools.cached_property
+    def r_max(self) -> float:
+        """Largest horizontal TCP distance from the base axis that is reachable (metres)."""
+        rows = np.flatnonzero(self.table.any(axis=1))
+        return 0.0 if len(rows) == 0 else float((rows[-1] + 1) * self.r_step)
+
+    @functools.cached_property
+    def z_range(self) -> tuple[float, float]:
+        """Lowest and highest reachable TCP height above the base (metres)."""
+        cols = np.flatnonzero(self.table.any(axis=0))
+        if len(cols) == 0:
+            return (0.0, 0.0)
+        return (self.z_min + cols[0] * self.z_step, self.z_min + (cols[-1] + 1) * self.z_step)
+
+    def reachable(self, r: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Whether TCP positions are reachable with the tool pointing down.
+
+        Parameters
+        ----------
+        r
+            Horizontal distances from the base axis (metres), any shape.
+        z
+            Heights above the base frame origin (metres), broadcastable with ``r``.
+
+        Returns
+        -------
+        np.ndarray
+            Boolean array of the broadcast shape.
+        """
+        r, z = np.broadcast_arrays(np.asarray(r, dtype=float), np.asarray(z, dtype=float))
+        i = np.floor(r / self.r_step).astype(np.intp)
+        j = np.floor((z - self.z_min) / self.z_step).astype(np.intp)
+        nr, nz = self.table.shape
+        inside = (i >= 0) & (i < nr) & (j >= 0) & (j < nz)
+        out = np.zeros(r.shape, dtype=bool)
+        out[inside] = self.table[i[inside], j[inside]]
+        return out
+
+    def shrunk(self, margin: float) -> ReachModel:
+        """The model with the reachable set eroded by ``margin`` metres in r and z.
+
+        Planning with a shrunk model keeps every target at least ``margin`` inside
+        the reachable set, so parking and localization errors of that size stay
+        within reach.
+        """
+        cells = math.ceil(margin / min(self.r_step, self.z_step) - 1e-9)
+        if cells <= 0:
+            return self
+        ii, jj = np.mgrid[-cells : cells + 1, -cells : cells + 1]
+        disk = (ii * self.r_step) ** 2 + (jj * self.z_step) ** 2 <= margin**2 + 1e-12
+        table = ndimage.binary_erosion(self.table, structure=disk, border_value=0)
+        return ReachModel(
+            table=table,
+            r_step=self.r_step,
+            z_step=self.z_step,
+            z_min=self.z_min,
+            source=self.source,
+            robot=self.robot,
+        )
+
+    def reachable_base(self, p_base: np.ndarray) -> np.ndarray:
+        """Whether TCP positions (N, 3) in the base frame are reachable, tool pointing down."""
+        p = np.asarray(p_base, dtype=float).reshape(-1, 3)
+        return self.reachable(np.hypot(p[:, 0], p[:, 1]), p[:, 2])
+
+
+def _grid() -> tuple[np.ndarray, np.ndarray]:
+    r = (np.arange(round(R_MAX_TABLE / R_STEP)) + 0.5) * R_STEP
+    z = Z_MIN_TABLE + (np.arange(round((Z_MAX_TABLE - Z_MIN_TABLE) / Z_STEP)) + 0.5) * Z_STEP
+    return r, z
+
+
+def geometric_table(robot: str, tool_offset: float) -> np.ndarray:
+    """Fallback reach table from published dimensions (see the module docstring).
+
+    Parameters
+    ----------
+    robot
+        Robot model name; must be in :data:`PUBLISHED_DIMENSIONS`.
+    tool_offset
+        Distance from the flange to the TCP along the flange z axis (metres).
+
+    Returns
+    -------
+    np.ndarray
+        (nr, nz) bool table on the grid of :class:`ReachModel` (cell centres), not eroded.
+    """
+    if robot not in PUBLISHED_DIMENSIONS:
+        raise UnsupportedError(
+            f"no reach model for robot '{robot}': the robots module's reach map is not "
+            f"available and published dimensions are known only for "
+            f"{', '.join(PUBLISHED_DIMENSIONS)}"
+        )
+    g = PUBLISHED_DIMENSIONS[robot]
+    r, z = _grid()
+    R, Z = np.meshgrid(r, z, indexing="ij")
+    dx = R - g["a1"]
+    dz = Z + g["d6"] + tool_offset - g["d1"]
+    L2 = g["a2"]
+    L3 = math.hypot(g["a3"], g["d4"])
+    D = np.hypot(dx, dz)
+    ok_len = (D <= (L2 + L3) * (1.0 - ANNULUS_MARGIN)) & (
+        D >= abs(L2 - L3) + ANNULUS_MARGIN * (L2 + L3)
+    )
+    phi = np.arctan2(dz, dx)
+    cos_beta = np.clip((L2**2 + D**2 - L3**2) / (2.0 * L2 * np.maximum(D, 1e-9)), -1.0, 1.0)
+    beta = np.arccos(cos_beta)
+    max_rise = math.radians(g["a5_max_deg"] - 90.0)
+    ok_wrist = np.zeros_like(ok_len)
+    for sign in (1.0, -1.0):
+        theta2 = phi + sign * beta
+        fx = dx - L2 * np.cos(theta2)
+        fz = dz - L2 * np.sin(theta2)
+        ok_wrist |= np.arctan2(fz, np.abs(fx)) <= max_rise
+    return ok_len & ok_wrist
+
+
+def _ik_table(robot: str, T_flange_tool: np.ndarray) -> np.ndarray | None:
+    try:
+        from fabflow.robots import reach_map
+    except ImportError:
+        return None
+    try:
+        rm = reach_map(robot, T_flange_tool, tool_axis="down")
+    except UnsupportedError:
+        return None
+    r, z = _grid()
+    R, Z = np.meshgrid(r, z, indexing="ij")
+    p = np.stack([R.ravel(), np.zeros(R.size), Z.ravel()], axis=1)
+    return np.asarray(rm.reachable(p), dtype=bool).reshape(R.shape)
+
+
+@functools.lru_cache(maxsize=16)
+def _cached_model(robot: str, T_key: tuple[float, ...], use_ik: bool) -> ReachModel:
+    T_flange_tool = np.asarray(T_key, dtype=float).reshape(4, 4)
+    table = _ik_table(robot, T_flange_tool) if use_ik else None
+    source = "ik"
+    if table is None:
+        table = geometric_table(robot, float(T_flange_tool[2, 3]))
+        source = "geometric"
+    table = ndimage.binary_erosion(table, structure=np.ones((3, 3), dtype=bool), border_value=0)
+    return ReachModel(
+        table=table, r_step=R_STEP, z_step=Z_STEP, z_min=Z_MIN_TABLE, source=source, robot=robot
+    )
+
+
+def reach_model(robot: str, T_flange_tool: np.ndarray, use_ik: bool = True) -> ReachModel:
+    """The (cached) reach model of a robot with a tool.
+
+    Parameters
+    ----------
+    robot
+        Robot model name (``"kuka_kr60_3"``, ...).
+    T_flange_tool
+        4x4 TCP pose in the flange frame (metres).
+    use_ik
+        Build the table from the robots module's inverse kinematics when it is
+        available; ``False`` forces the geometric fallback.
+    """
+    key = tuple(np.round(np.asarray(T_flange_tool, dtype=float).ravel(), 9).tolist())
+    return _cached_model(robot, key, use_ik)

@@ -1,0 +1,106 @@
+"""Tool target poses of elements, in the world frame.
+
+* Block: the tool centre point (TCP) sits at the centre of the block's top face,
+  tool z points down (into the block), tool x runs along the block's length.
+* Print path: one tool frame per polyline vertex, at the vertex, with the
+  element frame's x axis and tool z pointing down (the nozzle prints downwards).
+  The element's *target* (the one stored in a work package) is the first frame.
+* Task point: the element frame itself is the tool frame to reach.
+
+All poses are 4x4 matrices in metres; ``T_world_tool``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from fabflow.design.elements import Element
+
+# Turning a z-up frame half a turn about its x axis keeps x and points z down.
+R_FLIP_X = np.diag([1.0, -1.0, -1.0])
+
+
+def element_tool_frames(element: Element) -> np.ndarray:
+    """Every tool frame the robot must reach to build ``element``.
+
+    Parameters
+    ----------
+    element
+        A block, print path or task point.
+
+    Returns
+    -------
+    np.ndarray
+        (k, 4, 4) tool poses in the world frame (metres), k >= 1.
+    """
+    T_world_element = np.asarray(element.T_world_element, dtype=float)
+    if element.type == "block":
+        height = 0.0 if element.extents is None else float(np.asarray(element.extents)[2])
+        T = T_world_element.copy()
+        T[:3, :3] = T_world_element[:3, :3] @ R_FLIP_X
+        T[:3, 3] = T_world_element[:3, 3] + T_world_element[:3, 2] * (0.5 * height)
+        return T[None]
+    if element.type == "print_path":
+        pts = np.zeros((1, 3)) if element.polyline is None else np.asarray(element.polyline)
+        pts = pts.reshape(-1, 3)
+        T = np.repeat(np.eye(4)[None], len(pts), axis=0)
+        T[:, :3, :3] = T_world_element[:3, :3] @ R_FLIP_X
+        T[:, :3, 3] = pts @ T_world_element[:3, :3].T + T_world_element[:3, 3]
+        return T
+    return T_world_element[None].copy()
+
+
+def tool_frames(elements: Sequence[Element]) -> tuple[np.ndarray, np.ndarray]:
+    """All tool frames of many elements, flattened (blocks are handled in one batch).
+
+    Returns
+    -------
+    T_world_tool
+        (K, 4, 4) tool poses in the world frame (metres).
+    owner
+        (K,) index of the element each frame belongs to; non-decreasing, every
+        element owns at least one frame.
+    """
+    n = len(elements)
+    if n == 0:
+        return np.zeros((0, 4, 4)), np.zeros(0, dtype=np.intp)
+    is_block = np.array([e.type == "block" for e in elements])
+    blocks = np.flatnonzero(is_block)
+    parts: list[np.ndarray] = []
+    owners: list[np.ndarray] = []
+    if len(blocks):
+        T_we = np.stack([np.asarray(elements[i].T_world_element, dtype=float) for i in blocks])
+        height = np.array(
+            [0.0 if elements[i].extents is None else elements[i].extents[2] for i in blocks],
+            dtype=float,
+        )
+        T = T_we.copy()
+        T[:, :3, :3] = T_we[:, :3, :3] @ R_FLIP_X
+        T[:, :3, 3] += T_we[:, :3, 2] * (0.5 * height)[:, None]
+        parts.append(T)
+        owners.append(blocks)
+    for i in np.flatnonzero(~is_block):
+        f = element_tool_frames(elements[i])
+        parts.append(f)
+        owners.append(np.full(len(f), i))
+    T_all = np.concatenate(parts)
+    owner = np.concatenate(owners)
+    order = np.argsort(owner, kind="stable")
+    return T_all[order], owner[order]
+
+
+def element_targets(elements: Sequence[Element]) -> np.ndarray:
+    """One tool target per element (the first of :func:`element_tool_frames`).
+
+    Returns
+    -------
+    np.ndarray
+        (N, 4, 4) tool poses in the world frame (metres).
+    """
+    T, owner = tool_frames(elements)
+    if len(owner) == 0:
+        return T
+    first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    return T[first]
