@@ -1,0 +1,166 @@
+"""Localize the robot base at every station of a plan with the project's method.
+
+Without measured data, each station is measured with the method's simulated
+sensors: the platform parks at its planned pose with the project's driving
+error (``simulation.driving_error``), the sensors observe the true base pose,
+and the method estimates it. The estimate, with its covariance and residuals,
+is what the programs of that station are expressed in.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from fabflow.design.elements import Element
+from fabflow.positioning.result import BasePose
+from fabflow.project import Project
+from fabflow.tasks.plan import Plan, Station, T_world_base
+from fabflow.transforms.so3 import exp_so3
+
+if TYPE_CHECKING:
+    from fabflow.pipeline import BuildContext
+
+METHOD_MODULES = {
+    "uwb": "fabflow.positioning.uwb",
+    "total_station": "fabflow.positioning.total_station",
+    "icp": "fabflow.positioning.scan_matching",
+}
+"""Module holding each method's ``localize_station`` function."""
+
+
+class LocalizeStation(Protocol):
+    """Simulate one method's measurements of a base at ``T_world_base`` and estimate it."""
+
+    def __call__(
+        self,
+        project: Project,
+        T_world_base: np.ndarray,
+        rng: np.random.Generator,
+        station_id: str,
+        built: Sequence[Element] = (),
+    ) -> BasePose: ...
+
+
+def method_function(method: str) -> LocalizeStation:
+    """The ``localize_station`` function of a localization method."""
+    module = importlib.import_module(METHOD_MODULES[method])
+    return module.localize_station
+
+
+def parked_pose(
+    project: Project, station: Station, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Planned and actual (driving error applied) base pose of a station.
+
+    The platform parks with a Gaussian error of ``simulation.driving_error`` (m)
+    in x and y and ``simulation.driving_heading_error_deg`` in heading.
+
+    Returns
+    -------
+    T_world_base_planned, T_world_base_true
+        4x4 poses in the world frame (metres).
+    """
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
+    planned = T_world_base(station, T_platform_base)
+    sim = project.simulation
+    error = np.eye(4)
+    error[:2, 3] = rng.normal(0.0, sim.driving_error, 2)
+    error[:3, :3] = exp_so3(
+        np.array([0.0, 0.0, rng.normal(0.0, np.radians(sim.driving_heading_error_deg))])
+    )
+    T_world_platform = station.T_world_platform @ error
+    lift = np.eye(4)
+    lift[2, 3] = station.lift
+    return planned, T_world_platform @ lift @ T_platform_base
+
+
+def localize_plan(
+    project: Project,
+    plan: Plan,
+    elements: Sequence[Element],
+    rng: np.random.Generator,
+    method: str | None = None,
+) -> dict[int, tuple[BasePose, np.ndarray]]:
+    """Localize every station of a plan.
+
+    Parameters
+    ----------
+    project
+        The project (method and setup from ``project.localization``).
+    plan
+        Stations and the elements built before each visit (for LiDAR scans of the
+        structure as built so far).
+    elements
+        All elements of the project.
+    rng
+        Random generator for the simulated sensors and parking errors.
+    method
+        Override of the project's localization method.
+
+    Returns
+    -------
+    dict
+        Visit index (``WorkPackage.index``) to ``(estimated BasePose, true T_world_base)``.
+        Every visit parks anew, so a station visited twice is localized twice.
+    """
+    localize = method_function(method or project.localization.method)
+    by_id = {e.id: e for e in elements}
+    prebuilt = [e for e in elements if not e.robot_built]
+    built_ids: list[str] = []
+    results: dict[int, tuple[BasePose, np.ndarray]] = {}
+    for wp in plan.work_packages:
+        _, T_true = parked_pose(project, wp.station, rng)
+        built = prebuilt + [by_id[i] for i in built_ids]
+        estimate = localize(project, T_true, rng, wp.station.id, built=built)
+        results[wp.index] = (estimate, T_true)
+        built_ids += list(wp.elements)
+    return results
+
+
+def stage_localize(ctx: BuildContext) -> None:
+    """Build stage: localize every visit of the plan; writes ``localization/*.json``.
+
+    Needs ``ctx.results["plan"]`` and ``ctx.results["elements"]``; sets
+    ``ctx.results["localization"]`` to ``{visit index: (BasePose, true T_world_base)}``.
+    """
+    from fabflow.output import write_json
+    from fabflow.transforms.se3 import pose_error
+
+    project = ctx.project
+    plan: Plan = ctx.results["plan"]
+    rng = np.random.default_rng(project.simulation.seed)
+    results = localize_plan(project, plan, ctx.results["elements"], rng)
+    ctx.results["localization"] = results
+    folder = ctx.out / "localization"
+    folder.mkdir()
+    errors = []
+    for wp in plan.work_packages:
+        estimate, T_true = results[wp.index]
+        error = pose_error(estimate.T_world_base, T_true)
+        errors.append(np.linalg.norm(error[:2]))
+        write_json(
+            folder / f"visit_{wp.index + 1:02d}_{wp.station.id}.json",
+            {
+                **estimate.to_dict(),
+                "visit": wp.index + 1,
+                "simulated": True,
+                "T_world_base_true": T_true,
+                "error": {"xyz_m": error[:3], "rotation_rad": error[3:]},
+            },
+        )
+    sigma = [
+        float(np.sqrt(np.trace(results[wp.index][0].covariance[:2, :2])))
+        for wp in plan.work_packages
+    ]
+    ctx.add("localize", "method", project.localization.method)
+    ctx.add("localize", "visits localized", len(results))
+    ctx.add(
+        "localize",
+        "XY error, simulated (mean / max)",
+        f"{1000 * np.mean(errors):.1f} / {1000 * np.max(errors):.1f} mm",
+    )
+    ctx.add("localize", "XY sigma, predicted (mean)", f"{1000 * np.mean(sigma):.1f} mm")

@@ -1,0 +1,147 @@
+"""KUKA KRL writer (KSS 8.x): one ``.src`` / ``.dat`` module pair per program.
+
+Units at this edge: millimetres and degrees; ``A B C`` with R = Rz(A) Ry(B) Rx(C).
+``$BASE`` is the design world in the robot base frame (from the localization),
+``$TOOL`` the tool centre point in the flange frame; both are declared as FRAMEs
+in the ``.dat``. PTP targets are E6POS with status and turn bits from the joint
+configuration inverse kinematics chose, so the controller takes the same
+configuration. Outputs are switched with ``CONTINUE`` so the advance run does
+not stop and blending is kept. Programs longer than ``max_moves`` motions are
+split into sub-programs, each its own module, called from the main module.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fabflow.robots import kuka_status_turn
+from fabflow.robots.program import Comment, Instruction, Move, Program, SetOutput, Wait
+from fabflow.robots.program import sanitize_identifier as _sanitize
+from fabflow.transforms.so3 import abc_from_matrix
+
+MAX_NAME = 24
+"""KRL identifiers and module names have at most 24 characters."""
+
+
+def kuka_frame_values(T: np.ndarray) -> np.ndarray:
+    """``[X, Y, Z, A, B, C]`` in millimetres and degrees from a 4x4 pose in metres."""
+    T = np.asarray(T, dtype=float)
+    abc = np.degrees(abc_from_matrix(T[..., :3, :3]))
+    return np.concatenate([T[..., :3, 3] * 1000.0, abc], axis=-1)
+
+
+def _num(v: float, digits: int) -> str:
+    text = f"{v:.{digits}f}"
+    return "0." + "0" * digits if text == "-0." + "0" * digits else text
+
+
+def _frame(values: np.ndarray) -> str:
+    x, y, z, a, b, c = values
+    return (
+        f"X {_num(x, 3)},Y {_num(y, 3)},Z {_num(z, 3)},A {_num(a, 4)},B {_num(b, 4)},C {_num(c, 4)}"
+    )
+
+
+def _module_text(
+    name: str, program: Program, instructions: list[Instruction], is_main: bool, calls: list[str]
+) -> tuple[str, str]:
+    header = [f"; {k}: {v}" for k, v in program.header.items()]
+    src = ["&ACCESS RVP", "&REL 1", f"DEF {name}( )", *header]
+    dat = ["&ACCESS RVP", "&REL 1", f"DEFDAT {name}", *header]
+    if is_main:
+        base = _frame(kuka_frame_values(program.T_base_world))
+        tool = _frame(kuka_frame_values(program.T_flange_tool))
+        dat += [f"DECL FRAME BASE_WORLD={{{base}}}", f"DECL FRAME TOOL_TCP={{{tool}}}"]
+        src += [
+            "BAS (#INITMOV,0)",
+            "$BASE = BASE_WORLD",
+            "$TOOL = TOOL_TCP",
+        ]
+    else:
+        dat += [
+            "DECL FRAME BASE_WORLD=" + f"{{{_frame(kuka_frame_values(program.T_base_world))}}}",
+            f"DECL FRAME TOOL_TCP={{{_frame(kuka_frame_values(program.T_flange_tool))}}}",
+        ]
+        src += ["$BASE = BASE_WORLD", "$TOOL = TOOL_TCP"]
+    current_speed: float | None = None
+    current_axis_speed: float | None = None
+    current_blend: float | None = None
+    n = 0
+    for ins in instructions:
+        if isinstance(ins, Comment):
+            src.append(f"; {ins.text}")
+        elif isinstance(ins, SetOutput):
+            number = program.outputs[ins.name]
+            src += ["CONTINUE", f"$OUT[{number}] = {'TRUE' if ins.value else 'FALSE'}"]
+        elif isinstance(ins, Wait):
+            src.append(f"WAIT SEC {_num(ins.seconds, 3)}")
+        else:
+            assert isinstance(ins, Move)
+            n += 1
+            point = f"XP{n}"
+            values = kuka_frame_values(ins.T_world_tool)
+            if ins.kind == "ptp" and ins.speed != current_axis_speed:
+                percent = _num(min(max(ins.speed, 0.01), 1.0) * 100.0, 1)
+                src += [f"$VEL_AXIS[{i}] = {percent}" for i in range(1, 7)]
+                current_axis_speed = ins.speed
+            if ins.kind == "lin" and ins.speed != current_speed:
+                src.append(f"$VEL.CP = {_num(ins.speed, 4)}")
+                current_speed = ins.speed
+            if ins.blend > 0 and ins.blend != current_blend:
+                src.append(f"$APO.CDIS = {_num(ins.blend * 1000.0, 3)}")
+                current_blend = ins.blend
+            approx = " C_DIS" if ins.blend > 0 else ""
+            if ins.kind == "ptp":
+                s, t = kuka_status_turn(ins.q)
+                dat.append(f"DECL E6POS {point}={{{_frame(values)},S {s},T {t}}}")
+                src.append(f"PTP {point}{approx}")
+            else:
+                dat.append(f"DECL E6POS {point}={{{_frame(values)}}}")
+                src.append(f"LIN {point}{approx}")
+            if ins.element:
+                src[-1] += f" ; {ins.element} {ins.label}".rstrip()
+    src += [f"{c}( )" for c in calls]
+    src.append("END")
+    dat.append("ENDDAT")
+    return "\n".join(src) + "\n", "\n".join(dat) + "\n"
+
+
+def write_krl(program: Program, max_moves: int = 400) -> dict[str, str]:
+    """KRL files for a program.
+
+    Parameters
+    ----------
+    program
+        The program (frames in metres and radians).
+    max_moves
+        Most motion instructions in one module; longer programs are split into
+        sub-program modules ``<name>_P01``, ``<name>_P02``, ... called in order.
+
+    Returns
+    -------
+    dict[str, str]
+        File name (``NAME.src``, ``NAME.dat``, ...) to file text.
+    """
+    name = _sanitize(program.name, MAX_NAME)
+    chunks: list[list[Instruction]] = [[]]
+    count = 0
+    for ins in program.instructions:
+        if isinstance(ins, Move):
+            if count == max_moves:
+                chunks.append([])
+                count = 0
+            count += 1
+        chunks[-1].append(ins)
+    files: dict[str, str] = {}
+    if len(chunks) == 1:
+        src, dat = _module_text(name, program, chunks[0], True, [])
+        return {f"{name}.src": src, f"{name}.dat": dat}
+    sub_names = [
+        _sanitize(f"{name[: MAX_NAME - 4]}_P{i + 1:02d}", MAX_NAME) for i in range(len(chunks))
+    ]
+    for sub, chunk in zip(sub_names, chunks, strict=True):
+        src, dat = _module_text(sub, program, chunk, False, [])
+        files[f"{sub}.src"] = src
+        files[f"{sub}.dat"] = dat
+    src, dat = _module_text(name, program, [], True, sub_names)
+    return {f"{name}.src": src, f"{name}.dat": dat, **files}

@@ -1,0 +1,163 @@
+"""ABB RAPID writer: one ``.mod`` module per program.
+
+Units at this edge: millimetres and unit quaternions (q1 = w first, q1 >= 0).
+The work object's user frame is the design world in the robot base frame
+(from the localization), so robtargets carry design coordinates; ``tooldata``
+holds the tool centre point. Each robtarget carries ``confdata`` derived from
+the joint configuration inverse kinematics chose.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fabflow.robots.program import Comment, Move, Program, SetOutput, Wait
+from fabflow.robots.program import sanitize_identifier as _sanitize
+from fabflow.transforms.so3 import quat_from_matrix
+
+MAX_NAME = 32
+"""RAPID identifiers have at most 32 characters."""
+
+SPEEDS_MM_S = (
+    5,
+    10,
+    20,
+    30,
+    40,
+    50,
+    60,
+    80,
+    100,
+    150,
+    200,
+    300,
+    400,
+    500,
+    600,
+    800,
+    1000,
+    1500,
+    2000,
+    2500,
+    3000,
+    4000,
+    5000,
+    6000,
+    7000,
+)
+"""The predefined ``speeddata`` (``v5`` ... ``v7000``)."""
+
+ZONES_MM = (0, 1, 5, 10, 15, 20, 30, 40, 50, 60, 80, 100, 150, 200)
+"""The predefined ``zonedata`` (``z0`` ... ``z200``; 0 blending is ``fine``)."""
+
+
+def abb_pose_values(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position (mm) and quaternion (w, x, y, z; w >= 0) of a 4x4 pose in metres."""
+    T = np.asarray(T, dtype=float)
+    return T[..., :3, 3] * 1000.0, quat_from_matrix(T[..., :3, :3])
+
+
+def confdata(q: np.ndarray, T_base_flange: np.ndarray, shoulder_x: float) -> tuple[int, ...]:
+    """ABB ``confdata`` [cf1, cf4, cf6, cfx] for a 6-axis configuration.
+
+    cf1, cf4, cf6 are the quadrants (``floor(q / 90 deg)``) of axes 1, 4 and 6.
+    cfx packs three flags: 4 when the wrist centre is behind axis 1, 2 when it is
+    behind the lower arm (elbow down), 1 when axis 5 is negative.
+
+    Parameters
+    ----------
+    q
+        Joint angles in radians.
+    T_base_flange
+        The flange pose at ``q`` (base frame, metres), for the wrist centre.
+    shoulder_x
+        Distance of axis 2 from axis 1 (metres).
+    """
+    cf1, cf4, cf6 = (int(np.floor(np.degrees(q[i]) / 90.0)) for i in (0, 3, 5))
+    wrist = T_base_flange[:3, 3]
+    heading = np.array([np.cos(q[0]), np.sin(q[0])])
+    behind_axis1 = float(wrist[:2] @ heading) < 0.0
+    behind_lower_arm = float(wrist[:2] @ heading) < shoulder_x if not behind_axis1 else False
+    cfx = 4 * behind_axis1 + 2 * behind_lower_arm + 1 * bool(q[4] < 0.0)
+    return cf1, cf4, cf6, cfx
+
+
+def _num(v: float, digits: int) -> str:
+    text = f"{v:.{digits}f}"
+    return "0." + "0" * digits if text == "-0." + "0" * digits else text
+
+
+def _pose(T: np.ndarray) -> str:
+    p, q = abb_pose_values(T)
+    return "[[" + ",".join(_num(v, 3) for v in p) + "],[" + ",".join(_num(v, 9) for v in q) + "]]"
+
+
+def _speed(speed: float) -> str:
+    mm_s = speed * 1000.0
+    return "v" + str(min(SPEEDS_MM_S, key=lambda v: abs(v - mm_s)))
+
+
+def _zone(blend: float) -> str:
+    if blend <= 0:
+        return "fine"
+    return "z" + str(min(ZONES_MM[1:], key=lambda v: abs(v - blend * 1000.0)))
+
+
+def write_rapid(program: Program, shoulder_x: float = 0.175) -> dict[str, str]:
+    """RAPID module for a program.
+
+    Parameters
+    ----------
+    program
+        The program (frames in metres and radians).
+    shoulder_x
+        Offset of axis 2 from axis 1 (metres), for the ``cfx`` flags.
+
+    Returns
+    -------
+    dict[str, str]
+        ``{"NAME.mod": text}``.
+    """
+    from fabflow.robots import get_robot
+
+    robot = get_robot(program.robot)
+    name = _sanitize(program.name, MAX_NAME)
+    tool = _sanitize(f"t_{program.tool_name}", MAX_NAME)
+    lines = [f"MODULE {name}"]
+    lines += [f"  ! {k}: {v}" for k, v in program.header.items()]
+    lines += [
+        f"  PERS tooldata {tool} := [TRUE,{_pose(program.T_flange_tool)},"
+        "[20,[0,0,100],[1,0,0,0],0,0,0]];",
+        f'  PERS wobjdata wobj_world := [FALSE,TRUE,"",{_pose(program.T_base_world)},'
+        "[[0,0,0],[1,0,0,0]]];",
+    ]
+    body = ["  PROC main()", "    ConfJ \\On;", "    ConfL \\On;"]
+    moves = [i for i in program.instructions if isinstance(i, Move)]
+    flanges = robot.fk(np.stack([m.q for m in moves])) if moves else np.zeros((0, 4, 4))
+    n = 0
+    for ins in program.instructions:
+        if isinstance(ins, Comment):
+            body.append(f"    ! {ins.text}")
+        elif isinstance(ins, SetOutput):
+            body.append(f"    SetDO do_{_sanitize(ins.name, MAX_NAME - 3)}, {int(ins.value)};")
+        elif isinstance(ins, Wait):
+            body.append(f"    WaitTime {_num(ins.seconds, 3)};")
+        else:
+            assert isinstance(ins, Move)
+            conf = confdata(ins.q, flanges[n], shoulder_x)
+            n += 1
+            point = f"p{n}"
+            lines.append(
+                f"  CONST robtarget {point} := [{_pose(ins.T_world_tool)[1:-1]},"
+                f"[{','.join(str(c) for c in conf)}],[9E9,9E9,9E9,9E9,9E9,9E9]];"
+            )
+            instr = "MoveJ" if ins.kind == "ptp" else "MoveL"
+            speed = "v1000" if ins.kind == "ptp" else _speed(ins.speed)
+            comment = f" ! {ins.element} {ins.label}".rstrip() if ins.element else ""
+            body.append(
+                f"    {instr} {point}, {speed}, {_zone(ins.blend)}, {tool}\\WObj:=wobj_world;"
+                + comment
+            )
+    body.append("  ENDPROC")
+    text = "\n".join([*lines, *body, "ENDMODULE"]) + "\n"
+    return {f"{name}.mod": text}

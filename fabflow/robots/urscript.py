@@ -1,0 +1,83 @@
+"""Universal Robots URScript writer: one ``.script`` file per program.
+
+Units at this edge: metres and rotation vectors (radians). The design world's
+pose in the robot base frame (from the localization) is the variable
+``world_in_base``; linear targets are written in design coordinates and mapped
+with ``pose_trans(world_in_base, p[...])``. Joint moves carry the joint
+configuration inverse kinematics chose, so the robot takes that configuration.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fabflow.robots.program import Comment, Move, Program, SetOutput, Wait
+from fabflow.robots.program import sanitize_identifier as _sanitize
+from fabflow.transforms.so3 import log_so3
+
+JOINT_ACCELERATION = 1.4
+"""rad/s^2 for ``movej``."""
+TOOL_ACCELERATION = 1.2
+"""m/s^2 for ``movel``."""
+
+
+def ur_pose_values(T: np.ndarray) -> np.ndarray:
+    """``[x, y, z, rx, ry, rz]`` (metres, rotation vector in radians) of a 4x4 pose."""
+    T = np.asarray(T, dtype=float)
+    return np.concatenate([T[..., :3, 3], log_so3(T[..., :3, :3])], axis=-1)
+
+
+def _num(v: float, digits: int = 7) -> str:
+    text = f"{v:.{digits}f}"
+    return "0." + "0" * digits if text == "-0." + "0" * digits else text
+
+
+def _p(T: np.ndarray) -> str:
+    return "p[" + ", ".join(_num(v) for v in ur_pose_values(T)) + "]"
+
+
+def write_urscript(program: Program, max_joint_speed: float = 1.0) -> dict[str, str]:
+    """URScript for a program.
+
+    Parameters
+    ----------
+    program
+        The program (frames in metres and radians).
+    max_joint_speed
+        Joint speed (rad/s) that a ``ptp`` speed fraction of 1 stands for.
+
+    Returns
+    -------
+    dict[str, str]
+        ``{"name.script": text}``.
+    """
+    name = _sanitize(program.name, 63).lower()
+    lines = [f"def {name}():"]
+    lines += [f"  # {k}: {v}" for k, v in program.header.items()]
+    lines += [
+        f"  set_tcp({_p(program.T_flange_tool)})",
+        f"  world_in_base = {_p(program.T_base_world)}",
+    ]
+    for ins in program.instructions:
+        if isinstance(ins, Comment):
+            lines.append(f"  # {ins.text}")
+        elif isinstance(ins, SetOutput):
+            number = program.outputs[ins.name]
+            lines.append(f"  set_standard_digital_out({number}, {ins.value})")
+        elif isinstance(ins, Wait):
+            lines.append(f"  sleep({_num(ins.seconds, 3)})")
+        else:
+            assert isinstance(ins, Move)
+            comment = f"  # {ins.element} {ins.label}".rstrip() if ins.element else ""
+            r = _num(ins.blend, 4)
+            if ins.kind == "ptp":
+                q = "[" + ", ".join(_num(v) for v in ins.q) + "]"
+                v = _num(ins.speed * max_joint_speed, 4)
+                lines.append(f"  movej({q}, a={JOINT_ACCELERATION}, v={v}, r={r}){comment}")
+            else:
+                target = f"pose_trans(world_in_base, {_p(ins.T_world_tool)})"
+                v = _num(ins.speed, 4)
+                lines.append(f"  movel({target}, a={TOOL_ACCELERATION}, v={v}, r={r}){comment}")
+    lines.append("end")
+    lines.append(f"{name}()")
+    return {f"{name}.script": "\n".join(lines) + "\n"}

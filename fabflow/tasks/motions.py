@@ -1,0 +1,160 @@
+"""Motions per element type, as Cartesian tool waypoints in the world frame.
+
+* Block (pick and place): approach above the pick frame, linear down, grip,
+  retract, travel at safe height, approach above the place pose, linear down,
+  release, retract. The pick frame is on the platform (a block magazine), so it
+  is given in the robot base frame and placed in the world with the station's
+  localized base pose.
+* Print path: approach above the first frame, linear down, extruder on, linear
+  moves through every frame at the print speed with blending, extruder off,
+  retract.
+* Task point: approach along the tool axis, linear to the point, action output
+  on, dwell, off, linear retract.
+
+Every waypoint is a tool pose ``T_world_tool`` (4x4, metres).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from fabflow.design.elements import Element
+from fabflow.project import Project
+from fabflow.tasks.targets import R_FLIP_X, element_tool_frames
+
+OUTPUTS = {"gripper": 1, "extruder": 2, "drill": 3, "mark": 4, "measure": 5}
+"""Digital output numbers of the tool actions."""
+
+GRIP_DWELL_S = 0.3
+"""Dwell after switching the gripper (vacuum build-up / release), seconds."""
+ACTION_DWELL_S = 1.0
+"""Dwell at a task point while the action runs, seconds."""
+PTP_SPEED = 0.5
+"""Joint speed of PTP moves as a fraction of each axis' maximum."""
+
+
+@dataclass(frozen=True, eq=False)
+class Waypoint:
+    """A Cartesian motion target of one element's motion."""
+
+    kind: str
+    T_world_tool: np.ndarray
+    speed: float
+    blend: float
+    label: str
+    element: str
+
+
+@dataclass(frozen=True)
+class Action:
+    """Switch an output, then dwell."""
+
+    output: str
+    value: bool
+    dwell: float
+    element: str
+
+
+Step = Waypoint | Action
+
+
+def _lift(T: np.ndarray, dz: float) -> np.ndarray:
+    """``T`` moved up by ``dz`` metres along the world z axis."""
+    out = np.array(T, dtype=float, copy=True)
+    out[..., 2, 3] += dz
+    return out
+
+
+def T_base_pick_tool(project: Project) -> np.ndarray:
+    """Tool pose for gripping a block in the platform magazine, in the robot base frame.
+
+    ``robot.platform.T_platform_pick`` is the centre of the top face of the block
+    waiting in the magazine (z up); the magazine rides on the lift with the arm.
+    """
+    platform = project.robot.platform
+    T_platform_base = platform.T_platform_base.matrix()
+    T_pick = np.linalg.inv(T_platform_base) @ platform.T_platform_pick.matrix()
+    T_pick[:3, :3] = T_pick[:3, :3] @ R_FLIP_X
+    return T_pick
+
+
+def element_motion(element: Element, project: Project, T_world_base: np.ndarray) -> list[Step]:
+    """The motion steps that build one element.
+
+    Parameters
+    ----------
+    element
+        The element to build.
+    project
+        Speeds, approach distance and blending come from ``project.program``.
+    T_world_base
+        Localized robot base pose of the station (places the pick frame).
+    """
+    settings = project.program
+    approach, blend, speed = settings.approach, settings.blend, settings.speed
+    eid = element.id
+    if element.type == "block":
+        T_place = element_tool_frames(element)[0]
+        T_pick = T_world_base @ T_base_pick_tool(project)
+        pick_up, place_up = _lift(T_pick, approach), _lift(T_place, approach)
+        steps: list[Step] = [
+            Waypoint("ptp", pick_up, PTP_SPEED, blend, "pick approach", eid),
+            Waypoint("lin", T_pick, speed, 0.0, "pick", eid),
+            Action("gripper", True, GRIP_DWELL_S, eid),
+            Waypoint("lin", pick_up, speed, blend, "pick retract", eid),
+        ]
+        travel_z = max(pick_up[2, 3], place_up[2, 3])
+        if travel_z > place_up[2, 3] + 1e-3:
+            travel = place_up.copy()
+            travel[2, 3] = travel_z
+            steps.append(Waypoint("ptp", travel, PTP_SPEED, blend, "travel", eid))
+        steps += [
+            Waypoint("ptp", place_up, PTP_SPEED, blend, "place approach", eid),
+            Waypoint("lin", T_place, speed, 0.0, "place", eid),
+            Action("gripper", False, GRIP_DWELL_S, eid),
+            Waypoint("lin", place_up, speed, blend, "place retract", eid),
+        ]
+        return steps
+    if element.type == "print_path":
+        frames = element_tool_frames(element)
+        print_speed = float(element.attributes.get("speed", speed))
+        steps = [
+            Waypoint("ptp", _lift(frames[0], approach), PTP_SPEED, blend, "approach", eid),
+            Waypoint("lin", frames[0], speed, 0.0, "start", eid),
+            Action("extruder", True, 0.0, eid),
+        ]
+        steps += [
+            Waypoint("lin", frames[i], print_speed, blend, f"path {i}", eid)
+            for i in range(1, len(frames) - 1)
+        ]
+        if len(frames) > 1:
+            steps.append(Waypoint("lin", frames[-1], print_speed, 0.0, "end", eid))
+        steps += [
+            Action("extruder", False, 0.0, eid),
+            Waypoint("lin", _lift(frames[-1], approach), speed, blend, "retract", eid),
+        ]
+        return steps
+    T_point = element_tool_frames(element)[0]
+    backed = T_point.copy()
+    backed[:3, 3] -= T_point[:3, 2] * approach
+    action = str(element.attributes.get("action", "mark"))
+    return [
+        Waypoint("ptp", backed, PTP_SPEED, blend, "approach", eid),
+        Waypoint("lin", T_point, speed, 0.0, action, eid),
+        Action(action, True, ACTION_DWELL_S, eid),
+        Action(action, False, 0.0, eid),
+        Waypoint("lin", backed, speed, blend, "retract", eid),
+    ]
+
+
+def work_package_motion(
+    elements: Sequence[Element], project: Project, T_world_base: np.ndarray
+) -> list[Step]:
+    """The motion steps of a whole work package, elements in the given order."""
+    steps: list[Step] = []
+    for element in elements:
+        steps += element_motion(element, project, T_world_base)
+    return steps

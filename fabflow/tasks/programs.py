@@ -1,0 +1,389 @@
+"""Robot programs per work package: motions, inverse kinematics checks, writers.
+
+Every Cartesian target is checked with inverse kinematics before anything is
+written. PTP targets take the valid configuration nearest the previous one;
+linear moves must keep the configuration of their start, and are sampled at
+most one controller step apart (2 cm / 0.015 rad) so that a joint limit or a
+configuration change inside the line is found. Any failure is an
+:class:`~fabflow.errors.InfeasibleError` naming the element and the target.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fabflow import __version__
+from fabflow.design.elements import Element
+from fabflow.errors import InfeasibleError, UnsupportedError
+from fabflow.positioning.result import BasePose
+from fabflow.project import Project
+from fabflow.robots import get_robot
+from fabflow.robots.json_stream import write_json_stream
+from fabflow.robots.krl import write_krl
+from fabflow.robots.program import Comment, Instruction, Move, Program, SetOutput, Wait
+from fabflow.robots.rapid import write_rapid
+from fabflow.robots.urscript import write_urscript
+from fabflow.tasks.motions import OUTPUTS, Action, Step, Waypoint, work_package_motion
+from fabflow.tasks.plan import Plan, WorkPackage
+from fabflow.transforms.so3 import exp_so3, log_so3
+
+if TYPE_CHECKING:
+    from fabflow.pipeline import BuildContext
+
+STEP_TRANSLATION = 0.02
+"""Largest tool translation between two checked samples of a linear move (m)."""
+STEP_ROTATION = 0.015
+"""Largest tool rotation between two checked samples of a linear move (rad)."""
+MAX_JOINT_JUMP = 0.35
+"""A joint moving more than this between neighbouring samples (rad) means the
+line passes a singularity or changes configuration."""
+TOOL_ROTATION_SPEED = 1.0
+"""Tool rotation speed assumed for timing linear moves (rad/s)."""
+
+WRITERS: dict[str, Callable[[Program], dict[str, str]]] = {
+    "krl": write_krl,
+    "rapid": write_rapid,
+    "urscript": write_urscript,
+    "json": write_json_stream,
+}
+VENDOR_OF_FORMAT = {"krl": "kuka", "rapid": "abb", "urscript": "ur"}
+
+
+def check_format(fmt: str, robot: str) -> None:
+    """Raise :class:`UnsupportedError` when a vendor format does not fit the robot."""
+    if fmt not in WRITERS:
+        raise UnsupportedError(f"unknown program format '{fmt}'; known: {', '.join(WRITERS)}")
+    vendor = VENDOR_OF_FORMAT.get(fmt)
+    if vendor is not None and not robot.startswith(vendor):
+        raise UnsupportedError(
+            f"'{fmt}' programs run on {vendor.upper()} controllers, but the project's robot "
+            f"is '{robot}'; use format 'json' or a {vendor.upper()} robot"
+        )
+
+
+def _interpolate(T0: np.ndarray, T1: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Poses at fractions ``s`` (k,) between ``T0`` and ``T1`` (linear + geodesic rotation)."""
+    R0 = T0[:3, :3]
+    w = log_so3(R0.T @ T1[:3, :3])
+    out = np.repeat(np.eye(4)[None], len(s), axis=0)
+    out[:, :3, :3] = R0 @ exp_so3(s[:, None] * w)
+    out[:, :3, 3] = T0[:3, 3] + s[:, None] * (T1[:3, 3] - T0[:3, 3])
+    return out
+
+
+@dataclass(frozen=True)
+class _Segment:
+    """Samples of one linear move, for the batched IK check."""
+
+    move: int
+    start: int
+    stop: int
+
+
+def _fail(wp: Waypoint, why: str, T_base_tool: np.ndarray) -> InfeasibleError:
+    x, y, z = T_base_tool[:3, 3]
+    return InfeasibleError(
+        f"element {wp.element}, target '{wp.label}': {why} "
+        f"(tool at x={x:.3f}, y={y:.3f}, z={z:.3f} m in the robot base frame)"
+    )
+
+
+def solve_moves(
+    waypoints: Sequence[Waypoint],
+    robot_name: str,
+    T_base_world: np.ndarray,
+    T_flange_tool: np.ndarray,
+    q_start: np.ndarray | None = None,
+) -> tuple[np.ndarray, list[np.ndarray | None], list[np.ndarray | None]]:
+    """Joint configurations for every waypoint, with linear moves checked along the line.
+
+    Parameters
+    ----------
+    waypoints
+        Cartesian targets in the world frame, in execution order.
+    robot_name
+        Robot model name.
+    T_base_world
+        Pose of the world in the robot base frame (metres).
+    T_flange_tool
+        Tool centre point in the flange frame.
+    q_start
+        Configuration before the first move (default: the middle of the joint limits).
+
+    Returns
+    -------
+    q
+        (n, dof) joint configuration at each waypoint (radians).
+    via_q, via_T
+        Per waypoint, the intermediate samples of a linear move (or None).
+
+    Raises
+    ------
+    InfeasibleError
+        Naming the element and target that is unreachable, or the linear move
+        that crosses a joint limit or changes configuration.
+    """
+    robot = get_robot(robot_name)
+    n = len(waypoints)
+    if n == 0:
+        return np.zeros((0, robot.dof)), [], []
+    T_flange_tool = np.asarray(T_flange_tool, dtype=float)
+    T_tool_flange = np.linalg.inv(T_flange_tool)
+    T_world_tool = np.stack([w.T_world_tool for w in waypoints])
+    T_base_tool = T_base_world @ T_world_tool
+    T_base_flange = T_base_tool @ T_tool_flange
+    q_all, valid = robot.ik_batch(T_base_flange)
+    q_prev = (
+        robot.joint_limits.mean(axis=1) if q_start is None else np.asarray(q_start, dtype=float)
+    )
+    q_out = np.zeros((n, robot.dof))
+    branch = np.full(n, -1)
+    for i, wp in enumerate(waypoints):
+        if wp.kind == "lin" and i > 0:
+            b = branch[i - 1]
+            if not valid[i, b]:
+                raise _fail(
+                    wp,
+                    "cannot be reached by a linear move in the same configuration",
+                    T_base_tool[i],
+                )
+        else:
+            candidates = np.flatnonzero(valid[i])
+            if len(candidates) == 0:
+                raise _fail(
+                    wp, "no inverse kinematics solution within the joint limits", T_base_tool[i]
+                )
+            turned = robot.nearest_turn(q_all[i, candidates], q_prev)
+            b = candidates[int(np.argmin(np.abs(turned - q_prev).max(axis=1)))]
+        q = robot.nearest_turn(q_all[i, b], q_prev)
+        if not robot.within_limits(q):
+            raise _fail(
+                wp,
+                "the configuration reached from the previous one leaves the joint limits",
+                T_base_tool[i],
+            )
+        q_out[i], branch[i] = q, b
+        q_prev = q
+
+    # Sample every linear move and check it in one batch.
+    segments: list[_Segment] = []
+    samples: list[np.ndarray] = []
+    count = 0
+    for i in range(1, n):
+        if waypoints[i].kind != "lin":
+            continue
+        T0, T1 = T_world_tool[i - 1], T_world_tool[i]
+        dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+        angle = float(np.linalg.norm(log_so3(T0[:3, :3].T @ T1[:3, :3])))
+        k = max(math.ceil(dist / STEP_TRANSLATION), math.ceil(angle / STEP_ROTATION), 1)
+        if k > 1:
+            samples.append(_interpolate(T0, T1, np.arange(1, k) / k))
+            segments.append(_Segment(i, count, count + k - 1))
+            count += k - 1
+    via_q: list[np.ndarray | None] = [None] * n
+    via_T: list[np.ndarray | None] = [None] * n
+    if not segments:
+        return q_out, via_q, via_T
+    S_world = np.concatenate(samples)
+    refs = np.concatenate(
+        [np.repeat(q_out[s.move - 1][None], s.stop - s.start, 0) for s in segments]
+    )
+    qs, ok = robot.ik_batch(T_base_world @ S_world @ T_tool_flange, q_ref=refs)
+    for s in segments:
+        b = branch[s.move]
+        seg_ok = ok[s.start : s.stop, b]
+        wp = waypoints[s.move]
+        if not seg_ok.all():
+            bad = s.start + int(np.argmin(seg_ok))
+            raise _fail(
+                wp,
+                "the linear move to it crosses a joint limit or leaves the workspace",
+                T_base_world @ S_world[bad],
+            )
+        path = np.concatenate(
+            [q_out[s.move - 1][None], qs[s.start : s.stop, b], q_out[s.move][None]]
+        )
+        jumps = np.abs(np.diff(path, axis=0)).max(axis=1)
+        if jumps.max() > MAX_JOINT_JUMP:
+            raise _fail(
+                wp,
+                "the linear move to it passes a singularity or changes configuration",
+                T_base_tool[s.move],
+            )
+        via_q[s.move] = qs[s.start : s.stop, b]
+        via_T[s.move] = S_world[s.start : s.stop]
+    return q_out, via_q, via_T
+
+
+def compile_program(
+    name: str,
+    steps: Sequence[Step],
+    project: Project,
+    T_world_base: np.ndarray,
+    header: dict[str, object],
+) -> Program:
+    """Turn motion steps into a checked, timed :class:`Program`.
+
+    Parameters
+    ----------
+    name
+        Program name.
+    steps
+        Waypoints and actions in execution order (world frame).
+    project
+        Robot, tool and program settings.
+    T_world_base
+        The station's localized robot base pose.
+    header
+        Header comments for the program.
+    """
+    robot = get_robot(project.robot.model)
+    T_base_world = np.linalg.inv(T_world_base)
+    T_flange_tool = project.robot.tool.T_flange_tool.matrix()
+    waypoints = [s for s in steps if isinstance(s, Waypoint)]
+    q, via_q, via_T = solve_moves(waypoints, robot.name, T_base_world, T_flange_tool)
+    instructions: list[Instruction] = []
+    t = 0.0
+    k = 0
+    previous_element: str | None = None
+    for step in steps:
+        if step.element != previous_element:
+            instructions.append(Comment(f"element {step.element}", step.element, t))
+            previous_element = step.element
+        if isinstance(step, Action):
+            instructions.append(SetOutput(step.output, step.value, step.element, t))
+            if step.dwell > 0:
+                t += step.dwell
+                instructions.append(Wait(step.dwell, step.element, t))
+            continue
+        if k == 0:
+            duration = 0.0
+        elif step.kind == "ptp":
+            duration = float(np.max(np.abs(q[k] - q[k - 1]) / (robot.velocity_limits * step.speed)))
+        else:
+            T0, T1 = waypoints[k - 1].T_world_tool, step.T_world_tool
+            dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+            angle = float(np.linalg.norm(log_so3(T0[:3, :3].T @ T1[:3, :3])))
+            duration = max(dist / step.speed, angle / TOOL_ROTATION_SPEED)
+        t += duration
+        instructions.append(
+            Move(
+                kind=step.kind,  # type: ignore[arg-type]
+                T_world_tool=step.T_world_tool,
+                q=q[k],
+                speed=step.speed,
+                blend=step.blend,
+                label=step.label,
+                element=step.element,
+                time=round(t, 6),
+                via_q=via_q[k],
+                via_T_world_tool=via_T[k],
+            )
+        )
+        k += 1
+    return Program(
+        name=name,
+        robot=robot.name,
+        T_base_world=T_base_world,
+        T_flange_tool=T_flange_tool,
+        instructions=tuple(instructions),
+        outputs=dict(OUTPUTS),
+        header=header,
+        tool_name=project.robot.tool.name,
+    )
+
+
+def program_name(wp: WorkPackage) -> str:
+    """Program name of a work package: visit number and station."""
+    return f"fab_v{wp.index + 1:02d}_{wp.station.id}"
+
+
+def work_package_program(
+    wp: WorkPackage,
+    elements_by_id: dict[str, Element],
+    project: Project,
+    base_pose: BasePose,
+) -> Program:
+    """The checked program of one work package, in the station's localized base frame."""
+    elements = [elements_by_id[e] for e in wp.elements]
+    T_world_base = np.asarray(base_pose.T_world_base, dtype=float)
+    steps = work_package_motion(elements, project, T_world_base)
+    header: dict[str, object] = {
+        "project": project.name,
+        "station": wp.station.id,
+        "visit": wp.index + 1,
+        "elements": f"{wp.elements[0]}..{wp.elements[-1]} ({len(wp.elements)})"
+        if wp.elements
+        else "none",
+        "localization": f"{base_pose.method}, rmse {base_pose.rmse * 1000:.2f} mm",
+        "generator": f"fabflow {__version__}",
+    }
+    return compile_program(program_name(wp), steps, project, T_world_base, header)
+
+
+def write_programs(
+    plan: Plan,
+    elements: Sequence[Element],
+    project: Project,
+    base_poses: dict[int, BasePose],
+    fmt: str | None = None,
+) -> tuple[list[Program], dict[str, str]]:
+    """Programs for every work package and their files.
+
+    Parameters
+    ----------
+    plan
+        The plan (work packages in order).
+    elements
+        All elements of the project.
+    project
+        The project (robot, tool, program settings).
+    base_poses
+        Localized base pose per visit (``WorkPackage.index``).
+    fmt
+        ``krl``, ``rapid``, ``urscript`` or ``json`` (default: the project's format).
+
+    Returns
+    -------
+    programs, files
+        The programs and a mapping of file name to text (all packages).
+    """
+    fmt = fmt or project.program.format
+    check_format(fmt, project.robot.model)
+    by_id = {e.id: e for e in elements}
+    programs: list[Program] = []
+    files: dict[str, str] = {}
+    for wp in plan.work_packages:
+        if not wp.elements:
+            continue
+        program = work_package_program(wp, by_id, project, base_poses[wp.index])
+        programs.append(program)
+        files.update(WRITERS[fmt](program))
+    return programs, files
+
+
+def stage_program(ctx: BuildContext) -> None:
+    """Build stage: one program per work package in the project's format, under ``programs/``.
+
+    Needs ``ctx.results["plan"]``, ``["elements"]`` and ``["localization"]``; sets
+    ``ctx.results["programs"]``.
+    """
+    project = ctx.project
+    base_poses = {i: pose for i, (pose, _) in ctx.results["localization"].items()}
+    programs, files = write_programs(
+        ctx.results["plan"], ctx.results["elements"], project, base_poses
+    )
+    folder = ctx.out / "programs"
+    folder.mkdir()
+    for name, text in files.items():
+        (folder / name).write_text(text, encoding="utf-8")
+    ctx.results["programs"] = programs
+    ctx.add("program", "format", project.program.format)
+    ctx.add("program", "programs / files", f"{len(programs)} / {len(files)}")
+    ctx.add("program", "motions", sum(len(p.moves) for p in programs))
+    ctx.add("program", "robot time (planned)", f"{sum(p.duration for p in programs) / 60:.1f} min")
