@@ -302,7 +302,7 @@ def _normal_matrices(J: np.ndarray, W: np.ndarray) -> np.ndarray:
     return np.einsum("...nki,...nkl,...nlj->...nij", J, W, J)
 
 
-def _gauss_newton(
+def refine_registration(
     R: np.ndarray,
     t: np.ndarray,
     P: np.ndarray,
@@ -311,9 +311,12 @@ def _gauss_newton(
     max_iter: int = 5,
     tol: float = 1e-12,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Minimise ``sum_i e_i^T W_i e_i``, ``e_i = R p_i + t - m_i``, from ``(R, t)``; batch-capable.
+    """Gauss-Newton on ``sum_i e_i^T W_i e_i``, ``e_i = R p_i + t - m_i``, from ``(R, t)``.
 
-    Shapes: ``R (..., 3, 3)``, ``t (..., 3)``, ``P, M (..., n, 3)``, ``W (..., n, 3, 3)``.
+    Batch-capable: ``R (..., 3, 3)``, ``t (..., 3)``, ``P, M (..., n, 3)`` (metres),
+    ``W (..., n, 3, 3)`` information matrices (inverse point covariances, 1/m^2).
+    Steps are applied in fabflow's error convention (``R <- Exp(r) R``,
+    ``t <- t + d``). Returns the refined ``R``, ``t`` and the iterations used.
     """
     it = 0
     while it < max_iter:
@@ -438,7 +441,7 @@ def _loo_test(
     idx = np.nonzero(~np.eye(n, dtype=bool))[1].reshape(n, n - 1)
     Rs, ts = kabsch(P[idx], M[idx], w[idx])
     if refine:
-        Rs, ts, _ = _gauss_newton(Rs, ts, P[idx], M[idx], W[idx])
+        Rs, ts, _ = refine_registration(Rs, ts, P[idx], M[idx], W[idx])
     d = M - (np.einsum("nij,nj->ni", Rs, P) + ts)
     J = _jacobians(R, P)
     N = _normal_matrices(J, W)
@@ -558,7 +561,7 @@ def register_points(
             return optimize_registration(P[sel], M[sel], w[sel])
         R, t = kabsch(P[sel], M[sel], w[sel])
         if point_cov is not None:
-            return _gauss_newton(R, t, P[sel], M[sel], W[sel])
+            return refine_registration(R, t, P[sel], M[sel], W[sel])
         return R, t, 0
 
     R, t, iters = solve(keep)
@@ -612,6 +615,44 @@ def _scatter(values: np.ndarray, idx: np.ndarray, n: int, fill: float) -> np.nda
     out = np.full((n, *values.shape[1:]), fill)
     out[idx] = values
     return out
+
+
+def register_leveled(
+    points_local: np.ndarray, points_world: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form fit of a levelled frame: heading about z plus translation (4 DOF).
+
+    A total station's compensator levels it, so a free-station setup only
+    solves for its position and the orientation of its Hz circle. The weighted
+    least-squares heading is ``atan2(sum w (x_l y_w - y_l x_w), sum w (x_l x_w + y_l y_w))``
+    over centred coordinates. Batch-capable.
+
+    Parameters
+    ----------
+    points_local, points_world
+        ``(..., n, 3)`` points in the levelled local frame and in the world (metres), n >= 2.
+    weights
+        ``(..., n)`` weights, or None.
+
+    Returns
+    -------
+    R, t
+        ``(..., 3, 3)`` rotations about z and ``(..., 3)`` translations.
+    """
+    P = np.asarray(points_local, dtype=float)
+    M = np.asarray(points_world, dtype=float)
+    w = np.ones(P.shape[:-1]) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum(axis=-1, keepdims=True)
+    p0 = np.einsum("...n,...ni->...i", w, P)
+    m0 = np.einsum("...n,...ni->...i", w, M)
+    a = P - p0[..., None, :]
+    b = M - m0[..., None, :]
+    s = np.einsum("...n,...n->...", w, a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])
+    c = np.einsum("...n,...n->...", w, a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1])
+    yaw = np.arctan2(s, c)
+    R = exp_so3(yaw[..., None] * np.array([0.0, 0.0, 1.0]))
+    t = m0 - np.einsum("...ij,...j->...i", R, p0)
+    return R, t
 
 
 # ------------------------------------------------------------------ three point
