@@ -58,6 +58,10 @@ def design_summary(elements: list[Element]) -> list[tuple[str, Any]]:
         length = sum(float(e.attributes.get("length", 0.0)) for e in paths)
         rows.append(("print path layers", len(paths)))
         rows.append(("print path length", f"{length:.2f} m"))
+        t = sum(
+            float(e.attributes.get("length", 0.0)) / float(e.attributes["speed"]) for e in paths
+        )
+        rows.append(("print time", f"{t / 60:.1f} min"))
     if types.get("task_point"):
         rows.append(("task points", types["task_point"]))
     return rows
