@@ -17,6 +17,7 @@ from fabflow import __version__
 from fabflow.design.stage import stage_design
 from fabflow.output import atomic_output_dir, write_json
 from fabflow.project import Project
+from fabflow.tasks.stage import stage_plan
 
 
 @dataclass
@@ -63,7 +64,7 @@ def stage_project(ctx: BuildContext) -> None:
 
 def stages() -> list[tuple[str, Stage]]:
     """The stages of ``fabflow build``, in order."""
-    return [("project", stage_project), ("design", stage_design)]
+    return [("project", stage_project), ("design", stage_design), ("plan", stage_plan)]
 
 
 def run_build(

@@ -1,17 +1,18 @@
 """Build order across stations: supports first, few visits, short arm travel.
 
-Every element is assigned to one chosen station that reaches it: the earliest
-station on the tour that is not earlier than the stations of everything it
-rests on (so a part that spans stations is usually finished in one pass); when
-no such station reaches it, the latest one that does (the plan then returns to
-that station).
+The platform follows a repeating sequence of the chosen stations (the tour
+``0, 1, ..., k-1`` over and over, or back and forth). Every element goes to the
+earliest visit of that sequence whose station reaches it and that is not
+before the visits of everything it rests on (:func:`assign_passes`). A part
+that spans stations is thus built in bands of layers: each station builds what
+it can, and the platform comes back for the layers above when they rest on
+work done from another station. The planner tries each sequence and keeps
+the one with the fewest visits, then the shortest travel.
 
-The sequence is then built like a topological sort with one ready queue per
-station. The platform stays at a station while anything there is ready, taking
-the lowest ready layer first and, inside a layer, the nearest next target
-(short arm travel); when nothing is ready there it moves to the nearest
-station with ready work. A station whose footprint covers robot-built
-elements must be finished before those elements are built.
+Inside a visit the elements are built like a topological sort: the lowest
+ready layer first and, inside a layer, the nearest next target (short arm
+travel). A station whose footprint covers robot-built elements must be
+finished before those elements are built.
 """
 
 from __future__ import annotations
@@ -107,37 +108,68 @@ def find_support_cycle(n: int, src: np.ndarray, dst: np.ndarray) -> list[int]:
     return []
 
 
-def assign(
-    n: int,
+def visit_patterns(k: int) -> dict[str, np.ndarray]:
+    """Repeating station sequences the plan may follow (tour positions, one period).
+
+    ``cyclic``: 0, 1, ..., k-1, 0, 1, ...; ``back_and_forth``: 0, ..., k-1, k-2, ..., 1, 0, ...
+    """
+    out = {"cyclic": np.arange(k)}
+    if k > 2:
+        out["back_and_forth"] = np.r_[np.arange(k), np.arange(k - 2, 0, -1)]
+    return out
+
+
+def assign_passes(
     reach_sets: list[np.ndarray],
     src: np.ndarray,
     dst: np.ndarray,
     topo: np.ndarray,
+    pattern: np.ndarray,
 ) -> np.ndarray:
-    """Assign every element to a station (indices into the tour order).
+    """Place every element at the earliest visit of a repeating station sequence.
+
+    The platform follows ``pattern`` over and over; visit ``p`` is at station
+    ``pattern[p % len(pattern)]``. Each element goes to the earliest visit whose
+    station reaches it and that is not before the visits of its supports. This
+    is the least such assignment, so it needs the fewest passes of the pattern.
 
     Parameters
     ----------
-    n
-        Number of scheduled elements.
     reach_sets
-        For every element, the sorted tour positions of the stations that reach it.
+        For every element, the tour positions of the stations that reach it.
     src, dst
         Support edges (dst rests on src).
     topo
         A topological order of the elements.
+    pattern
+        One period of the station sequence (tour positions).
+
+    Returns
+    -------
+    np.ndarray
+        (n,) visit index of every element.
     """
+    n = len(reach_sets)
+    period = len(pattern)
+    k = int(pattern.max()) + 1 if period else 0
+    offsets = [np.flatnonzero(pattern == r) for r in range(k)]
     order = np.argsort(dst, kind="stable")
     starts = np.searchsorted(dst[order], np.arange(n + 1))
     sup_of = src[order]
-    station = np.full(n, -1, dtype=np.intp)
+    visit = np.zeros(n, dtype=np.int64)
     for e in topo:
-        opts = reach_sets[e]
         sups = sup_of[starts[e] : starts[e + 1]]
-        need = int(station[sups].max()) if len(sups) else 0
-        k = np.searchsorted(opts, need)
-        station[e] = opts[k] if k < len(opts) else opts[-1]
-    return station
+        need = int(visit[sups].max()) if len(sups) else 0
+        base = need - need % period
+        best = None
+        for r in reach_sets[e]:
+            cand = base + offsets[r]
+            cand = np.where(cand >= need, cand, cand + period)
+            m = int(cand.min())
+            best = m if best is None or m < best else best
+        assert best is not None
+        visit[e] = best
+    return visit
 
 
 def topological_order(n: int, src: np.ndarray, dst: np.ndarray, key: np.ndarray) -> np.ndarray:
@@ -160,21 +192,23 @@ def topological_order(n: int, src: np.ndarray, dst: np.ndarray, key: np.ndarray)
 
 
 def schedule(
-    station: np.ndarray,
+    visit: np.ndarray,
+    visit_station: np.ndarray,
     layer: np.ndarray,
     p_target: np.ndarray,
     src: np.ndarray,
     dst: np.ndarray,
     blocked_by: list[np.ndarray],
-    station_xy: np.ndarray,
     ids: Sequence[str],
 ) -> list[Visit]:
-    """Sequence the elements into station visits.
+    """Sequence the elements visit by visit.
 
     Parameters
     ----------
-    station
-        (n,) station (tour position) of every element.
+    visit
+        (n,) planned visit index of every element (from :func:`assign_passes`).
+    visit_station
+        Station (tour position) of every visit index.
     layer
         (n,) layer index of every element.
     p_target
@@ -184,18 +218,23 @@ def schedule(
     blocked_by
         For every station, the element indices under its footprint (built only
         after that station is finished).
-    station_xy
-        (k, 2) platform positions of the stations (metres).
     ids
         Element ids (for error messages).
+
+    Returns
+    -------
+    list of Visit
+        Stays in execution order; consecutive planned visits at the same station
+        are merged.
 
     Raises
     ------
     InfeasibleError
         When no order satisfies the supports together with the footprint constraints.
     """
-    n = len(station)
-    k = len(station_xy)
+    n = len(visit)
+    station = visit_station[visit]
+    k = int(visit_station.max()) + 1 if len(visit_station) else 0
     indeg = np.bincount(dst, minlength=n).astype(np.int64)
     for blk in blocked_by:
         indeg[blk] += 1
@@ -203,48 +242,53 @@ def schedule(
     starts = np.searchsorted(src[order], np.arange(n + 1))
     out = dst[order]
     remaining = np.bincount(station, minlength=k)
-    ready: list[list[tuple[int, int]]] = [[] for _ in range(k)]
+    ready: dict[int, list[tuple[int, int]]] = {}
+    groups: list[int] = []
+
+    def push(e: int) -> None:
+        g = int(visit[e])
+        if g not in ready:
+            ready[g] = []
+            heapq.heappush(groups, g)
+        heapq.heappush(ready[g], (int(layer[e]), e))
+
     for e in np.flatnonzero(indeg == 0):
-        ready[station[e]].append((int(layer[e]), int(e)))
-    for q in ready:
-        heapq.heapify(q)
+        push(int(e))
     built = np.zeros(n, dtype=bool)
-    visits: list[Visit] = []
-    current = int(np.argmax([len(q) > 0 for q in ready])) if n else 0
+    stays: list[tuple[int, list[int]]] = []
     pos = p_target[0] if n else np.zeros(3)
     n_done = 0
     while n_done < n:
-        if not ready[current]:
-            have = np.array([len(q) > 0 for q in ready])
-            if not have.any():
-                _raise_stuck(built, indeg, station, src, dst, blocked_by, ids)
-            d = np.hypot(*(station_xy - station_xy[current]).T)
-            current = int(np.argmin(np.where(have, d, np.inf)))
-        seq: list[int] = []
-        q = ready[current]
-        while q:
-            lay = q[0][0]
-            batch = []
-            while q and q[0][0] == lay:
-                batch.append(heapq.heappop(q)[1])
-            for e in _nearest_order(np.array(batch), p_target, pos):
-                seq.append(int(e))
-                built[e] = True
-                n_done += 1
-                pos = p_target[e]
-                for w in out[starts[e] : starts[e + 1]]:
+        while groups and not ready.get(groups[0]):
+            ready.pop(heapq.heappop(groups), None)
+        if not groups:
+            _raise_stuck(built, station, src, dst, blocked_by, ids)
+        g = groups[0]
+        st = int(visit_station[g])
+        if not stays or stays[-1][0] != st:
+            stays.append((st, []))
+        seq = stays[-1][1]
+        q = ready[g]
+        lay = q[0][0]
+        batch = []
+        while q and q[0][0] == lay:
+            batch.append(heapq.heappop(q)[1])
+        for e in _nearest_order(np.array(batch), p_target, pos):
+            seq.append(int(e))
+            built[e] = True
+            n_done += 1
+            pos = p_target[e]
+            for w in out[starts[e] : starts[e + 1]]:
+                indeg[w] -= 1
+                if indeg[w] == 0:
+                    push(int(w))
+            remaining[station[e]] -= 1
+            if remaining[station[e]] == 0:
+                for w in blocked_by[station[e]]:
                     indeg[w] -= 1
                     if indeg[w] == 0:
-                        heapq.heappush(ready[station[w]], (int(layer[w]), int(w)))
-                remaining[station[e]] -= 1
-                if remaining[station[e]] == 0:
-                    for w in blocked_by[station[e]]:
-                        indeg[w] -= 1
-                        if indeg[w] == 0:
-                            heapq.heappush(ready[station[w]], (int(layer[w]), int(w)))
-            q = ready[current]
-        visits.append(Visit(station=current, elements=np.array(seq, dtype=np.intp)))
-    return visits
+                        push(int(w))
+    return [Visit(station=s, elements=np.array(seq, dtype=np.intp)) for s, seq in stays]
 
 
 def _nearest_order(batch: np.ndarray, p: np.ndarray, start: np.ndarray) -> np.ndarray:
@@ -266,7 +310,6 @@ def _nearest_order(batch: np.ndarray, p: np.ndarray, start: np.ndarray) -> np.nd
 
 def _raise_stuck(
     built: np.ndarray,
-    indeg: np.ndarray,
     station: np.ndarray,
     src: np.ndarray,
     dst: np.ndarray,

@@ -32,12 +32,14 @@ from fabflow.errors import InfeasibleError, InputError, UnsupportedError
 from fabflow.project import Project
 from fabflow.tasks.cover import select_stations
 from fabflow.tasks.order import (
-    assign,
+    Visit,
+    assign_passes,
     find_support_cycle,
     lift_bands,
     schedule,
     support_indices,
     topological_order,
+    visit_patterns,
 )
 from fabflow.tasks.plan import Plan, Station, WorkPackage
 from fabflow.tasks.reach import ReachModel, reach_model
@@ -281,12 +283,34 @@ def plan_project(
     reach_sets = [A_ch.indices[A_ch.indptr[e] : A_ch.indptr[e + 1]] for e in range(n)]
     layer = np.array([e.layer for e in work], dtype=np.int64)
     topo = topological_order(n, src, dst, layer)
-    station_of = assign(n, reach_sets, src, dst, topo)
     blocked_ch = blocked[chosen].tocsr()
     blocked_by = [
         blocked_ch.indices[blocked_ch.indptr[s] : blocked_ch.indptr[s + 1]] for s in range(k)
     ]
-    visits = schedule(station_of, layer, p_target, src, dst, blocked_by, cands.xy[chosen], ids)
+    station_xy = cands.xy[chosen]
+    best: tuple[tuple[int, float], str, list[Visit]] | None = None
+    first_error: InfeasibleError | None = None
+    for direction, tour_perm in (("forward", np.arange(k)), ("reverse", np.arange(k)[::-1])):
+        for name, period in visit_patterns(k).items():
+            pattern = tour_perm[period]
+            visit = assign_passes(reach_sets, src, dst, topo, pattern)
+            visit_station = pattern[np.arange(int(visit.max()) + 1) % len(pattern)]
+            try:
+                vs = schedule(visit, visit_station, layer, p_target, src, dst, blocked_by, ids)
+            except InfeasibleError as exc:
+                first_error = first_error or exc
+                continue
+            hops = np.array([v.station for v in vs])
+            travel = float(np.hypot(*(station_xy[hops[1:]] - station_xy[hops[:-1]]).T).sum())
+            key = (len(vs), travel)
+            if best is None or key < best[0]:
+                best = (key, f"{name}, {direction}", vs)
+        if k == 1:
+            break
+    if best is None:
+        assert first_error is not None
+        raise first_error
+    visits = best[2]
     t_ord = time.perf_counter()
 
     # Station ids in order of first visit.
@@ -357,6 +381,7 @@ def plan_project(
         "selection": res.method,
         "stations_optimal": res.optimal,
         "visits": station_visits,
+        "visit_sequence": best[1],
         "work_packages": len(packages),
         "elements": n,
         "elements_per_station": per_station,

@@ -2,9 +2,9 @@
 
 * Block: the tool centre point (TCP) sits at the centre of the block's top face,
   tool z points down (into the block), tool x runs along the block's length.
-* Print path: one tool frame per polyline vertex, at the vertex, with the
-  element frame's x axis and tool z pointing down (the nozzle prints downwards).
-  The element's *target* (the one stored in a work package) is the first frame.
+* Print path: its tool frames (:func:`fabflow.design.print_path.element_tool_frames`:
+  one per waypoint, tool z pointing down, x along the path). The element's
+  *target* (the one stored in a work package) is the first frame.
 * Task point: the element frame itself is the tool frame to reach.
 
 All poses are 4x4 matrices in metres; ``T_world_tool``.
@@ -17,6 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from fabflow.design.elements import Element
+from fabflow.design.print_path import element_tool_frames as print_path_tool_frames
 
 # Turning a z-up frame half a turn about its x axis keeps x and points z down.
 R_FLIP_X = np.diag([1.0, -1.0, -1.0])
@@ -42,13 +43,8 @@ def element_tool_frames(element: Element) -> np.ndarray:
         T[:3, :3] = T_world_element[:3, :3] @ R_FLIP_X
         T[:3, 3] = T_world_element[:3, 3] + T_world_element[:3, 2] * (0.5 * height)
         return T[None]
-    if element.type == "print_path":
-        pts = np.zeros((1, 3)) if element.polyline is None else np.asarray(element.polyline)
-        pts = pts.reshape(-1, 3)
-        T = np.repeat(np.eye(4)[None], len(pts), axis=0)
-        T[:, :3, :3] = T_world_element[:3, :3] @ R_FLIP_X
-        T[:, :3, 3] = pts @ T_world_element[:3, :3].T + T_world_element[:3, 3]
-        return T
+    if element.type == "print_path" and element.polyline is not None:
+        return print_path_tool_frames(element)
     return T_world_element[None].copy()
 
 

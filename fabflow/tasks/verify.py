@@ -1,0 +1,60 @@
+"""Check a plan's targets with the arm's inverse kinematics.
+
+For every work package the tool targets are taken into the arm base frame of
+that visit (``T_world_base`` of the station at its lift), turned into flange
+poses with the tool, and solved with the robot's closed-form IK (all
+branches, joint limits applied); a target passes when some branch exists. A
+chain without closed-form IK is solved numerically, one target at a time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fabflow.project import Project
+from fabflow.tasks.plan import Plan, T_world_base
+
+
+def base_targets(plan: Plan, project: Project) -> list[np.ndarray]:
+    """Tool targets of every work package in its arm base frame.
+
+    Returns
+    -------
+    list of np.ndarray
+        Per work package, (n, 4, 4) ``T_base_tool`` (metres).
+    """
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
+    out = []
+    for wp in plan.work_packages:
+        T_wb = T_world_base(wp.station, T_platform_base)
+        out.append(np.linalg.inv(T_wb)[None] @ np.asarray(wp.T_world_targets))
+    return out
+
+
+def unreachable_targets(plan: Plan, project: Project) -> list[str] | None:
+    """Element ids whose target has no inverse-kinematics solution at its station.
+
+    Returns
+    -------
+    list of str or None
+        The failing element ids (empty when all pass), or ``None`` when the
+        robots module is not available.
+    """
+    try:
+        from fabflow.robots import get_robot
+    except ImportError:
+        return None
+    robot = get_robot(project.robot.model)
+    T_tool_flange = np.linalg.inv(project.robot.tool.T_flange_tool.matrix())
+    failed: list[str] = []
+    for wp, T_base_tool in zip(plan.work_packages, base_targets(plan, project), strict=True):
+        if len(T_base_tool) == 0:
+            continue
+        T_base_flange = T_base_tool @ T_tool_flange
+        if robot.analytic_ik is not None:
+            _, valid = robot.ik_batch(T_base_flange)
+            ok = valid.any(axis=1)
+        else:
+            ok = np.array([len(robot.ik(T)) > 0 for T in T_base_flange])
+        failed += [e for e, good in zip(wp.elements, ok, strict=True) if not good]
+    return failed
