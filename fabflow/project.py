@@ -189,6 +189,16 @@ class UwbSetup(StrictModel):
     """UWB tag lever arms in the platform frame (metres)."""
     dwell_s: PositiveFloat = 5.0
     """How long the platform stands still measuring at each station (seconds)."""
+    calibration: dict[str, tuple[float, PositiveFloat]] = {}
+    """Ranging calibration per anchor id: (offset a in metres, scale b) of the fit
+    measured = a + b * true; ranges are corrected as (measured - a) / b."""
+
+    @model_validator(mode="after")
+    def _calibrated_anchors_exist(self) -> UwbSetup:
+        unknown = sorted(set(self.calibration) - set(self.anchors))
+        if unknown:
+            raise ValueError(f"'calibration' names unknown anchors {unknown}")
+        return self
 
 
 class TotalStationSetup(StrictModel):
