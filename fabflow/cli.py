@@ -121,6 +121,27 @@ def build(
     console.print(f"[green]wrote[/] {Path(out).resolve()}")
 
 
+@app.command()
+@user_errors
+def plan(
+    project: ProjectArg,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+) -> None:
+    """Slice a project into per-station work packages: OUT/plan.json and OUT/site_plan.dxf."""
+    from fabflow.design.generate import generate_elements
+    from fabflow.output import atomic_output_dir
+    from fabflow.project import load_project
+    from fabflow.tasks.stage import make_plan, plan_rows, write_plan_outputs
+
+    p = load_project(project)
+    with console.status("planning"), atomic_output_dir(out) as staging:
+        elements = generate_elements(p)
+        result = make_plan(p, elements)
+        write_plan_outputs(staging, p, elements, result)
+    print_summary([("plan", i, v) for i, v in plan_rows(result)], title=f"fabflow plan: {p.name}")
+    console.print(f"[green]wrote[/] {Path(out).resolve() / 'plan.json'}")
+
+
 @localize_app.command("total-station")
 @user_errors
 def localize_total_station(
@@ -199,6 +220,46 @@ def localize_total_station(
         bad = q["point_ids"][test["index"]]
         rows.append(("total-station", "bad reading", f"{bad} (p = {test['p_value']:.2g})"))
     print_summary(rows, title="fabflow localize total-station")
+    console.print(f"[green]wrote[/] {(Path(out) / 'base_pose.json').resolve()}")
+
+
+@localize_app.command("uwb")
+@user_errors
+def localize_uwb(
+    ranges: Annotated[Path, typer.Argument(help="CSV t,anchor,range[,tag]: one range per line.")],
+    anchors: Annotated[
+        Path,
+        typer.Option("--anchors", help="YAML: the localization.uwb section (+ T_platform_base)."),
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+    imu: Annotated[
+        Path | None, typer.Option("--imu", help="CSV t,ax,ay,az,gx,gy,gz: fuse with the ESKF.")
+    ] = None,
+) -> None:
+    """Localize the robot base from UWB ranges (and an IMU); writes OUT/base_pose.json."""
+    import numpy as np
+
+    from fabflow.output import atomic_output_dir
+    from fabflow.positioning.uwb_io import localize_from_files
+
+    pose = localize_from_files(ranges, anchors, imu)
+    with atomic_output_dir(out) as staging:
+        pose.write(staging / "base_pose.json")
+    T = pose.T_world_base
+    sd = np.sqrt(np.diag(pose.covariance))
+    q = pose.quality
+    rows = [
+        ("uwb", "estimator", str(q["estimator"])),
+        ("uwb", "ranges", str(q["n_ranges"])),
+        ("uwb", "position (m)", ", ".join(f"{v:.4f}" for v in T[:3, 3])),
+        ("uwb", "heading (deg)", f"{np.degrees(np.arctan2(T[1, 0], T[0, 0])):.3f}"),
+        ("uwb", "sigma xyz (mm)", ", ".join(f"{1e3 * v:.1f}" for v in sd[:3])),
+        ("uwb", "sigma heading (deg)", f"{np.degrees(sd[5]):.3f}"),
+        ("uwb", "rmse (mm)", f"{1e3 * pose.rmse:.1f}"),
+    ]
+    if q.get("unobserved"):
+        rows.append(("uwb", "not observed", ", ".join(q["unobserved"])))
+    print_summary(rows, title="fabflow localize uwb")
     console.print(f"[green]wrote[/] {(Path(out) / 'base_pose.json').resolve()}")
 
 
