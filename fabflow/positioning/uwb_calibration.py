@@ -87,6 +87,11 @@ class RangeCalibration:
         """Corrected ranges ``(y - a) / b``; the last axis indexes anchors."""
         return (np.asarray(ranges, dtype=float) - self.offset) / self.scale
 
+    def apply_indexed(self, ranges: np.ndarray, anchor_index: np.ndarray) -> np.ndarray:
+        """Corrected ranges for a flat list of ranges with their anchor indices."""
+        idx = np.asarray(anchor_index)
+        return (np.asarray(ranges, dtype=float) - self.offset[idx]) / self.scale[idx]
+
     def to_dict(self, anchor_ids: list[str]) -> dict[str, dict[str, float]]:
         """``{anchor_id: {"offset": a, "scale": b}}``."""
         return {

@@ -1,0 +1,433 @@
+"""UWB measurement files and the ``fabflow localize uwb`` computation.
+
+Files
+-----
+RANGES.csv
+    One range per line, header ``t,anchor,range`` plus an optional ``tag``
+    column: time in seconds (non-decreasing), anchor id as in the anchors file,
+    range in metres, tag as the 0-based index into the anchors file's ``tags``
+    list (0 when the column is absent). A (t, tag, anchor) triple may appear once.
+ANCHORS.yaml
+    The ``localization.uwb`` section of a project (``anchors``, ``T_world_uwb``,
+    ``sigma``, ``tags``, ``calibration``, ...) and optionally ``T_platform_base``
+    (a pose ``{xyz, abc_deg}``; identity when absent, which makes the result
+    the platform pose).
+IMU.csv
+    Header ``t,ax,ay,az,gx,gy,gz``: time (s, strictly increasing), specific force
+    (m/s^2) and angular rate (rad/s) in the platform frame.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from pydantic import ValidationError
+
+from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.result import BasePose
+
+RANGE_COLUMNS = ("t", "anchor", "range")
+IMU_COLUMNS = ("t", "ax", "ay", "az", "gx", "gy", "gz")
+
+
+@dataclass(frozen=True)
+class RangeLog:
+    """Ranges read from a CSV file (arrays of equal length, file order)."""
+
+    t: np.ndarray
+    tag: np.ndarray
+    anchor: np.ndarray
+    range: np.ndarray
+
+    def epochs(self, n_tags: int, n_anchors: int) -> np.ndarray:
+        """Group into epochs: the k-th range of each (tag, anchor) pair goes to epoch k.
+
+        Returns (n_epochs, n_tags, n_anchors) with NaN where a pair has fewer ranges.
+        """
+        key = self.tag * n_anchors + self.anchor
+        order = np.argsort(key, kind="stable")
+        sorted_key = key[order]
+        starts = np.searchsorted(sorted_key, sorted_key, side="left")
+        k = np.empty_like(key)
+        k[order] = np.arange(key.size) - starts
+        out = np.full((int(k.max()) + 1, n_tags, n_anchors), np.nan)
+        out[k, self.tag, self.anchor] = self.range
+        return out
+
+
+def _open_csv(path: Path, required: tuple[str, ...]) -> tuple[Any, list[str], Any]:
+    if not path.exists():
+        raise InputError("file does not exist", path)
+    try:
+        fh = path.open(newline="", encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"cannot read file: {exc}", path) from None
+    reader = csv.reader(fh)
+    header = next(reader, None)
+    if header is None:
+        fh.close()
+        raise InputError("the file is empty; expected a header line", path, "line 1")
+    header = [h.strip() for h in header]
+    missing = [c for c in required if c not in header]
+    if missing:
+        fh.close()
+        raise InputError(
+            f"missing column(s) {', '.join(missing)}; expected a header with "
+            f"{', '.join(required)} (got {', '.join(header)})",
+            path,
+            "line 1",
+        )
+    return fh, header, reader
+
+
+def _float(value: str, path: Path, line: int, column: str) -> float:
+    try:
+        x = float(value)
+    except ValueError:
+        raise InputError(
+            f"column '{column}': {value!r} is not a number", path, f"line {line}"
+        ) from None
+    if not math.isfinite(x):
+        raise InputError(f"column '{column}': {value!r} is not finite", path, f"line {line}")
+    return x
+
+
+def read_ranges_csv(path: str | Path, anchor_ids: list[str], n_tags: int) -> RangeLog:
+    """Read and check a RANGES.csv file (see the module docstring).
+
+    Raises
+    ------
+    InputError
+        Missing columns, malformed numbers, unsorted or duplicate timestamps,
+        unknown anchor ids or tag indices, negative ranges; the message names the line.
+    """
+    path = Path(path)
+    index = {a: i for i, a in enumerate(anchor_ids)}
+    fh, header, reader = _open_csv(path, RANGE_COLUMNS)
+    col = {h: i for i, h in enumerate(header)}
+    has_tag = "tag" in col
+    ts, tags, anchors, ranges = [], [], [], []
+    seen: set[tuple[int, int]] = set()
+    t_prev = -math.inf
+    with fh:
+        for row in reader:
+            line = reader.line_num
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise InputError(
+                    f"expected {len(header)} values, got {len(row)}", path, f"line {line}"
+                )
+            t = _float(row[col["t"]], path, line, "t")
+            a_id = row[col["anchor"]].strip()
+            if a_id not in index:
+                raise InputError(
+                    f"unknown anchor id {a_id!r}; the anchors file has {', '.join(anchor_ids)}",
+                    path,
+                    f"line {line}",
+                )
+            r = _float(row[col["range"]], path, line, "range")
+            if r < 0:
+                raise InputError(f"range {r} is negative", path, f"line {line}")
+            tag = 0
+            if has_tag:
+                raw = row[col["tag"]].strip()
+                if not raw.isdigit() or int(raw) >= n_tags:
+                    raise InputError(
+                        f"tag {raw!r} is not an index into the {n_tags} tag(s) of the anchors "
+                        f"file (0..{n_tags - 1})",
+                        path,
+                        f"line {line}",
+                    )
+                tag = int(raw)
+            if t < t_prev:
+                raise InputError(
+                    f"timestamps are not sorted: t = {t} after t = {t_prev}", path, f"line {line}"
+                )
+            if t > t_prev:
+                seen.clear()
+            key = (tag, index[a_id])
+            if key in seen:
+                raise InputError(
+                    f"duplicate timestamp t = {t} for tag {tag}, anchor {a_id}",
+                    path,
+                    f"line {line}",
+                )
+            seen.add(key)
+            t_prev = t
+            ts.append(t)
+            tags.append(tag)
+            anchors.append(index[a_id])
+            ranges.append(r)
+    if not ts:
+        raise InputError("no ranges in the file", path)
+    return RangeLog(
+        t=np.array(ts), tag=np.array(tags), anchor=np.array(anchors), range=np.array(ranges)
+    )
+
+
+def read_imu_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read an IMU.csv file: (t (M,), accel (M, 3), gyro (M, 3)).
+
+    Raises
+    ------
+    InputError
+        Missing columns, malformed numbers, timestamps not strictly increasing,
+        fewer than two samples; the message names the line.
+    """
+    path = Path(path)
+    fh, header, reader = _open_csv(path, IMU_COLUMNS)
+    col = [header.index(c) for c in IMU_COLUMNS]
+    rows = []
+    t_prev = -math.inf
+    with fh:
+        for row in reader:
+            line = reader.line_num
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise InputError(
+                    f"expected {len(header)} values, got {len(row)}", path, f"line {line}"
+                )
+            vals = [_float(row[i], path, line, c) for i, c in zip(col, IMU_COLUMNS, strict=True)]
+            if vals[0] < t_prev:
+                raise InputError(
+                    f"timestamps are not sorted: t = {vals[0]} after t = {t_prev}",
+                    path,
+                    f"line {line}",
+                )
+            if vals[0] == t_prev:
+                raise InputError(f"duplicate timestamp t = {vals[0]}", path, f"line {line}")
+            t_prev = vals[0]
+            rows.append(vals)
+    if len(rows) < 2:
+        raise InputError("an IMU file needs at least two samples", path)
+    data = np.array(rows)
+    return data[:, 0], data[:, 1:4], data[:, 4:7]
+
+
+def load_anchors_file(path: str | Path) -> tuple[Any, np.ndarray]:
+    """Read ANCHORS.yaml: the UWB setup and ``T_platform_base`` (4x4).
+
+    Raises
+    ------
+    InputError
+        YAML that does not parse or fields that do not validate (with the field path).
+    """
+    from fabflow.project import PoseSpec, UwbSetup, format_loc
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError("file does not exist", path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read file: {exc}", path) from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}" if mark else None
+        raise InputError(
+            f"YAML does not parse: {getattr(exc, 'problem', exc)}", path, where
+        ) from None
+    if not isinstance(data, dict):
+        raise InputError("expected a mapping with 'anchors' (and optional UWB settings)", path)
+    data = dict(data)
+    pose = data.pop("T_platform_base", None)
+    try:
+        setup = UwbSetup.model_validate(data)
+        T_platform_base = PoseSpec.model_validate(pose or {}).matrix()
+    except ValidationError as exc:
+        msgs = [f"{format_loc(e['loc'])}: {e['msg']}" for e in exc.errors()]
+        raise InputError("invalid anchors file\n  " + "\n  ".join(msgs), path) from None
+    return setup, T_platform_base
+
+
+def heading_from_motion(fix_xy: np.ndarray, min_travel: float = 0.3, window: int = 31) -> float:
+    """Heading (rad) of the first displacement longer than ``min_travel`` metres.
+
+    ``fix_xy`` are (N, 2) position fixes in time order (NaN allowed). They are
+    smoothed by a running median of ``window`` fixes first, so single noisy
+    fixes do not trigger; the displacement is measured from the median of the
+    first ``window`` fixes.
+    """
+    from fabflow.positioning.uwb_calibration import running_median
+
+    xy = np.asarray(fix_xy, dtype=float)
+    if np.sum(np.all(np.isfinite(xy), axis=1)) < window:
+        raise LocalizationError("too few position fixes to take the heading from the motion")
+    smooth = running_median(xy, window)
+    start = np.nanmedian(xy[:window], axis=0)
+    dist = np.linalg.norm(smooth - start, axis=1)
+    moved = np.flatnonzero(dist > min_travel)
+    if moved.size == 0:
+        raise LocalizationError(
+            "one tag and an IMU: the heading comes from the motion, but the tag never moved "
+            f"more than {min_travel} m; add a second tag"
+        )
+    d = smooth[moved[0]] - start
+    return float(math.atan2(d[1], d[0]))
+
+
+def localize_from_files(
+    ranges_csv: str | Path, anchors_yaml: str | Path, imu_csv: str | Path | None = None
+) -> BasePose:
+    """The computation behind ``fabflow localize uwb``.
+
+    Without an IMU the platform is taken as standing still: all ranges give one
+    ``x, y, z, yaw`` (two or more tags needed for the heading). With an IMU the
+    ESKF runs over the whole record and the pose at its end is returned; with a
+    single tag its initial heading is the direction of the first motion (the
+    platform drives along its x axis).
+    """
+    from fabflow.positioning.eskf import (
+        Eskf,
+        EskfParams,
+        default_covariance,
+        initial_attitude,
+        pose_covariance_world,
+        run_eskf,
+    )
+    from fabflow.positioning.uwb import (
+        UNOBSERVED_VARIANCE,
+        anchors_world,
+        locate,
+        locate_platform,
+        platform_to_base_covariance,
+    )
+    from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers
+    from fabflow.sim.uwb import UwbErrorModel
+    from fabflow.transforms.se3 import compose_covariance
+    from fabflow.transforms.so3 import matrix_from_quat
+
+    setup, T_platform_base = load_anchors_file(anchors_yaml)
+    ids, A = anchors_world(setup)
+    L = np.asarray(setup.tags, dtype=float)
+    log = read_ranges_csv(ranges_csv, ids, len(L))
+    cal = RangeCalibration.from_mapping(
+        {k: {"offset": v[0], "scale": v[1]} for k, v in setup.calibration.items()},
+        ids,
+        str(anchors_yaml),
+    )
+    sigma = UwbErrorModel(sigma_1m=setup.sigma).sigma
+    corrected = cal.apply_indexed(log.range, log.anchor)
+    epochs = cal.apply(log.epochs(len(L), len(ids)))
+    rej = reject_outliers(epochs, sigma(epochs))
+    quality: dict[str, Any] = {
+        "n_ranges": int(log.range.size),
+        "n_tags": len(L),
+        "n_anchors": len(ids),
+        "calibration": cal.to_dict(ids),
+    }
+    if imu_csv is None:
+        estimator = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
+        fix = locate_platform(A, rej.ranges, L, sigma, method=estimator)
+        T_world_platform = fix.T
+        cov = platform_to_base_covariance(T_world_platform, T_platform_base, fix.covariance)
+        residuals = fix.residuals
+        quality.update(
+            estimator=estimator,
+            solver="static platform: joint Gauss-Newton over all ranges",
+            n_rejected_median=int(rej.rejected.sum()),
+            n_used=fix.n_used,
+            std_xyz_yaw=[float(v) for v in np.sqrt(np.diag(fix.covariance))],
+            unobserved=["rx", "ry"] + ([] if fix.heading_observed else ["rz"]),
+            unobserved_variance_rad2=UNOBSERVED_VARIANCE,
+        )
+    else:
+        t_imu, acc, gyr = read_imu_csv(imu_csv)
+        t0 = t_imu[0]
+        first = rej.ranges[: max(10, int(setup.rate_hz))]
+        if len(L) >= 2:
+            pf = locate_platform(A, first, L, sigma)
+            p0, yaw0, s_yaw = pf.T[:3, 3], float(pf.state[3]), math.radians(5.0)
+        else:
+            fixes = locate(A, rej.ranges[:, 0, :], method="wls-t", sigma=sigma)
+            yaw0 = heading_from_motion(fixes.positions[:, :2], 0.3)
+            p0 = np.nanmedian(fixes.positions[: max(5, int(setup.rate_hz))], axis=0) - L[0]
+            s_yaw = math.radians(15.0)
+        rest = t_imu < t0 + 0.5
+        q0 = initial_attitude(acc[rest] if rest.sum() >= 2 else acc[:2], yaw0)
+        filt = Eskf(
+            p0, np.zeros(3), q0, default_covariance(sigma_p=0.3, sigma_yaw=s_yaw), EskfParams()
+        )
+        use = np.isfinite(log.range)
+        track = run_eskf(
+            filt,
+            t_imu,
+            acc,
+            gyr,
+            log.t[use],
+            log.anchor[use],
+            corrected[use],
+            A,
+            sigma,
+            tag_index=log.tag[use],
+            lever_arms=L,
+        )
+        T_world_platform = np.eye(4)
+        T_world_platform[:3, :3] = matrix_from_quat(track.q[-1])
+        T_world_platform[:3, 3] = track.p[-1]
+        C_wp = pose_covariance_world(track.q[-1], track.P_final)
+        cov = compose_covariance(T_world_platform, C_wp, T_platform_base, None)
+        R = T_world_platform[:3, :3]
+        tags_w = track.p[-1] + L @ R.T
+        res_all = corrected - np.linalg.norm(tags_w[log.tag] - A[log.anchor], axis=1)
+        # residuals of the last second against the final pose (the platform has stopped)
+        late = log.t >= log.t[-1] - 1.0
+        residuals = res_all[late]
+        quality.update(
+            estimator="eskf",
+            solver="UWB/IMU error-state Kalman filter, per-range updates; pose at the last IMU sample",
+            n_updates=track.n_updates,
+            n_rejected_gate=track.n_rejected,
+            residual_window_s=1.0,
+            t_end=float(t_imu[-1]),
+            std_xyz_rpy=[float(v) for v in np.sqrt(np.diag(cov))],
+            unobserved=[],
+        )
+    T_world_base = T_world_platform @ T_platform_base
+    rmse = float(np.sqrt(np.mean(residuals**2))) if residuals.size else 0.0
+    return BasePose(
+        T_world_base=T_world_base,
+        covariance=0.5 * (cov + cov.T),
+        method="uwb",
+        residuals=np.asarray(residuals)[:, None],
+        rmse=rmse,
+        quality=quality,
+    )
+
+
+def write_ranges_csv(
+    path: str | Path,
+    t: np.ndarray,
+    tag: np.ndarray,
+    anchor: np.ndarray,
+    ranges: np.ndarray,
+    anchor_ids: list[str],
+) -> Path:
+    """Write ranges in the RANGES.csv format, sorted by time (millimetre resolution)."""
+    path = Path(path)
+    order = np.argsort(t, kind="stable")
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", "tag", "anchor", "range"])
+        for i in order:
+            w.writerow([f"{t[i]:.6f}", int(tag[i]), anchor_ids[int(anchor[i])], f"{ranges[i]:.4f}"])
+    return path
+
+
+def write_imu_csv(path: str | Path, t: np.ndarray, accel: np.ndarray, gyro: np.ndarray) -> Path:
+    """Write IMU samples in the IMU.csv format."""
+    path = Path(path)
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(IMU_COLUMNS)
+        for ti, a, g in zip(t, accel, gyro, strict=True):
+            w.writerow([f"{ti:.6f}", *(f"{v:.6f}" for v in a), *(f"{v:.7f}" for v in g)])
+    return path
