@@ -383,7 +383,7 @@ def localize_from_files(
         residuals = res_all[late]
         quality.update(
             estimator="eskf",
-            solver="UWB/IMU error-state Kalman filter, per-range updates; pose at the last IMU sample",
+            solver="UWB/IMU ESKF, per-range updates; pose at the last IMU sample",
             n_updates=track.n_updates,
             n_rejected_gate=track.n_rejected,
             residual_window_s=1.0,
