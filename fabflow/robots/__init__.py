@@ -1,1 +1,27 @@
-"""Machine models, kinematics, inverse kinematics and robot program writers."""
+"""Machine models, kinematics, inverse kinematics and motion control.
+
+Public API::
+
+    from fabflow.robots import get_robot, kuka_status_turn, reach_map
+
+    robot = get_robot("kuka_kr60_3")          # also ur10e, abb_irb4600_60_205, brokk_170
+    T_base_flange = robot.fk(q)               # q (dof,) or (N, dof), radians
+    solutions = robot.ik(T_base_flange, q_ref=q)
+    S, T = kuka_status_turn(q)
+    rm = reach_map("kuka_kr60_3", T_flange_tool)
+    ok = rm.reachable(p_base)                 # (N, 3) TCP positions, tool pointing down
+"""
+
+from fabflow.robots.catalog import ROBOT_NAMES, get_robot
+from fabflow.robots.chain import RobotModel
+from fabflow.robots.kuka_config import kuka_status_turn
+from fabflow.robots.reach import ReachMap, reach_map
+
+__all__ = [
+    "ROBOT_NAMES",
+    "ReachMap",
+    "RobotModel",
+    "get_robot",
+    "kuka_status_turn",
+    "reach_map",
+]

@@ -1,0 +1,208 @@
+"""The machines fabflow knows, as data, and :func:`get_robot`.
+
+Joint values are the ones the robot's own controller shows (radians here):
+
+* ``kuka_kr60_3`` - KUKA KR 60-3, A1..A6 in KUKA's sense (home A2 = -90 deg,
+  A3 = +90 deg; A1, A4, A6 positive clockwise seen along the axis). DH lengths
+  from DESIGN.md. The A2 range is the manufacturer's -135..+35 deg (DESIGN.md
+  lists -35..135, which would exclude the home pose A2 = -90 deg; the sign was
+  taken as a transcription slip).
+* ``abb_irb4600_60_205`` - ABB IRB 4600-60/2.05, axes 1..6 in ABB's sense
+  (all zero: upper arm vertical, forearm horizontal). Published geometry.
+* ``ur10e`` - Universal Robots UR10e, the published DH parameters.
+* ``brokk_170`` - a 5-axis demolition machine in the style of the BROKK 170
+  (slew, boom, arm 2, arm 3, tool tilt; all but the slew pitch joints).
+  APPROXIMATE geometry estimated from the brochure; not the manufacturer's data.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+
+from fabflow.errors import UnsupportedError
+from fabflow.robots.chain import RobotModel, dh_table
+from fabflow.robots.opw import OPWParameters, opw_ik
+
+_DEG = np.pi / 180.0
+
+
+def _rz_pi() -> np.ndarray:
+    T = np.eye(4)
+    T[0, 0] = T[1, 1] = -1.0
+    return T
+
+
+KR60_3_OPW = OPWParameters(
+    a1=0.350,
+    a2=-0.145,
+    b=0.0,
+    c1=0.815,
+    c2=0.850,
+    c3=0.820,
+    c4=0.170,
+    offsets=(0.0, -np.pi / 2, 0.0, 0.0, 0.0, 0.0),
+    signs=(-1.0, 1.0, 1.0, -1.0, 1.0, -1.0),
+)
+"""KR 60-3 in OPW form (same numbers as the DH table: d1, a1, a2, a3, d4, d6)."""
+
+IRB4600_60_205_OPW = OPWParameters(
+    a1=0.175,
+    a2=-0.175,
+    b=0.0,
+    c1=0.495,
+    c2=0.900,
+    c3=0.960,
+    c4=0.135,
+    offsets=(0.0, 0.0, -np.pi / 2, 0.0, 0.0, 0.0),
+    signs=(1.0, 1.0, 1.0, 1.0, 1.0, 1.0),
+)
+"""IRB 4600-60/2.05 in OPW form (ABB product specification dimensions)."""
+
+
+def _kuka_kr60_3() -> RobotModel:
+    return RobotModel(
+        name="kuka_kr60_3",
+        dh=dh_table(
+            a=[0.350, 0.850, 0.145, 0.0, 0.0, 0.0],
+            alpha_deg=[-90, 0, -90, 90, -90, 0],
+            d=[0.815, 0.0, 0.0, 0.820, 0.0, 0.170],
+            offset_deg=[0, 0, -90, 0, 0, 180],
+        ),
+        joint_sign=np.array([-1.0, 1.0, 1.0, -1.0, 1.0, -1.0]),
+        joint_limits=np.array(
+            [[-185, 185], [-135, 35], [-120, 158], [-350, 350], [-119, 119], [-350, 350]],
+            dtype=float,
+        )
+        * _DEG,
+        velocity_limits=np.array([128, 102, 128, 260, 245, 322], dtype=float) * _DEG,
+        T_n_flange=np.eye(4),
+        reach=2.033 + 0.170,
+        description="KUKA KR 60-3; DH from DESIGN.md, limits and speeds from the KUKA data sheet",
+        motion_groups=((0, 1, 2, 3, 4, 5),),
+        analytic_ik=lambda T: opw_ik(KR60_3_OPW, T),
+    )
+
+
+def _abb_irb4600_60_205() -> RobotModel:
+    return RobotModel(
+        name="abb_irb4600_60_205",
+        dh=dh_table(
+            a=[0.175, 0.900, 0.175, 0.0, 0.0, 0.0],
+            alpha_deg=[-90, 0, -90, 90, -90, 0],
+            d=[0.495, 0.0, 0.0, 0.960, 0.0, 0.135],
+            offset_deg=[0, -90, 0, 0, 0, 180],
+        ),
+        joint_sign=np.ones(6),
+        joint_limits=np.array(
+            [[-180, 180], [-90, 150], [-180, 75], [-400, 400], [-125, 120], [-400, 400]],
+            dtype=float,
+        )
+        * _DEG,
+        velocity_limits=np.array([175, 175, 175, 250, 250, 360], dtype=float) * _DEG,
+        T_n_flange=np.eye(4),
+        reach=2.050,
+        description="ABB IRB 4600-60/2.05; ABB product specification geometry and limits",
+        motion_groups=((0, 1, 2, 3, 4, 5),),
+        analytic_ik=lambda T: opw_ik(IRB4600_60_205_OPW, T),
+    )
+
+
+UR10E_DH = {
+    "d1": 0.1807,
+    "a2": -0.6127,
+    "a3": -0.57155,
+    "d4": 0.17415,
+    "d5": 0.11985,
+    "d6": 0.11655,
+}
+"""Universal Robots' published DH parameters of the UR10e (metres)."""
+
+
+def _ur10e() -> RobotModel:
+    from fabflow.robots.ur_ik import ur_ik
+
+    p = UR10E_DH
+    return RobotModel(
+        name="ur10e",
+        dh=dh_table(
+            a=[0.0, p["a2"], p["a3"], 0.0, 0.0, 0.0],
+            alpha_deg=[90, 0, 0, 90, -90, 0],
+            d=[p["d1"], 0.0, 0.0, p["d4"], p["d5"], p["d6"]],
+            offset_deg=[0, 0, 0, 0, 0, 0],
+        ),
+        joint_sign=np.ones(6),
+        joint_limits=np.tile([-2 * np.pi, 2 * np.pi], (6, 1)),
+        velocity_limits=np.array([120, 120, 180, 180, 180, 180], dtype=float) * _DEG,
+        T_n_flange=np.eye(4),
+        reach=1.300,
+        description="Universal Robots UR10e; published DH parameters, +-360 deg on every joint",
+        motion_groups=((0, 1, 2, 3, 4, 5),),
+        analytic_ik=lambda T: ur_ik(p, T),
+    )
+
+
+def _brokk_170() -> RobotModel:
+    # Tool (breaker + chisel) along x5; the flange z axis is the chisel axis.
+    T_5_flange = np.array(
+        [[0.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+    )
+    return RobotModel(
+        name="brokk_170",
+        dh=dh_table(
+            a=[0.25, 1.55, 1.25, 0.85, 0.75],
+            alpha_deg=[90, 0, 0, 0, 0],
+            d=[0.70, 0.0, 0.0, 0.0, 0.0],
+            offset_deg=[0, 0, 0, 0, 0],
+        ),
+        joint_sign=np.ones(5),
+        joint_limits=np.array(
+            [[-180, 180], [-30, 75], [-160, -10], [-100, 60], [-110, 50]], dtype=float
+        )
+        * _DEG,
+        velocity_limits=np.array([30, 15, 20, 25, 30], dtype=float) * _DEG,
+        T_n_flange=T_5_flange,
+        reach=0.25 + 1.55 + 1.25 + 0.85 + 0.75,
+        approximate=True,
+        description=(
+            "APPROXIMATE 5-axis demolition machine in the style of the BROKK 170 "
+            "(slew, boom, arm 2, arm 3, tool tilt); lengths estimated, not manufacturer data"
+        ),
+        motion_groups=((1,), (0, 2, 3, 4)),
+        analytic_ik=None,
+    )
+
+
+_FACTORIES = {
+    "kuka_kr60_3": _kuka_kr60_3,
+    "ur10e": _ur10e,
+    "abb_irb4600_60_205": _abb_irb4600_60_205,
+    "brokk_170": _brokk_170,
+}
+
+ROBOT_NAMES: tuple[str, ...] = tuple(_FACTORIES)
+"""Names accepted by :func:`get_robot`."""
+
+
+@cache
+def get_robot(name: str) -> RobotModel:
+    """The machine model for a catalogue name.
+
+    Parameters
+    ----------
+    name
+        One of :data:`ROBOT_NAMES`.
+
+    Raises
+    ------
+    UnsupportedError
+        For an unknown name (the message lists the known ones).
+    """
+    try:
+        factory = _FACTORIES[name]
+    except KeyError:
+        raise UnsupportedError(
+            f"unknown robot model {name!r}; known models: {', '.join(ROBOT_NAMES)}"
+        ) from None
+    return factory()

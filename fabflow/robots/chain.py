@@ -1,0 +1,341 @@
+"""Serial robot models as data: a Denavit-Hartenberg chain, limits, batch kinematics.
+
+A model maps controller joint values ``q`` (radians, the values the robot's own
+controller shows, e.g. KUKA A1..A6) to DH joint angles with a per-joint sign and
+offset, ``theta_i = sign_i * q_i + offset_i``, and chains standard DH link
+transforms ``Rz(theta) Tz(d) Tx(a) Rx(alpha)``. A fixed ``T_n_flange`` makes the
+last frame the vendor's flange frame. The base frame sits at the foot of axis 1
+(z up along axis 1, x forward).
+
+Everything is batch-capable: ``q`` of shape ``(dof,)`` or ``(N, dof)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from fabflow.errors import InputError
+
+FloatArray = NDArray[np.float64]
+
+AnalyticIK = Callable[[FloatArray], tuple[FloatArray, NDArray[np.bool_]]]
+"""``T_base_flange (N,4,4) -> (q (N,K,dof), valid (N,K))``: all closed-form branches."""
+
+TWO_PI = 2.0 * np.pi
+
+
+@dataclass(frozen=True, eq=False)
+class RobotModel:
+    """A serial manipulator described by a DH table.
+
+    Attributes
+    ----------
+    name
+        Catalogue name (``"kuka_kr60_3"``, ...).
+    dh
+        ``(dof, 4)`` rows ``[a, alpha, d, theta_offset]`` (metres, radians), standard DH.
+    joint_sign
+        ``(dof,)`` +1 or -1: sign between the controller joint value and the DH angle.
+    joint_limits
+        ``(dof, 2)`` lower/upper controller joint limits (radians).
+    velocity_limits
+        ``(dof,)`` maximum joint speeds (rad/s).
+    T_n_flange
+        4x4 fixed pose of the vendor flange frame in the last DH frame.
+    reach
+        Approximate maximum distance of the flange from axis 1 (metres).
+    approximate
+        True when the geometry is an estimate, not the manufacturer's data.
+    description
+        Where the numbers come from.
+    motion_groups
+        Sets of joint indices that may move at the same time; a motion that needs
+        joints from two groups is split into phases. One group with all joints
+        means no restriction.
+    analytic_ik
+        Closed-form solver returning all branches, or None (numerical IK only).
+    """
+
+    name: str
+    dh: FloatArray
+    joint_sign: FloatArray
+    joint_limits: FloatArray
+    velocity_limits: FloatArray
+    T_n_flange: FloatArray
+    reach: float
+    approximate: bool = False
+    description: str = ""
+    motion_groups: tuple[tuple[int, ...], ...] = ()
+    analytic_ik: AnalyticIK | None = field(default=None, repr=False)
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def dof(self) -> int:
+        """Number of joints."""
+        return int(self.dh.shape[0])
+
+    def _as_batch(self, q: ArrayLike) -> tuple[FloatArray, bool]:
+        qa = np.asarray(q, dtype=float)
+        single = qa.ndim == 1
+        qb = qa[None, :] if single else qa
+        if qb.ndim != 2 or qb.shape[1] != self.dof:
+            raise InputError(
+                f"joint values for {self.name} must have shape ({self.dof},) or "
+                f"(N, {self.dof}), got {qa.shape}"
+            )
+        return qb, single
+
+    def within_limits(self, q: ArrayLike, tol: float = 1e-9) -> NDArray[np.bool_]:
+        """Whether joint values lie within the joint limits (``tol`` radians slack).
+
+        Parameters
+        ----------
+        q
+            Joint values, shape ``(..., dof)`` (radians).
+        """
+        qa = np.asarray(q, dtype=float)
+        lo, hi = self.joint_limits[:, 0], self.joint_limits[:, 1]
+        return np.all((qa >= lo - tol) & (qa <= hi + tol), axis=-1)
+
+    # ------------------------------------------------------------- kinematics
+    def _link_transforms(self, qb: FloatArray) -> FloatArray:
+        """DH link transforms, shape ``(N, dof, 4, 4)``."""
+        a, alpha, d, offset = self.dh.T
+        theta = qb * self.joint_sign + offset
+        ct, st = np.cos(theta), np.sin(theta)
+        ca, sa = np.cos(alpha), np.sin(alpha)
+        n = qb.shape[0]
+        A = np.zeros((n, self.dof, 4, 4))
+        A[..., 0, 0] = ct
+        A[..., 0, 1] = -st * ca
+        A[..., 0, 2] = st * sa
+        A[..., 0, 3] = a * ct
+        A[..., 1, 0] = st
+        A[..., 1, 1] = ct * ca
+        A[..., 1, 2] = -ct * sa
+        A[..., 1, 3] = a * st
+        A[..., 2, 1] = sa
+        A[..., 2, 2] = ca
+        A[..., 2, 3] = d
+        A[..., 3, 3] = 1.0
+        return A
+
+    def frames(self, q: ArrayLike) -> FloatArray:
+        """Poses of all DH frames and the flange in the base frame.
+
+        Parameters
+        ----------
+        q
+            Joint values (radians), shape ``(dof,)`` or ``(N, dof)``.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(N, dof + 2, 4, 4)`` (or without the leading N): frame 0 (the base),
+            DH frames 1..dof, then the flange.
+        """
+        qb, single = self._as_batch(q)
+        A = self._link_transforms(qb)
+        n = qb.shape[0]
+        out = np.empty((n, self.dof + 2, 4, 4))
+        out[:, 0] = np.eye(4)
+        for i in range(self.dof):
+            out[:, i + 1] = out[:, i] @ A[:, i]
+        out[:, -1] = out[:, self.dof] @ self.T_n_flange
+        return out[0] if single else out
+
+    def fk(self, q: ArrayLike) -> FloatArray:
+        """Flange pose in the base frame.
+
+        Parameters
+        ----------
+        q
+            Joint values (radians), shape ``(dof,)`` or ``(N, dof)``.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``T_base_flange``, shape ``(4, 4)`` or ``(N, 4, 4)`` (metres).
+        """
+        qb, single = self._as_batch(q)
+        A = self._link_transforms(qb)
+        T = A[:, 0]
+        for i in range(1, self.dof):
+            T = T @ A[:, i]
+        T = T @ self.T_n_flange
+        return T[0] if single else T
+
+    def jacobian(self, q: ArrayLike) -> FloatArray:
+        """Geometric Jacobian of the flange in the base frame.
+
+        Rows are ``[v; omega]`` (linear velocity of the flange origin, angular
+        velocity), columns the controller joints (sign conventions included).
+
+        Parameters
+        ----------
+        q
+            Joint values (radians), shape ``(dof,)`` or ``(N, dof)``.
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape ``(6, dof)`` or ``(N, 6, dof)``.
+        """
+        qb, single = self._as_batch(q)
+        F = self.frames(qb)
+        z = F[:, :-2, :3, 2]
+        p = F[:, :-2, :3, 3]
+        pe = F[:, -1, None, :3, 3]
+        s = self.joint_sign[None, :, None]
+        Jv = np.cross(z, pe - p) * s
+        Jw = z * s
+        J = np.concatenate([Jv, Jw], axis=2).transpose(0, 2, 1)
+        return J[0] if single else J
+
+    # --------------------------------------------------------------------- IK
+    def ik(
+        self,
+        T_base_flange: ArrayLike,
+        q_ref: ArrayLike | None = None,
+        all_turns: bool = False,
+    ) -> list[FloatArray]:
+        """All joint solutions for a flange pose, within the joint limits.
+
+        Closed form where the model has one (every branch: shoulder, elbow,
+        wrist); otherwise damped least squares from ``q_ref`` and a fixed set of
+        seeds. Each branch is returned once, with every joint whose range exceeds
+        one turn put at the turn nearest ``q_ref`` (or nearest 0) that lies
+        within limits; ``all_turns=True`` returns every turn variant instead.
+
+        Parameters
+        ----------
+        T_base_flange
+            4x4 flange pose in the base frame (metres).
+        q_ref
+            Reference configuration (radians); solutions are sorted by Euclidean
+            joint distance to it.
+        all_turns
+            Include the +-2 pi variants of joints with more than one turn of range.
+
+        Returns
+        -------
+        list of numpy.ndarray
+            ``(dof,)`` solutions (radians); empty when the pose is unreachable.
+        """
+        T = np.asarray(T_base_flange, dtype=float)
+        if T.shape != (4, 4):
+            raise InputError(f"ik expects a 4x4 flange pose, got shape {T.shape}")
+        ref = None if q_ref is None else self._as_batch(q_ref)[0][0]
+        if self.analytic_ik is not None:
+            q, valid = self.ik_batch(T[None], q_ref=ref)
+            sols = q[0][valid[0]]
+        else:
+            from fabflow.robots.numeric_ik import solve_seeds
+
+            sols = solve_seeds(self, T, ref)
+        if all_turns and len(sols):
+            sols = self._turn_variants(sols)
+        if len(sols) == 0:
+            return []
+        sols = _unique_rows(sols, 1e-9)
+        if ref is not None:
+            order = np.argsort(np.linalg.norm(sols - ref, axis=1), kind="stable")
+            sols = sols[order]
+        return [s.copy() for s in sols]
+
+    def ik_batch(
+        self, T_base_flange: ArrayLike, q_ref: ArrayLike | None = None
+    ) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """Closed-form IK for many poses at once (all branches).
+
+        Parameters
+        ----------
+        T_base_flange
+            Flange poses, shape ``(N, 4, 4)`` (metres).
+        q_ref
+            ``(dof,)`` or ``(N, dof)`` reference (radians): each joint is moved by
+            whole turns to the value nearest the reference that is within limits.
+
+        Returns
+        -------
+        q : numpy.ndarray
+            ``(N, K, dof)`` joint values (radians); K is the number of branches.
+        valid : numpy.ndarray
+            ``(N, K)`` bool: the branch exists (pose within the arm's workspace)
+            and lies within the joint limits.
+        """
+        if self.analytic_ik is None:
+            raise NotImplementedError(f"{self.name} has no closed-form IK; use ik()")
+        T = np.asarray(T_base_flange, dtype=float)
+        q, exists = self.analytic_ik(T)
+        ref = np.zeros(self.dof) if q_ref is None else np.asarray(q_ref, dtype=float)
+        if ref.ndim == 2:
+            ref = ref[:, None, :]
+        q = self.nearest_turn(q, ref)
+        valid = exists & self.within_limits(q)
+        return q, valid
+
+    def nearest_turn(self, q: ArrayLike, q_ref: ArrayLike) -> FloatArray:
+        """Move each joint by whole turns towards ``q_ref`` while staying within limits.
+
+        Joints whose value cannot be brought within limits by any number of turns
+        keep the value nearest the reference.
+
+        Parameters
+        ----------
+        q, q_ref
+            Broadcastable arrays ``(..., dof)`` (radians).
+        """
+        qa = np.asarray(q, dtype=float)
+        ref = np.asarray(q_ref, dtype=float)
+        lo, hi = self.joint_limits[:, 0], self.joint_limits[:, 1]
+        k0 = np.round((ref - qa) / TWO_PI)
+        best = qa + k0 * TWO_PI
+        best_ok = (best >= lo - 1e-9) & (best <= hi + 1e-9)
+        for dk in (-1.0, 1.0, -2.0, 2.0):
+            cand = qa + (k0 + dk) * TWO_PI
+            ok = (cand >= lo - 1e-9) & (cand <= hi + 1e-9)
+            closer = np.abs(cand - ref) < np.abs(best - ref)
+            take = ok & (~best_ok | closer)
+            best = np.where(take, cand, best)
+            best_ok = best_ok | ok
+        return best
+
+    def _turn_variants(self, sols: FloatArray) -> FloatArray:
+        lo, hi = self.joint_limits[:, 0], self.joint_limits[:, 1]
+        out = sols
+        for j in range(self.dof):
+            if hi[j] - lo[j] <= TWO_PI:
+                continue
+            extra = []
+            for k in (-2, -1, 1, 2):
+                v = out.copy()
+                v[:, j] += k * TWO_PI
+                extra.append(v[(v[:, j] >= lo[j] - 1e-9) & (v[:, j] <= hi[j] + 1e-9)])
+            out = np.concatenate([out, *extra], axis=0)
+        return out
+
+
+def _unique_rows(a: FloatArray, tol: float) -> FloatArray:
+    """Rows of ``a`` with near-duplicates (max abs difference <= tol) removed, order kept."""
+    keep: list[int] = []
+    for i in range(a.shape[0]):
+        if not any(np.max(np.abs(a[i] - a[j])) <= tol for j in keep):
+            keep.append(i)
+    return a[keep]
+
+
+def dh_table(a: ArrayLike, alpha_deg: ArrayLike, d: ArrayLike, offset_deg: ArrayLike) -> FloatArray:
+    """Build a ``(dof, 4)`` DH table from columns (metres, degrees for angles)."""
+    return np.column_stack(
+        [
+            np.asarray(a, dtype=float),
+            np.radians(np.asarray(alpha_deg, dtype=float)),
+            np.asarray(d, dtype=float),
+            np.radians(np.asarray(offset_deg, dtype=float)),
+        ]
+    )
