@@ -125,7 +125,10 @@ def apply_T(T: ArrayLike, points: ArrayLike) -> FloatArray:
     if p.ndim == 0 or p.shape[-1] != 3:
         raise ValueError(f"points must have shape (..., 3), got {p.shape}")
     if T.ndim == 2:
-        return p @ T[:3, :3].T + T[:3, 3]
+        # R @ p.T (3x3 by 3xN) instead of p @ R.T: much faster with threaded BLAS
+        out = T[:3, :3] @ p.reshape(-1, 3).T
+        out += T[:3, 3, None]
+        return out.T if p.ndim == 2 else out.T.reshape(p.shape)
     return np.einsum("...ij,...j->...i", T[..., :3, :3], p) + T[..., :3, 3]
 
 
@@ -134,7 +137,8 @@ def apply_R(R: ArrayLike, vectors: ArrayLike) -> FloatArray:
     R = np.asarray(R, dtype=float)
     v = np.asarray(vectors, dtype=float)
     if R.ndim == 2:
-        return v @ R.T
+        out = R @ v.reshape(-1, 3).T
+        return out.T if v.ndim == 2 else out.T.reshape(v.shape)
     return np.einsum("...ij,...j->...i", R, v)
 
 

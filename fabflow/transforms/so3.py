@@ -372,8 +372,24 @@ def check_rotation(R: ArrayLike, tol: float = ROTATION_TOL, name: str = "rotatio
         raise RotationError(
             f"{name} must be a 3x3 matrix (or a stack of them), got shape {R.shape}"
         )
-    err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-2, -1))
-    det = np.linalg.det(R)
+    # Entries of R^T R - I and det R from column dot/triple products: several times
+    # faster than batched matmul / np.linalg.det on large stacks of 3x3 matrices.
+    c0, c1, c2 = R[..., 0], R[..., 1], R[..., 2]
+
+    def dot(u: FloatArray, v: FloatArray) -> FloatArray:
+        return np.einsum("...i,...i->...", u, v)
+
+    err = np.maximum.reduce(
+        [
+            np.abs(dot(c0, c0) - 1.0),
+            np.abs(dot(c1, c1) - 1.0),
+            np.abs(dot(c2, c2) - 1.0),
+            np.abs(dot(c0, c1)),
+            np.abs(dot(c0, c2)),
+            np.abs(dot(c1, c2)),
+        ]
+    )
+    det = dot(c0, np.cross(c1, c2))
     bad = ~np.isfinite(err) | (err > tol) | ~(det > 0)
     if np.any(bad):
         idx = tuple(int(i) for i in np.argwhere(np.atleast_1d(bad))[0])
