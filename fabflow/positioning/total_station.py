@@ -538,6 +538,8 @@ def register_points(
         if C.shape != (n, 3, 3) or not np.all(np.isfinite(C)):
             raise InputError(f"point_cov must be a finite ({n}, 3, 3) array, got {C.shape}")
         C = C + base_sigma**2 * np.eye(3)
+        if np.any(np.linalg.eigvalsh(C)[:, 0] <= 0):
+            raise InputError("point_cov must be positive definite for every point")
         w = 3.0 / np.trace(C, axis1=1, axis2=2)
     else:
         w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
