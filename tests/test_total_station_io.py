@@ -1,0 +1,194 @@
+"""Total station files: GSI-8/GSI-16 and CSV readers, robot points, the CLI command."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from fabflow.cli import app
+from fabflow.errors import InputError, LocalizationError, UnsupportedError
+from fabflow.positioning.gsi import parse_gsi, read_gsi
+from fabflow.positioning.polar import DEG, GON, INSTRUMENTS
+from fabflow.positioning.result import BasePose
+from fabflow.positioning.total_station import localize_files, localize_observations
+from fabflow.positioning.ts_io import read_observations, read_robot_points
+from fabflow.transforms.se3 import make_T, pose_error
+from fabflow.transforms.so3 import exp_so3
+
+DATA = Path(__file__).parent / "data" / "total_station"
+T_TRUE = make_T(exp_so3([0.0, 0.0, np.radians(30.0)]), [6.0, 4.0, 0.5])
+
+
+def test_gsi8_sample() -> None:
+    obs = read_gsi(DATA / "obs_gsi8.gsi")
+    assert obs.point_ids == ("P1", "P2", "P3", "P4", "P5")
+    assert obs.lines == (2, 3, 4, 5, 6)
+    assert obs.hz[0] == pytest.approx(59.38845 * GON, abs=1e-12)
+    assert obs.v[1] == pytest.approx(84.92614 * GON, abs=1e-12)
+    assert obs.sd[4] == pytest.approx(8.218)
+    assert np.all(obs.prism_height == 0.0) and np.all(np.isnan(obs.xyz))
+    assert obs.station_xyz is None
+
+
+def test_gsi16_sample_with_station_block() -> None:
+    obs = read_observations(DATA / "obs_gsi16.gsi")
+    assert obs.point_ids == ("P1", "P2", "P3", "P4", "P5")
+    assert obs.hz[0] == pytest.approx(53.44961 * DEG, abs=1e-12)
+    assert obs.sd[0] == pytest.approx(8.5665)
+    np.testing.assert_array_equal(obs.station_xyz, [0.0, 0.0, 0.0])
+    assert obs.instrument_height == 0.0
+    g8 = read_gsi(DATA / "obs_gsi8.gsi")
+    np.testing.assert_allclose(obs.hz, g8.hz, atol=2e-7)
+
+
+def test_gsi_units_and_words() -> None:
+    text = (
+        "110001+0000000A 21.104+12330150 22.104+09000000 31..01+00010000 87..10+00000150\n"
+        "*110002+000000000000000B 81..06+0000000000012345 82..06-0000000000005000 "
+        "83..06+0000000000001000 \n"
+        "410003+00000007 42....+00000001\n"
+    )
+    obs = parse_gsi(text, "x.gsi")
+    assert obs.point_ids == ("A", "B")
+    assert obs.hz[0] == pytest.approx((123 + 30 / 60 + 15.0 / 3600) * DEG)
+    assert obs.v[0] == pytest.approx(np.pi / 2)
+    assert obs.sd[0] == pytest.approx(10.0 * 0.3048)  # feet, unit 1
+    assert obs.prism_height[0] == pytest.approx(0.150)
+    np.testing.assert_allclose(obs.xyz[1], [1.2345, -0.5, 0.1])
+    assert np.isnan(obs.hz[1])
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("110001+0000000A 21.102+1234567 22.102+10000000 31..00+00001000\n", "line 1: word"),
+        ("\n110001+0000000A 21.109+12345678 22.102+10000000 31..00+00001000\n", "line 2: unknown"),
+        ("110001+0000000A 21.102+12345678 22.102+10000000\n", r"lacks word\(s\) 31"),
+        ("21.102+12345678 22.102+10000000 31..00+00001000\n", "no point id"),
+        ("110001+0000000A 21.102+1234A678 22.102+10000000 31..00+00001000\n", "not a number"),
+        ("110001+0000000A 21.102*12345678 22.102+10000000 31..00+00001000\n", "no sign"),
+        ("410001+00000001\n", "no observations"),
+        ("110001+0000000A 81..00+00001000 82..00+00001000\n", "81, 82, 83"),
+    ],
+)
+def test_gsi_errors_name_the_line(text: str, message: str) -> None:
+    with pytest.raises(InputError, match=message) as info:
+        parse_gsi(text, "bad.gsi")
+    assert "bad.gsi" in str(info.value)
+
+
+def test_gsi_mil_is_unsupported() -> None:
+    with pytest.raises(UnsupportedError, match="line 1: angles in mil"):
+        parse_gsi("110001+0000000A 21.105+12345678 22.102+10000000 31..00+00001000\n", "m.gsi")
+
+
+def test_csv_sample_and_robot_points() -> None:
+    obs = read_observations(DATA / "obs.csv")
+    assert obs.point_ids == ("P1", "P2", "P3", "P4", "P5")
+    assert obs.lines[0] == 3  # after the comment and the header
+    assert obs.hz[2] == pytest.approx(51.72527 * GON)
+    ids, pts = read_robot_points(DATA / "robot_points.csv")
+    assert ids[-1] == "P9" and pts.shape == (6, 3)
+    np.testing.assert_allclose(pts[1], [1.5, -0.8, 1.6])
+
+
+@pytest.mark.parametrize("name", ["obs_gsi8.gsi", "obs_gsi16.gsi", "obs.csv"])
+def test_samples_localize_the_known_pose(name: str) -> None:
+    obs = read_observations(DATA / name)
+    ids, pts = read_robot_points(DATA / "robot_points.csv")
+    reg, matched = localize_observations(obs, ids, pts, INSTRUMENTS["leica_ms50"])
+    assert matched == ("P1", "P2", "P3", "P4", "P5")
+    err = pose_error(reg.T_world_base, T_TRUE)
+    assert np.linalg.norm(err[:3]) < 1e-3  # readings rounded to 1 mm / 0.1 mm
+    assert np.linalg.norm(err[3:]) < 2e-4
+    assert reg.rejected == ()
+
+
+def test_csv_errors(tmp_path: Path) -> None:
+    cases = {
+        "point_id,hz_gon,v_gon\nP1,1,2\n": "expected columns",
+        "point_id,hz_gon,v_gon,slope_distance_m\nP1,1,2\n": "line 2: expected 4 fields",
+        "point_id,hz_gon,v_gon,slope_distance_m\nP1,1,abc,3\n": "line 2: column 'v_gon'",
+        "point_id,hz_gon,v_gon,slope_distance_m\nP1,1,2,-3\n": "must be positive",
+        "point_id,hz_gon,v_gon,slope_distance_m\n": "no observation rows",
+        "": "empty",
+    }
+    for k, (text, message) in enumerate(cases.items()):
+        f = tmp_path / f"o{k}.csv"
+        f.write_text(text)
+        with pytest.raises(InputError, match=message):
+            read_observations(f)
+    f = tmp_path / "pts.csv"
+    f.write_text("point_id,x_m,y_m,z_m\nA,1,2,3\nA,1,2,4\n")
+    with pytest.raises(InputError, match="line 3: point id 'A' appears twice"):
+        read_robot_points(f)
+    with pytest.raises(InputError, match="does not exist"):
+        read_robot_points(tmp_path / "missing.csv")
+
+
+def test_too_few_matching_ids(tmp_path: Path) -> None:
+    obs = read_observations(DATA / "obs.csv")
+    with pytest.raises(LocalizationError, match="only 2 observed point id"):
+        localize_observations(obs, ("P1", "P2", "X"), np.eye(3), INSTRUMENTS["leica_ms50"])
+
+
+def test_localize_files_with_instrument_pose() -> None:
+    # the same readings with the instrument placed at (1, 2, 0) and turned 90 degrees
+    pose = localize_files(
+        DATA / "obs.csv",
+        DATA / "robot_points.csv",
+        instrument_xyz="1,2,0",
+        instrument_abc_deg="90,0,0",
+        station="S1",
+    )
+    T_wi = make_T(exp_so3([0, 0, np.pi / 2]), [1.0, 2.0, 0.0])
+    err = pose_error(pose.T_world_base, T_wi @ T_TRUE)
+    assert np.linalg.norm(err[:3]) < 1e-3
+    assert pose.station == "S1" and pose.quality["point_ids"][0] == "P1"
+    with pytest.raises(InputError, match="three numbers"):
+        localize_files(DATA / "obs.csv", DATA / "robot_points.csv", instrument_xyz="1,2")
+
+
+def test_cli_writes_base_pose(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        app,
+        [
+            "localize",
+            "total-station",
+            str(DATA / "obs_gsi8.gsi"),
+            "--robot-points",
+            str(DATA / "robot_points.csv"),
+            "-o",
+            str(out),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    pose = BasePose.from_dict(json.loads((out / "base_pose.json").read_text()))
+    assert pose.method == "total_station"
+    assert np.linalg.norm(pose_error(pose.T_world_base, T_TRUE)[:3]) < 1e-3
+
+
+def test_cli_bad_file_is_one_message(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.gsi"
+    bad.write_text("110001+0000000A 21.102+1234567 22.102+10000000 31..00+00001000\n")
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        app,
+        [
+            "localize",
+            "total-station",
+            str(bad),
+            "--robot-points",
+            str(DATA / "robot_points.csv"),
+            "-o",
+            str(out),
+        ],
+    )
+    assert result.exit_code == 2
+    assert "bad.gsi: line 1" in result.output and "Traceback" not in result.output
+    assert not out.exists()
