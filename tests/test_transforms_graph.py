@@ -15,7 +15,9 @@ from fabflow.transforms import (
     FrameGraph,
     Pose,
     UnknownFrameError,
+    apply_T,
     perturb,
+    point_covariance,
     pose_error,
 )
 
@@ -139,3 +141,16 @@ def test_set_and_remove_edges() -> None:
         g.get("world", "tool")
     g.add("tool", "flange", P["flange>tool"].inverse())
     assert g.get("flange", "tool").allclose(P["flange>tool"], 1e-12)
+
+
+def test_target_point_covariance_matches_monte_carlo() -> None:
+    rng = np.random.default_rng(5)
+    g, _, _ = _site(rng)
+    T_wt, C = g.get_with_covariance("total_station", "tool")
+    p_tool = np.array([0.05, -0.02, 0.1])
+    C_p = point_covariance(T_wt.matrix, C, p_tool)
+    deltas = rng.multivariate_normal(np.zeros(6), C, size=10_000)
+    samples = apply_T(perturb(T_wt.matrix, deltas), p_tool)
+    C_mc = np.cov(samples.T)
+    sd = np.sqrt(np.diag(C_p))
+    assert (np.abs(C_mc - C_p) / np.outer(sd, sd)).max() < 0.05

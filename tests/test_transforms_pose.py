@@ -269,3 +269,15 @@ def test_from_frame() -> None:
         Pose.from_frame([0, 0, 0], [1, 0, 0], [2, 0, 0])
     with pytest.raises(DegenerateFrameError):
         Pose.from_frame([1, 1, 1], [1, 1, 1], rng.normal(size=3))
+
+
+def test_pickle_and_deepcopy() -> None:
+    import copy
+    import pickle
+
+    b = _random_poses(3, 9)
+    for clone in (pickle.loads(pickle.dumps(b)), copy.deepcopy(b)):
+        assert isinstance(clone, Pose)
+        assert clone.allclose(b, 0.0)
+        with pytest.raises(ValueError):
+            clone.R[0, 0, 0] = 2.0

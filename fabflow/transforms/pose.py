@@ -123,6 +123,10 @@ class Pose:
     def __setattr__(self, name: str, value: Any) -> None:
         raise AttributeError("Pose is immutable")
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # pickling/deepcopy (e.g. dask workers) would otherwise go through __setattr__
+        return (Pose._trusted, (np.array(self._R), np.array(self._t)))
+
     # ------------------------------------------------------------------ constructors
 
     @classmethod

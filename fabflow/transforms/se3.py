@@ -306,6 +306,37 @@ def inverse_covariance(T_a_b: ArrayLike, C_a_b: ArrayLike) -> FloatArray:
     return J @ np.asarray(C_a_b, dtype=float) @ np.swapaxes(J, -1, -2)
 
 
+def point_covariance(T_a_b: ArrayLike, C_a_b: ArrayLike, points_b: ArrayLike) -> FloatArray:
+    """3x3 covariance (m^2) of points ``p_a = T_a_b p_b`` from the pose covariance.
+
+    With fabflow's error ``[d, r]``: ``p_a' = Exp(r) R p_b + t + d``, so to first order
+    ``J = [I, -skew(R p_b)]`` and ``C_p = J C_a_b J^T``. Use it to turn a base pose
+    uncertainty into the position uncertainty of targets.
+
+    Parameters
+    ----------
+    T_a_b
+        Pose(s) ``(..., 4, 4)``.
+    C_a_b
+        Covariance(s) ``(..., 6, 6)`` in fabflow's convention.
+    points_b
+        Points in frame ``b`` (m), ``(..., 3)``; broadcast with the pose batch.
+
+    Returns
+    -------
+    numpy.ndarray
+        Covariances ``(..., 3, 3)`` in frame ``a``.
+    """
+    T_a_b = _mat4(T_a_b, "T_a_b")
+    C = np.asarray(C_a_b, dtype=float)
+    p = np.asarray(points_b, dtype=float)
+    lever = np.einsum("...ij,...j->...i", T_a_b[..., :3, :3], p)
+    J = np.zeros((*lever.shape[:-1], 3, 6))
+    J[..., :, :3] = np.eye(3)
+    J[..., :, 3:] = -skew(lever)
+    return J @ C @ np.swapaxes(J, -1, -2)
+
+
 def exp_T(delta: ArrayLike) -> FloatArray:
     """Pose ``[Exp(r), d]`` of an error vector ``[d, r]``: ``perturb(identity, delta)``."""
     delta = np.asarray(delta, dtype=float)
