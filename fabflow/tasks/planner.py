@@ -52,7 +52,7 @@ from fabflow.tasks.stations import (
     lift_levels,
     obstacle_polygons,
 )
-from fabflow.tasks.targets import tool_frames
+from fabflow.tasks.targets import element_tool_frames, tool_frames
 
 MAX_LISTED = 12
 """How many element ids an error message lists."""
@@ -107,7 +107,15 @@ def _explain_unreachable(
     for i in missing:
         p = p_target[i]
         z_rel = p[2] - cands.base_z0 - lifts
-        if z_rel.max() < z_lo or z_rel.min() > z_hi:
+        frames = element_tool_frames(work[i])[:, :3, 3]
+        span = float(shapely.minimum_bounding_radius(shapely.multipoints(frames[:, :2])))
+        if span > reach.r_max:
+            why = (
+                f"its {len(frames)} tool frames spread over a circle of radius {span:.2f} m, "
+                f"wider than the arm reaches from one station ({reach.r_max:.2f} m); "
+                "split it into shorter elements"
+            )
+        elif z_rel.max() < z_lo or z_rel.min() > z_hi:
             why = (
                 f"its target height {p[2]:.2f} m is outside what the arm reaches with the "
                 f"lift ({cands.base_z0 + lifts[0] + z_lo:.2f} to "
