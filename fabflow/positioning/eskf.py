@@ -576,7 +576,7 @@ def cv_ekf_track(
 
         H = jac(ekf.x)
         y = rv[k] - hx(ekf.x)[0]
-        S = float(H @ ekf.P @ H.T) + rs[k] ** 2
+        S = float((H @ ekf.P @ H.T)[0, 0]) + rs[k] ** 2
         if y * y / S > gate:
             n_rejected += 1
         else:
