@@ -1,0 +1,181 @@
+"""``fabflow localize uwb``: files in, base pose out; bad files get a line number."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import ROOT
+from typer.testing import CliRunner
+
+from fabflow.cli import app
+from fabflow.errors import InputError
+from fabflow.positioning.result import BasePose
+from fabflow.positioning.uwb_io import heading_from_motion, read_imu_csv, read_ranges_csv
+
+DATA = ROOT / "tests" / "data" / "uwb"
+STATIC = DATA / "static"
+MOVING = DATA / "moving"
+IDS = ["A1", "A2", "A3", "A4"]
+
+
+def _truth_static() -> np.ndarray:
+    # tests/data/uwb/generate.py: platform at (1.6, 2.2), heading 30 deg; base at (0.3, 0, 0.6)
+    yaw = np.radians(30.0)
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([1.6, 2.2, 0.0]) + np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ [0.3, 0, 0.6]
+
+
+def test_static_end_to_end(cli, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    result = cli(
+        "localize",
+        "uwb",
+        str(STATIC / "ranges.csv"),
+        "--anchors",
+        str(STATIC / "anchors.yaml"),
+        "-o",
+        str(out),
+    )
+    assert result.returncode == 0, result.stderr
+    pose = BasePose.from_dict(json.loads((out / "base_pose.json").read_text()))
+    err = pose.T_world_base[:3, 3] - _truth_static()
+    sd = np.sqrt(np.diag(pose.covariance))
+    assert np.all(np.abs(err) < 4 * sd[:3])
+    yaw = np.arctan2(pose.T_world_base[1, 0], pose.T_world_base[0, 0])
+    assert abs(yaw - np.radians(30.0)) < 4 * sd[5]
+    assert pose.quality["unobserved"] == ["rx", "ry"]
+    assert pose.residuals.shape[1] == 1 and pose.rmse > 0
+
+
+def test_moving_with_imu_in_process(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        app,
+        [
+            "localize",
+            "uwb",
+            str(MOVING / "ranges.csv"),
+            "--anchors",
+            str(MOVING / "anchors.yaml"),
+            "--imu",
+            str(MOVING / "imu.csv"),
+            "-o",
+            str(out),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    pose = BasePose.from_dict(json.loads((out / "base_pose.json").read_text()))
+    # generate.py: a 1.5 m line ending at (2.7, 1.5) at height 2.0, heading 0
+    expected = np.array([2.7 + 0.3, 1.5, 2.6])
+    assert np.linalg.norm(pose.T_world_base[:3, 3] - expected) < 0.08
+    yaw = np.arctan2(pose.T_world_base[1, 0], pose.T_world_base[0, 0])
+    assert abs(yaw) < np.radians(10.0)
+    assert pose.quality["estimator"] == "eskf"
+    assert pose.quality["n_rejected_gate"] > 0
+
+
+def test_bad_csv_exits_2_with_line_number(cli, tmp_path: Path) -> None:
+    bad = tmp_path / "ranges.csv"
+    bad.write_text("t,anchor,range\n0.0,A1,3.0\n0.1,A7,3.1\n")
+    out = tmp_path / "out"
+    result = cli(
+        "localize", "uwb", str(bad), "--anchors", str(STATIC / "anchors.yaml"), "-o", str(out)
+    )
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert "line 3" in result.stderr and "A7" in result.stderr
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("text", "where", "what"),
+    [
+        ("time,anchor,range\n0,A1,3\n", "line 1", "missing column"),
+        ("t,anchor,range\n0.0,A1,3.0\n0.2,A2,3.0\n0.1,A3,3.0\n", "line 4", "not sorted"),
+        ("t,anchor,range\n0.0,A1,3.0\n0.0,A1,3.1\n", "line 3", "duplicate"),
+        ("t,anchor,range\n0.0,A1,3.0\n0.1,B2,3.0\n", "line 3", "unknown anchor"),
+        ("t,anchor,range\n0.0,A1,abc\n", "line 2", "not a number"),
+        ("t,anchor,range\n0.0,A1,-3\n", "line 2", "negative"),
+        ("t,anchor,range,tag\n0.0,A1,3,2\n", "line 2", "tag"),
+        ("t,anchor,range\n0.0,A1\n", "line 2", "expected 3 values"),
+        ("t,anchor,range\n", None, "no ranges"),
+    ],
+)
+def test_read_ranges_errors(tmp_path: Path, text: str, where: str | None, what: str) -> None:
+    path = tmp_path / "r.csv"
+    path.write_text(text)
+    with pytest.raises(InputError, match=what) as exc:
+        read_ranges_csv(path, IDS, n_tags=2)
+    assert str(path) in str(exc.value)
+    if where is not None:
+        assert exc.value.location == where
+
+
+def test_same_time_different_anchors_is_not_a_duplicate(tmp_path: Path) -> None:
+    path = tmp_path / "r.csv"
+    path.write_text("t,tag,anchor,range\n0.0,0,A1,3.0\n0.0,0,A2,3.1\n0.0,1,A1,3.2\n")
+    log = read_ranges_csv(path, IDS, n_tags=2)
+    np.testing.assert_array_equal(log.tag, [0, 0, 1])
+    ep = log.epochs(2, 4)
+    assert ep.shape == (1, 2, 4) and ep[0, 1, 0] == 3.2
+
+
+@pytest.mark.parametrize(
+    ("text", "what"),
+    [
+        ("t,ax,ay,az,gx,gy\n0,0,0,9.8,0,0\n", "missing column"),
+        ("t,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n0,0,0,9.8,0,0,0\n", "duplicate"),
+        ("t,ax,ay,az,gx,gy,gz\n0.1,0,0,9.8,0,0,0\n0.0,0,0,9.8,0,0,0\n", "not sorted"),
+        ("t,ax,ay,az,gx,gy,gz\n0.1,0,0,9.8,0,0,0\n", "at least two"),
+    ],
+)
+def test_read_imu_errors(tmp_path: Path, text: str, what: str) -> None:
+    path = tmp_path / "imu.csv"
+    path.write_text(text)
+    with pytest.raises(InputError, match=what):
+        read_imu_csv(path)
+
+
+def test_bad_anchors_file_and_single_tag_without_imu(tmp_path: Path) -> None:
+    anchors = tmp_path / "anchors.yaml"
+    anchors.write_text("anchors: {A1: [0, 0, 1], A2: [4, 0, 1]}\n")
+    runner = CliRunner()
+    res = runner.invoke(
+        app,
+        [
+            "localize",
+            "uwb",
+            str(STATIC / "ranges.csv"),
+            "--anchors",
+            str(anchors),
+            "-o",
+            str(tmp_path / "o"),
+        ],
+    )
+    assert res.exit_code == 2 and "anchors" in res.output
+    res = runner.invoke(
+        app,
+        [
+            "localize",
+            "uwb",
+            str(MOVING / "ranges.csv"),
+            "--anchors",
+            str(MOVING / "anchors.yaml"),
+            "-o",
+            str(tmp_path / "o"),
+        ],
+    )
+    assert res.exit_code == 2 and "heading" in res.output
+
+
+def test_heading_from_motion() -> None:
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 10, 600)
+    xy = np.where(
+        t[:, None] < 3, 0.0, (t[:, None] - 3) * 0.3 * np.array([[np.cos(0.5), np.sin(0.5)]])
+    )
+    xy = xy + 0.05 * rng.standard_normal(xy.shape)
+    assert abs(heading_from_motion(xy) - 0.5) < 0.15
