@@ -14,14 +14,25 @@ Public API::
 
 from fabflow.robots.catalog import ROBOT_NAMES, get_robot
 from fabflow.robots.chain import RobotModel
+from fabflow.robots.clik import Clik, ClikGains, ClikResult, divide_path
+from fabflow.robots.hydraulic import HydraulicJoints, contact_search, tracking_rmse
 from fabflow.robots.kuka_config import kuka_status_turn
+from fabflow.robots.platform import MobilePlatform
 from fabflow.robots.reach import ReachMap, reach_map
 
 __all__ = [
     "ROBOT_NAMES",
+    "Clik",
+    "ClikGains",
+    "ClikResult",
+    "HydraulicJoints",
+    "MobilePlatform",
     "ReachMap",
     "RobotModel",
+    "contact_search",
+    "divide_path",
     "get_robot",
     "kuka_status_turn",
     "reach_map",
+    "tracking_rmse",
 ]

@@ -82,6 +82,7 @@ def _kuka_kr60_3() -> RobotModel:
         description="KUKA KR 60-3; DH from DESIGN.md, limits and speeds from the KUKA data sheet",
         motion_groups=((0, 1, 2, 3, 4, 5),),
         analytic_ik=lambda T: opw_ik(KR60_3_OPW, T),
+        q_nominal=np.array([0, -90, 90, 0, 45, 0], dtype=float) * _DEG,
     )
 
 
@@ -106,6 +107,7 @@ def _abb_irb4600_60_205() -> RobotModel:
         description="ABB IRB 4600-60/2.05; ABB product specification geometry and limits",
         motion_groups=((0, 1, 2, 3, 4, 5),),
         analytic_ik=lambda T: opw_ik(IRB4600_60_205_OPW, T),
+        q_nominal=np.array([0, 0, 0, 0, 45, 0], dtype=float) * _DEG,
     )
 
 
@@ -140,6 +142,7 @@ def _ur10e() -> RobotModel:
         description="Universal Robots UR10e; published DH parameters, +-360 deg on every joint",
         motion_groups=((0, 1, 2, 3, 4, 5),),
         analytic_ik=lambda T: ur_ik(p, T),
+        q_nominal=np.array([0, -90, 90, -90, -90, 0], dtype=float) * _DEG,
     )
 
 
@@ -171,6 +174,7 @@ def _brokk_170() -> RobotModel:
         ),
         motion_groups=((1,), (0, 2, 3, 4)),
         analytic_ik=None,
+        q_nominal=np.array([0, 30, -90, -20, -40], dtype=float) * _DEG,
     )
 
 

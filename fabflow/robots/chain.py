@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -58,6 +59,9 @@ class RobotModel:
         means no restriction.
     analytic_ik
         Closed-form solver returning all branches, or None (numerical IK only).
+    q_nominal
+        A well-conditioned working configuration (radians): start of examples,
+        reference for the CLIK manipulability threshold.
     """
 
     name: str
@@ -71,6 +75,7 @@ class RobotModel:
     description: str = ""
     motion_groups: tuple[tuple[int, ...], ...] = ()
     analytic_ik: AnalyticIK | None = field(default=None, repr=False)
+    q_nominal: FloatArray | None = None
 
     # ------------------------------------------------------------------ basics
     @property
@@ -147,6 +152,47 @@ class RobotModel:
             out[:, i + 1] = out[:, i] @ A[:, i]
         out[:, -1] = out[:, self.dof] @ self.T_n_flange
         return out[0] if single else out
+
+    def frames_single(self, q: FloatArray) -> FloatArray:
+        """:meth:`frames` of one ``(dof,)`` configuration without input checks (control loops)."""
+        a, offset = self.dh[:, 0], self.dh[:, 3]
+        theta = q * self.joint_sign + offset
+        ct, st = np.cos(theta), np.sin(theta)
+        A = self._A_template.copy()
+        A[:, 0, 0] = ct
+        A[:, 0, 1] = -st * self._ca
+        A[:, 0, 2] = st * self._sa
+        A[:, 0, 3] = a * ct
+        A[:, 1, 0] = st
+        A[:, 1, 1] = ct * self._ca
+        A[:, 1, 2] = -ct * self._sa
+        A[:, 1, 3] = a * st
+        out = np.empty((self.dof + 2, 4, 4))
+        out[0] = np.eye(4)
+        T = A[0]
+        out[1] = T
+        for i in range(1, self.dof):
+            T = T @ A[i]
+            out[i + 1] = T
+        out[-1] = T @ self.T_n_flange
+        return out
+
+    @cached_property
+    def _ca(self) -> FloatArray:
+        return np.cos(self.dh[:, 1])
+
+    @cached_property
+    def _sa(self) -> FloatArray:
+        return np.sin(self.dh[:, 1])
+
+    @cached_property
+    def _A_template(self) -> FloatArray:
+        A = np.zeros((self.dof, 4, 4))
+        A[:, 2, 1] = self._sa
+        A[:, 2, 2] = self._ca
+        A[:, 2, 3] = self.dh[:, 2]
+        A[:, 3, 3] = 1.0
+        return A
 
     def fk(self, q: ArrayLike) -> FloatArray:
         """Flange pose in the base frame.

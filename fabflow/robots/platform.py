@@ -1,0 +1,122 @@
+"""The mobile platform carrying an arm: footprint, lift and the arm mounting.
+
+Built from the project's :class:`fabflow.project.Platform`. The arm base sits at
+``T_world_base = T_world_platform @ Lift(h) @ T_platform_base`` where ``Lift(h)``
+raises by ``h`` along the platform z axis (the convention of
+:func:`fabflow.tasks.plan.T_world_base`). The reach map of an arm is computed
+once in the arm base frame; the lift only moves that frame, which is how
+:meth:`MobilePlatform.reachable` applies it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from fabflow.errors import InputError
+from fabflow.project import Platform
+from fabflow.robots.catalog import get_robot
+from fabflow.robots.chain import RobotModel
+from fabflow.robots.reach import ReachMap
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class MobilePlatform:
+    """A platform with a lifted arm.
+
+    Attributes
+    ----------
+    robot
+        The arm model.
+    footprint
+        ``(length, width)`` of the platform rectangle centred on its origin (metres).
+    lift_range
+        ``(min, max)`` lift height above the lowest position (metres).
+    T_platform_base
+        4x4 arm mounting pose on the platform at the lowest lift position.
+    safety_margin
+        Clearance kept around the footprint (metres).
+    """
+
+    robot: RobotModel
+    footprint: tuple[float, float]
+    lift_range: tuple[float, float]
+    T_platform_base: FloatArray
+    safety_margin: float = 0.0
+
+    @classmethod
+    def from_project(cls, platform: Platform, robot_name: str) -> MobilePlatform:
+        """The platform described in a project file, carrying the named arm."""
+        return cls(
+            robot=get_robot(robot_name),
+            footprint=(float(platform.footprint[0]), float(platform.footprint[1])),
+            lift_range=(float(platform.lift[0]), float(platform.lift[1])),
+            T_platform_base=platform.T_platform_base.matrix(),
+            safety_margin=float(platform.safety_margin),
+        )
+
+    def _check_lift(self, lift: float) -> None:
+        lo, hi = self.lift_range
+        if not lo - 1e-9 <= lift <= hi + 1e-9:
+            raise InputError(f"lift {lift:.3f} m is outside the platform's range [{lo}, {hi}] m")
+
+    def T_platform_base_at(self, lift: float) -> FloatArray:
+        """Arm base pose on the platform at a lift height (metres)."""
+        self._check_lift(lift)
+        L = np.eye(4)
+        L[2, 3] = lift
+        return L @ self.T_platform_base
+
+    def T_world_base(self, T_world_platform: ArrayLike, lift: float) -> FloatArray:
+        """Arm base pose in the world for a platform pose and lift height."""
+        return np.asarray(T_world_platform, dtype=float) @ self.T_platform_base_at(lift)
+
+    def footprint_corners(
+        self, T_world_platform: ArrayLike, with_margin: bool = True
+    ) -> FloatArray:
+        """``(4, 2)`` world x, y of the footprint corners (counter-clockwise), with the margin."""
+        m = self.safety_margin if with_margin else 0.0
+        hx, hy = self.footprint[0] / 2 + m, self.footprint[1] / 2 + m
+        c = np.array([[-hx, -hy, 0, 1], [hx, -hy, 0, 1], [hx, hy, 0, 1], [-hx, hy, 0, 1]])
+        return (c @ np.asarray(T_world_platform, dtype=float).T)[:, :2]
+
+    def reachable(
+        self, reach: ReachMap, p_world: ArrayLike, T_world_platform: ArrayLike, lift: float
+    ) -> NDArray[np.bool_]:
+        """Which world TCP positions the arm reaches from a platform pose and lift.
+
+        Parameters
+        ----------
+        reach
+            Reach map of the arm and tool (tool orientation as in the map).
+        p_world
+            ``(N, 3)`` TCP positions in the world (metres).
+        T_world_platform
+            4x4 platform pose (z = ground, z axis up).
+        lift
+            Lift height (metres).
+        """
+        T_world_base = self.T_world_base(T_world_platform, lift)
+        p = np.atleast_2d(np.asarray(p_world, dtype=float))
+        T_base_world = np.linalg.inv(T_world_base)
+        p_base = p @ T_base_world[:3, :3].T + T_base_world[:3, 3]
+        return reach.reachable(p_base)
+
+    def best_lift(
+        self, reach: ReachMap, p_world: ArrayLike, T_world_platform: ArrayLike, n: int = 25
+    ) -> tuple[float, int]:
+        """The lift (of ``n`` evenly spaced heights) that reaches the most points.
+
+        Returns
+        -------
+        tuple
+            ``(lift, number of reachable points)``; the lowest lift wins ties.
+        """
+        lifts = np.linspace(self.lift_range[0], self.lift_range[1], max(n, 1))
+        counts = [int(self.reachable(reach, p_world, T_world_platform, h).sum()) for h in lifts]
+        k = int(np.argmax(counts))
+        return float(lifts[k]), counts[k]
