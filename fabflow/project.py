@@ -246,9 +246,16 @@ class IcpSetup(StrictModel):
     """A point-cloud map (PLY/XYZ) in the world frame; a simulated site scan when absent."""
     T_platform_lidar: PoseSpec = PoseSpec(xyz=(0.9, 0.0, 1.2))
     voxel_size: PositiveFloat = 0.05
+    """Voxel grid of the scan for the fine ICP stage (metres)."""
+    map_voxel_size: PositiveFloat = 0.03
+    """Voxel grid the map is downsampled on (metres; paper 002, Table 3)."""
     max_correspondence_distance: PositiveFloat = 0.5
+    """Last correspondence distance of the coarse ICP stage; the first is 4 times it."""
     min_fitness: Annotated[float, Field(gt=0, le=1)] = 0.5
+    min_structure_fitness: Annotated[float, Field(ge=0, le=1)] = 0.5
+    """Required fitness of scan points on walls and columns (not the ground)."""
     max_rmse: PositiveFloat = 0.03
+    """Largest accepted inlier RMSE (metres)."""
 
 
 class Localization(StrictModel):
