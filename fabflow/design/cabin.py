@@ -222,7 +222,7 @@ def cabin_blocks(spec: CabinSpec) -> CabinBlocks:
     R = np.zeros((len(rows), 3, 3))
     R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
     T_cabin_block = make_T(R, centre)
-    T_world_cabin = make_T(matrix_from_abc(spec.heading_deg, 0.0, 0.0), spec.origin)
+    T_world_cabin = make_T(matrix_from_abc(math.radians(spec.heading_deg), 0.0, 0.0), spec.origin)
     extents = np.stack([s1 - s0, np.full_like(s0, t), np.full_like(s0, h)], axis=1)
     part = np.array([spec.parts[p] for p in piece]) if len(piece) else piece
     return CabinBlocks(
