@@ -264,16 +264,28 @@ def kabsch(
     P = np.asarray(points_base, dtype=float)
     M = np.asarray(points_world, dtype=float)
     if P.ndim == 2:
-        w = np.full(P.shape[0], 1.0 / P.shape[0]) if weights is None else weights / np.sum(weights)
-        p0 = w @ P
-        m0 = w @ M
-        H = (P - p0).T @ ((M - m0) * w[:, None])
-    else:
-        w = np.ones(P.shape[:-1]) if weights is None else np.asarray(weights, dtype=float)
-        w = w / w.sum(axis=-1, keepdims=True)
-        p0 = np.einsum("...n,...ni->...i", w, P)
-        m0 = np.einsum("...n,...ni->...i", w, M)
-        H = np.einsum("...n,...ni,...nj->...ij", w, P - p0[..., None, :], M - m0[..., None, :])
+        # single problem: plain matrix products, no einsum or batch bookkeeping
+        if weights is None:
+            p0 = P.mean(axis=0)
+            m0 = M.mean(axis=0)
+            H = (P - p0).T @ (M - m0)
+        else:
+            w = np.asarray(weights, dtype=float) / np.sum(weights)
+            p0 = w @ P
+            m0 = w @ M
+            H = (P - p0).T @ ((M - m0) * w[:, None])
+        U, _, Vt = np.linalg.svd(H)
+        R = (U @ Vt).T
+        (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+        if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:
+            Vt[2] = -Vt[2]
+            R = (U @ Vt).T
+        return R, m0 - R @ p0
+    w = np.ones(P.shape[:-1]) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum(axis=-1, keepdims=True)
+    p0 = np.einsum("...n,...ni->...i", w, P)
+    m0 = np.einsum("...n,...ni->...i", w, M)
+    H = np.einsum("...n,...ni,...nj->...ij", w, P - p0[..., None, :], M - m0[..., None, :])
     U, _, Vt = np.linalg.svd(H)
     # R = V diag(1, 1, det(V U^T)) U^T: flipping the weakest axis avoids a reflection
     s = np.sign(_det3(U) * _det3(Vt))
@@ -359,21 +371,21 @@ def optimize_registration(
     -------
     R, t, iterations
     """
-    P = points_base
-    M = points_world
-    w = np.ones(len(P)) if weights is None else np.asarray(weights, dtype=float)
+    w = np.ones(len(points_base)) if weights is None else np.asarray(weights, dtype=float)
     w = w / w.sum()
+    # both point sets are centred first (a change of variables of O only): with
+    # site coordinates tens of metres from the origin SLSQP otherwise crawls
+    p0, m0 = w @ points_base, w @ points_world
+    P = points_base - p0
+    M = points_world - m0
     if T_init is None:
         yaw = np.arange(8) * (np.pi / 4)
         Rs = exp_so3(np.outer(yaw, [0.0, 0.0, 1.0]))
-        p0, m0 = w @ P, w @ M
-        ts = m0 - Rs @ p0
-        e = np.einsum("kij,nj->kni", Rs, P) + ts[:, None, :] - M
-        k = int(np.argmin(np.einsum("n,kni,kni->k", w, e, e)))
-        R0, t0 = Rs[k], ts[k]
+        e = np.einsum("kij,nj->kni", Rs, P) - M
+        R0 = Rs[int(np.argmin(np.einsum("n,kni,kni->k", w, e, e)))]
     else:
-        R0, t0 = T_init[:3, :3], T_init[:3, 3]
-    x0 = np.concatenate([t0, R0[:, 0], R0[:, 1]])
+        R0 = T_init[:3, :3]
+    x0 = np.concatenate([np.zeros(3), R0[:, 0], R0[:, 1]])
     px, py, pz = P[:, 0], P[:, 1], P[:, 2]
 
     def residual(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -414,11 +426,12 @@ def optimize_registration(
         jac=jac,
         method="SLSQP",
         constraints=[{"type": "eq", "fun": cons, "jac": cons_jac}],
-        options={"ftol": 1e-16, "maxiter": 200},
+        options={"ftol": 1e-15, "maxiter": 200},
     )
     origin, X, Y = res.x[:3], res.x[3:6], res.x[6:]
     U, _, Vt = np.linalg.svd(np.column_stack([X, Y, np.cross(X, Y)]))
-    return U @ Vt, origin, int(res.nit)
+    R = U @ Vt
+    return R, m0 + origin - R @ p0, int(res.nit)
 
 
 # --------------------------------------------------------------- registration
