@@ -1,0 +1,603 @@
+"""LiDAR scan-to-map localization (paper 000, section III-C).
+
+Offline, :func:`build_map` registers several scans of the site into one map
+(each new scan is aligned by ICP to the map merged so far, starting from its
+odometry guess; the first scan anchors the map frame), merges and voxelizes them
+and estimates normals. Online, :func:`localize_scan` aligns a new scan to the map
+from a rough initial pose (the platform's planned station) with a coarse-to-fine
+point-to-plane ICP and checks the result: too low a fitness, too high an inlier
+RMSE or degenerate geometry raise :class:`~fabflow.errors.LocalizationError`
+instead of returning a silently wrong pose.
+
+:func:`localize_station` is the simulated version used by ``fabflow build``: it
+scans the simulated site from the true pose with the platform's LiDAR
+(``localization.icp``) and localizes that scan against the project's map file,
+or against a map built from simulated scans of the site when no file is given.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.icp import IcpResult, IcpTarget, icp, prepare_target
+from fabflow.positioning.pointcloud import (
+    as_points,
+    estimate_normals,
+    read_point_cloud,
+    voxel_downsample,
+)
+from fabflow.positioning.result import BasePose
+from fabflow.transforms.se3 import apply_T, compose_covariance, inv_T, perturb
+
+if TYPE_CHECKING:
+    from fabflow.design.elements import Element
+    from fabflow.project import IcpSetup, Project
+    from fabflow.sim.lidar import LidarModel
+
+FloatArray = NDArray[np.float64]
+
+COARSE_SCHEDULE = (2.0, 0.5)
+"""Correspondence distances (m) of the coarse stage, on a 4x coarser voxel grid."""
+FINE_SCHEDULE = (0.15, 0.05)
+"""Correspondence distances (m) of the fine stage, on the scan voxel grid."""
+MIN_CONDITION = 1e-5
+"""Smallest accepted ratio of smallest to largest information eigenvalue."""
+MAX_STORED_RESIDUALS = 1000
+
+
+@dataclass(frozen=True, eq=False)
+class ScanMap:
+    """A point-cloud map in the world frame, ready for repeated localization.
+
+    Attributes
+    ----------
+    target
+        Map points, normals and KD-tree (world frame, metres).
+    coarse
+        The same map on a 4x coarser voxel grid, for the coarse ICP stage (nearest
+        neighbour searches far from the surface are much cheaper on it).
+    voxel_size
+        Voxel grid the map was downsampled on (metres).
+    T_world_scans
+        Poses of the scans the map was built from (empty for a map read from file).
+    """
+
+    target: IcpTarget
+    coarse: IcpTarget
+    voxel_size: float
+    T_world_scans: tuple[FloatArray, ...] = ()
+
+    @property
+    def points(self) -> FloatArray:
+        """``(M, 3)`` map points (world frame, metres)."""
+        return self.target.points
+
+    @property
+    def normals(self) -> FloatArray:
+        """``(M, 3)`` map normals."""
+        assert self.target.normals is not None
+        return self.target.normals
+
+    def __len__(self) -> int:
+        return len(self.target)
+
+
+def map_from_points(
+    points: ArrayLike, voxel_size: float = 0.03, normals: ArrayLike | None = None
+) -> ScanMap:
+    """Voxelize a world-frame cloud and estimate its normals (a map from a file)."""
+    p, n = voxel_downsample(points, voxel_size, normals)
+    if len(p) < 100:
+        raise InputError(f"a map needs at least 100 points after voxelizing, has {len(p)}")
+    if n is None:
+        n = estimate_normals(p, k=20)  # type: ignore[assignment]
+    pc, nc = voxel_downsample(p, 4 * voxel_size, n)
+    return ScanMap(
+        target=prepare_target(p, n),
+        coarse=prepare_target(pc, nc) if len(pc) >= 100 else prepare_target(p, n),
+        voxel_size=voxel_size,
+    )
+
+
+def load_map(path: str | Path, voxel_size: float = 0.03) -> ScanMap:
+    """Read a map file (PLY, XYZ, CSV; world frame, metres) and prepare it.
+
+    Raises
+    ------
+    InputError
+        The file is unreadable or holds too few points.
+    """
+    cloud = read_point_cloud(path)
+    try:
+        return map_from_points(cloud.points, voxel_size)
+    except InputError as exc:
+        raise InputError(exc.message, source=path) from None
+
+
+def build_map(
+    scans: Sequence[ArrayLike],
+    T_world_scan_guess: Sequence[ArrayLike],
+    voxel_size: float = 0.03,
+    register: bool = True,
+) -> ScanMap:
+    """Register scans into one map, merge and voxelize them (offline mapping).
+
+    Parameters
+    ----------
+    scans
+        Point clouds, each in its sensor frame (metres).
+    T_world_scan_guess
+        A 4x4 pose guess per scan (odometry). The first is taken as exact: it
+        anchors the map in the world frame.
+    voxel_size
+        Voxel grid of the map (metres; 3 cm in paper 002, Table 3).
+    register
+        Refine every scan after the first by ICP against the map built so far;
+        ``False`` trusts the guesses (known sensor poses).
+
+    Returns
+    -------
+    ScanMap
+        The map with the refined scan poses.
+    """
+    if len(scans) == 0 or len(scans) != len(T_world_scan_guess):
+        raise InputError("build_map needs one pose guess per scan and at least one scan")
+    poses: list[FloatArray] = []
+    merged = np.zeros((0, 3))
+    for i, (scan, guess) in enumerate(zip(scans, T_world_scan_guess, strict=True)):
+        s = as_points(scan, f"scan {i}")
+        T = np.asarray(guess, dtype=float).reshape(4, 4)
+        if i > 0 and register:
+            target = prepare_target(voxel_downsample(merged, voxel_size)[0])
+            src = voxel_downsample(s, 2 * voxel_size)[0]
+            T = icp(src, target, init=T, max_correspondence_distance=(0.5, 0.2, 0.08)).T
+        poses.append(T)
+        merged = np.vstack([merged, apply_T(T, s)])
+    result = map_from_points(merged, voxel_size)
+    return ScanMap(
+        target=result.target,
+        coarse=result.coarse,
+        voxel_size=voxel_size,
+        T_world_scans=tuple(poses),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class ScanLocalization:
+    """A scan localized in the map.
+
+    Attributes
+    ----------
+    T_world_lidar
+        4x4 sensor pose in the map (world) frame.
+    covariance
+        6x6 covariance of ``T_world_lidar`` (fabflow convention, world frame).
+    icp
+        The final ICP result (fitness, inlier RMSE, iterations, residuals).
+    n_points
+        Number of scan points used after voxelizing.
+    structure_fitness
+        Fitness of the points near non-horizontal map surfaces (see
+        :func:`structure_fitness`).
+    """
+
+    T_world_lidar: FloatArray
+    covariance: FloatArray
+    icp: IcpResult
+    n_points: int
+    structure_fitness: float
+
+
+def localize_scan(
+    scan_lidar: ArrayLike,
+    scan_map: ScanMap | IcpTarget,
+    T_world_lidar_init: ArrayLike,
+    voxel_size: float = 0.05,
+    min_fitness: float = 0.5,
+    max_rmse: float = 0.03,
+    coarse_schedule: Sequence[float] | None = COARSE_SCHEDULE,
+    fine_schedule: Sequence[float] = FINE_SCHEDULE,
+    max_points: int = 6000,
+    min_structure_fitness: float = 0.5,
+) -> ScanLocalization:
+    """Localize one scan in the map from a rough initial pose.
+
+    Two stages: point-to-plane ICP on the scan voxelized at ``4 * voxel_size``
+    with correspondence distances ``coarse_schedule`` (pulls in initial errors of
+    0.5 m and 10 deg), then on the scan voxelized at ``voxel_size`` with
+    ``fine_schedule``. A Tukey kernel discounts what the map does not hold (new
+    construction, people, machines). Tracking at 10 Hz from the previous pose
+    (initial errors of a few centimetres) can skip the coarse stage.
+
+    Parameters
+    ----------
+    scan_lidar
+        ``(N, 3)`` scan points in the sensor frame (metres).
+    scan_map
+        The map (world frame).
+    T_world_lidar_init
+        Initial guess of the sensor pose in the world.
+    voxel_size
+        Voxel grid of the scan for the fine stage (metres).
+    coarse_schedule
+        Correspondence distances of the coarse stage (metres); ``None`` skips it.
+    fine_schedule
+        Correspondence distances of the fine stage (metres).
+    max_points
+        At most this many voxelized scan points per stage (an even subsample);
+        the coarse stage uses a third of it.
+    min_fitness, max_rmse
+        Acceptance thresholds: fraction of fine-stage scan points with a map point
+        within the last correspondence distance, and RMS point-to-plane distance of
+        those (metres).
+    min_structure_fitness
+        Required fitness of the points on walls, columns and other non-horizontal
+        surfaces (see :func:`structure_fitness`).
+
+    Raises
+    ------
+    LocalizationError
+        Too few correspondences, fitness below ``min_fitness``, inlier RMSE above
+        ``max_rmse`` or degenerate geometry (e.g. only the ground in view).
+    """
+    if isinstance(scan_map, ScanMap):
+        target, coarse_target = scan_map.target, scan_map.coarse
+    else:
+        target = coarse_target = scan_map
+    scan = as_points(scan_lidar, "scan")
+    fine = _thin(voxel_downsample(scan, voxel_size)[0], max_points)
+    if len(fine) < 100:
+        raise LocalizationError(f"the scan holds only {len(fine)} points after voxelizing")
+    T = np.asarray(T_world_lidar_init, dtype=float).reshape(4, 4)
+    if coarse_schedule is not None:
+        coarse = _thin(voxel_downsample(scan, 4 * voxel_size)[0], max(max_points // 3, 100))
+        T = icp(
+            coarse,
+            coarse_target,
+            init=T,
+            max_correspondence_distance=coarse_schedule,
+            kernel="huber",
+        ).T
+    res = icp(fine, target, init=T, max_correspondence_distance=fine_schedule, kernel="tukey")
+    structure = structure_fitness(fine, target, res.T, float(fine_schedule[-1]))
+    if res.fitness < min_fitness:
+        raise LocalizationError(
+            f"ICP fitness {res.fitness:.3f} is below the required {min_fitness:.3f}: the scan "
+            "does not match the map (wrong initial pose, wrong map, or the site has changed)"
+        )
+    if res.inlier_rmse > max_rmse:
+        raise LocalizationError(
+            f"ICP inlier RMSE {res.inlier_rmse * 1000:.1f} mm exceeds the allowed "
+            f"{max_rmse * 1000:.1f} mm"
+        )
+    if structure < min_structure_fitness:
+        raise LocalizationError(
+            f"only {structure:.0%} of the scan points on walls and other non-horizontal "
+            f"surfaces match the map (required {min_structure_fitness:.0%}): the pose is "
+            "held by the ground alone and is likely wrong in x, y and heading"
+        )
+    if res.condition < MIN_CONDITION:
+        raise LocalizationError(
+            f"scan geometry does not constrain all six degrees of freedom "
+            f"(information condition {res.condition:.2e})"
+        )
+    return ScanLocalization(
+        T_world_lidar=res.T,
+        covariance=res.covariance,
+        icp=res,
+        n_points=len(fine),
+        structure_fitness=structure,
+    )
+
+
+def structure_fitness(
+    source: FloatArray, target: IcpTarget, T: FloatArray, max_distance: float, reach: float = 1.0
+) -> float:
+    """Fitness of the source points that lie near non-horizontal map surfaces.
+
+    The ground of a site usually dominates a scan, so the overall fitness can be
+    high while walls and columns, which fix x, y and heading, do not match at all.
+    This is the fraction of source points whose nearest map point within
+    ``reach`` metres has a normal at least 45 deg from vertical (world z up) and
+    which lie within ``max_distance`` of the map. 1.0 when no such points exist.
+    """
+    assert target.normals is not None
+    p = apply_T(T, source)
+    d, idx = target.tree.query(p, k=1, distance_upper_bound=reach, workers=-1)
+    near = np.isfinite(d)
+    steep = np.zeros(len(p), dtype=bool)
+    steep[near] = np.abs(target.normals[idx[near], 2]) < np.sqrt(0.5)
+    if not steep.any():
+        return 1.0
+    return float(np.mean(d[steep] <= max_distance))
+
+
+def _thin(points: FloatArray, max_points: int) -> FloatArray:
+    """An even subsample of at most ``max_points`` points (voxel order is spatial)."""
+    if len(points) <= max_points:
+        return points
+    return points[np.linspace(0, len(points) - 1, max_points).astype(np.int64)]
+
+
+def to_base_pose(
+    loc: ScanLocalization,
+    T_base_lidar: ArrayLike,
+    station: str | None = None,
+    quality: dict[str, Any] | None = None,
+) -> BasePose:
+    """Turn a scan localization into the robot base pose with its covariance.
+
+    Parameters
+    ----------
+    loc
+        The localized sensor pose.
+    T_base_lidar
+        4x4 sensor mounting in the base frame (taken as exact).
+    """
+    T_lidar_base = inv_T(np.asarray(T_base_lidar, dtype=float))
+    T_world_base = loc.T_world_lidar @ T_lidar_base
+    cov = compose_covariance(loc.T_world_lidar, loc.covariance, T_lidar_base, None)
+    r = loc.icp.residuals
+    stride = max(1, int(np.ceil(len(r) / MAX_STORED_RESIDUALS)))
+    q: dict[str, Any] = {
+        "fitness": float(loc.icp.fitness),
+        "inlier_rmse": float(loc.icp.inlier_rmse),
+        "n_inliers": int(loc.icp.n_inliers),
+        "n_points": int(loc.n_points),
+        "iterations": int(loc.icp.iterations),
+        "converged": bool(loc.icp.converged),
+        "condition": float(loc.icp.condition),
+        "structure_fitness": float(loc.structure_fitness),
+        "residuals_stride": stride,
+        "T_world_lidar": loc.T_world_lidar.tolist(),
+    }
+    q.update(quality or {})
+    return BasePose(
+        T_world_base=T_world_base,
+        covariance=0.5 * (cov + cov.T),
+        method="icp",
+        residuals=r[::stride].reshape(-1, 1),
+        rmse=float(loc.icp.inlier_rmse),
+        station=station,
+        quality=q,
+    )
+
+
+# ------------------------------------------------------------------- simulation
+
+
+def mapping_poses(center: Sequence[float] = (2.0, 1.65), height: float = 1.8) -> FloatArray:
+    """Sensor poses of the simulated offline mapping run: a ring around ``center``."""
+    angles = np.radians(np.arange(0, 360, 45))
+    poses = np.tile(np.eye(4), (len(angles) + 1, 1, 1))
+    poses[0, :3, 3] = [center[0], center[1] - 4.5, height]
+    for i, a in enumerate(angles, start=1):
+        c, s = np.cos(a), np.sin(a)
+        poses[i, :3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+        poses[i, :3, 3] = [center[0] + 5.0 * c, center[1] + 5.0 * s, height]
+    return poses
+
+
+@functools.lru_cache(maxsize=4)
+def simulated_site_map(
+    obstacles: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = (),
+    voxel_size: float = 0.03,
+    seed: int = 0,
+    model: LidarModel | None = None,
+) -> ScanMap:
+    """A map of the simulated site built from nine simulated scans (cached).
+
+    The scans are taken on a ring around the cabin before construction starts, so
+    the map holds the ground, the landmarks and the given box obstacles, but no
+    blocks. Poses are the true ones (as after an offline SLAM run).
+
+    Parameters
+    ----------
+    obstacles
+        Box obstacles ``((lower), (upper))`` of the site (metres).
+    voxel_size
+        Map voxel grid (metres).
+    seed
+        Seed of the range noise of the mapping scans.
+    model
+        The mapping LiDAR (default: the Hesai QT64 model).
+    """
+    from fabflow.sim.lidar import HESAI_QT64, simulate_scan
+    from fabflow.sim.site_scene import site_scene
+
+    rng = np.random.default_rng(seed)
+    scene = site_scene(obstacles=obstacles)
+    poses = mapping_poses()
+    scans = [simulate_scan(scene, T, rng, model or HESAI_QT64).points for T in poses]
+    return build_map(scans, list(poses), voxel_size=voxel_size, register=False)
+
+
+def _project_map(setup: IcpSetup, project: Project) -> ScanMap:
+    if setup.map is not None:
+        return _cached_file_map(str(setup.map), setup.map_voxel_size)
+    obstacles = tuple(
+        (tuple(o.box.min), tuple(o.box.max)) for o in project.site.obstacles if o.box is not None
+    )
+    return simulated_site_map(obstacles, setup.map_voxel_size)  # type: ignore[arg-type]
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_file_map(path: str, voxel_size: float) -> ScanMap:
+    return load_map(path, voxel_size)
+
+
+def localize_station(
+    project: Project,
+    T_world_base: ArrayLike,
+    rng: np.random.Generator,
+    station_id: str | None = None,
+    built: Sequence[Element] = (),
+    lift: float = 0.0,
+) -> BasePose:
+    """Simulate LiDAR scan-to-map localization of a parked platform.
+
+    The platform's LiDAR (``localization.icp.T_platform_lidar``) scans the
+    simulated site (ground, landmarks, the project's box obstacles and the blocks
+    in ``built``) from the true pose; the scan is localized against the map
+    (``localization.icp.map``, or a simulated map of the site without blocks),
+    starting from the true pose perturbed by the driving error
+    (``simulation.driving_error``, ``simulation.driving_heading_error_deg``), i.e.
+    from where the platform was meant to park.
+
+    Parameters
+    ----------
+    project
+        The project.
+    T_world_base
+        4x4 true arm base pose (metres).
+    rng
+        Random generator (range noise and the initial-guess error).
+    station_id
+        Stored in the result.
+    built
+        Elements built so far (in the scan, not in the map).
+    lift
+        Lift height of the station (metres): the LiDAR sits on the platform and
+        does not move with the lift.
+
+    Returns
+    -------
+    BasePose
+        The estimated ``T_world_base`` with covariance and quality figures.
+
+    Raises
+    ------
+    LocalizationError
+        When the scan fails the fitness, RMSE or geometry checks.
+    """
+    from fabflow.project import IcpSetup
+    from fabflow.sim.lidar import HESAI_QT64, simulate_scan
+    from fabflow.sim.site_scene import site_scene
+
+    setup = project.localization.icp or IcpSetup()
+    T_lift = np.eye(4)
+    T_lift[2, 3] = lift
+    T_platform_base = T_lift @ project.robot.platform.T_platform_base.matrix()
+    T_platform_lidar = setup.T_platform_lidar.matrix()
+    T_base_lidar = inv_T(T_platform_base) @ T_platform_lidar
+    T_true = np.asarray(T_world_base, dtype=float) @ T_base_lidar
+
+    obstacles = [(o.box.min, o.box.max) for o in project.site.obstacles if o.box is not None]
+    scene = site_scene(built=built, obstacles=obstacles)
+    scan = simulate_scan(scene, T_true, rng, HESAI_QT64)
+
+    sim = project.simulation
+    err = np.zeros(6)
+    err[:2] = rng.normal(0.0, sim.driving_error, 2)
+    err[5] = rng.normal(0.0, np.radians(sim.driving_heading_error_deg))
+    # the planned pose: a driving error of the platform, seen at the sensor
+    T_world_platform = np.asarray(T_world_base, dtype=float) @ inv_T(T_platform_base)
+    T_init = perturb(T_world_platform, err) @ T_platform_lidar
+
+    loc = localize_scan(
+        scan.points,
+        _project_map(setup, project),
+        T_init,
+        voxel_size=setup.voxel_size,
+        min_fitness=setup.min_fitness,
+        max_rmse=setup.max_rmse,
+        min_structure_fitness=setup.min_structure_fitness,
+        coarse_schedule=(
+            4.0 * setup.max_correspondence_distance,
+            setup.max_correspondence_distance,
+        ),
+    )
+    return to_base_pose(
+        loc,
+        T_base_lidar,
+        station=station_id,
+        quality={"n_scan_points": len(scan), "map": str(setup.map) if setup.map else "simulated"},
+    )
+
+
+def parse_init(text: str) -> tuple[float, float, float]:
+    """Parse ``"x,y,yaw"`` (metres, metres, degrees) of the ``--init`` option.
+
+    Raises
+    ------
+    InputError
+        Not exactly three finite numbers.
+    """
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(np.isfinite(values)):
+        raise InputError(
+            f"expected 'x,y,yaw' (metres, metres, degrees), got {text!r}", location="--init"
+        )
+    return values[0], values[1], values[2]
+
+
+def localize_files(
+    scan_path: str | Path,
+    map_path: str | Path,
+    init: tuple[float, float, float],
+    project: Project | None = None,
+    lift: float = 0.0,
+    station: str | None = None,
+) -> BasePose:
+    """Localize a scan file against a map file (the ``fabflow localize icp`` command).
+
+    Parameters
+    ----------
+    scan_path
+        One LiDAR scan in the sensor frame (PLY, XYZ, CSV; metres).
+    map_path
+        The site map in the world frame (PLY, XYZ, CSV; metres).
+    init
+        Planned platform pose ``(x, y, yaw)`` on the ground (metres, metres, degrees).
+    project
+        Takes the LiDAR mounting, arm mounting and thresholds from
+        ``localization.icp`` and ``robot.platform``; defaults when ``None``.
+    lift
+        Lift height of the arm above its lowest position (metres).
+    station
+        Station id stored in the result.
+    """
+    from fabflow.project import IcpSetup, Platform
+
+    setup = (project.localization.icp if project is not None else None) or IcpSetup()
+    platform = project.robot.platform if project is not None else Platform()
+    T_lift = np.eye(4)
+    T_lift[2, 3] = lift
+    T_platform_base = T_lift @ platform.T_platform_base.matrix()
+    T_platform_lidar = setup.T_platform_lidar.matrix()
+    x, y, yaw_deg = init
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    T_world_platform = np.array([[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    scan = read_point_cloud(scan_path).points
+    scan_map = load_map(map_path, setup.map_voxel_size)
+    loc = localize_scan(
+        scan,
+        scan_map,
+        T_world_platform @ T_platform_lidar,
+        voxel_size=setup.voxel_size,
+        min_fitness=setup.min_fitness,
+        max_rmse=setup.max_rmse,
+        min_structure_fitness=setup.min_structure_fitness,
+        coarse_schedule=(
+            4.0 * setup.max_correspondence_distance,
+            setup.max_correspondence_distance,
+        ),
+    )
+    return to_base_pose(
+        loc,
+        inv_T(T_platform_base) @ T_platform_lidar,
+        station=station,
+        quality={"n_scan_points": len(scan), "map": str(map_path), "scan": str(scan_path)},
+    )
