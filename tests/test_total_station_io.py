@@ -192,3 +192,29 @@ def test_cli_bad_file_is_one_message(tmp_path: Path) -> None:
     assert result.exit_code == 2
     assert "bad.gsi: line 1" in result.output and "Traceback" not in result.output
     assert not out.exists()
+
+
+def test_project_with_measured_observations(tmp_path: Path) -> None:
+    from fabflow.positioning.total_station import localize_station
+    from fabflow.project import parse_project
+
+    text = f"""
+name: measured
+elements:
+  - task_points:
+      - id: a
+        pose: {{xyz: [1, 0, 0]}}
+localization:
+  method: total_station
+  total_station:
+    T_world_instrument: {{xyz: [0, 0, 0]}}
+    observations: {DATA / "obs_gsi8.gsi"}
+    robot_points: {DATA / "robot_points.csv"}
+"""
+    p = parse_project(text, base_dir=tmp_path)
+    bp = localize_station(p, np.eye(4), np.random.default_rng(0), "S1")
+    assert bp.station == "S1" and bp.quality["observations"].endswith("obs_gsi8.gsi")
+    assert np.linalg.norm(pose_error(bp.T_world_base, T_TRUE)[:3]) < 1e-3
+    bad = text.replace(f"    robot_points: {DATA / 'robot_points.csv'}\n", "")
+    with pytest.raises(InputError, match="must be given together"):
+        parse_project(bad, base_dir=tmp_path)

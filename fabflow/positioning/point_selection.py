@@ -90,24 +90,10 @@ class Workspace:
 
 
 def workspace_for_robot(model: str, z_min: float = 0.0, margin: float = 0.1) -> Workspace:
-    """The workspace of a robot model from the robot catalogue, else :data:`REACH_SPHERES`.
-
-    Uses ``fabflow.robots.get_robot(model)`` when it exists (reach sphere about
-    the shoulder: the origin of DH frame 1); the table otherwise.
-    """
-    try:
-        from fabflow.robots import get_robot
-
-        robot = get_robot(model)
-        T1 = robot.fk_frames(np.zeros(robot.dof))[1] if hasattr(robot, "fk_frames") else None
-        center = tuple(float(v) for v in T1[:3, 3]) if T1 is not None else None
-        reach = float(robot.reach)
-    except (ImportError, AttributeError, KeyError, IndexError, TypeError):
-        center, reach = None, None
-    if center is None or reach is None:
-        if model not in REACH_SPHERES:
-            raise InputError(f"no reach sphere known for robot model {model!r}")
-        center, reach = REACH_SPHERES[model]
+    """A robot model's workspace from :data:`REACH_SPHERES` (used without the robot catalogue)."""
+    if model not in REACH_SPHERES:
+        raise InputError(f"no reach sphere known for robot model {model!r}")
+    center, reach = REACH_SPHERES[model]
     return Workspace(center=center, reach=reach, z_min=z_min, margin=margin)
 
 

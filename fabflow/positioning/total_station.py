@@ -909,6 +909,10 @@ def localize_station(
 ) -> BasePose:
     """Simulate a total station localization of the robot base at one station.
 
+    When the project's setup names measured ``observations`` and
+    ``robot_points`` files, those are used instead (:func:`localize_files`)
+    and ``T_world_base``, ``rng`` and ``built`` are not.
+
     The prism points are chosen in the base frame (eqs 9-11 for the
     ``arbitrary`` procedure, then moved clear of ``built`` and of the line of
     sight; ``P1, P1 + d x, P1 + d y`` for ``three_point``), reached by
@@ -936,6 +940,15 @@ def localize_station(
         Estimated pose with covariance, residuals and quality figures.
     """
     setup = project.localization.total_station or TotalStationSetup()
+    if setup.observations is not None and setup.robot_points is not None:
+        # measured readings were supplied: localize from them, nothing is simulated
+        return localize_files(
+            setup.observations,
+            setup.robot_points,
+            project=project,
+            robot_sigma=project.simulation.robot_repeatability,
+            station=station_id,
+        )
     instrument = instrument_for(setup)
     T_world_instrument = setup.T_world_instrument.matrix()
     T_world_instrument[:3, 3] += T_world_instrument[:3, 2] * setup.instrument_height
