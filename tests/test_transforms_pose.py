@@ -148,6 +148,10 @@ def test_vendor_batches_in_and_out() -> None:
         assert back.shape == (7,)
         np.testing.assert_allclose(back.matrix, b.matrix, atol=TOL)
     assert b.matrix.shape == (7, 4, 4)
+    # 4x4 matrices are accepted wherever a Pose is
+    np.testing.assert_array_equal(to_kuka_xyzabc(b.matrix), k)
+    np.testing.assert_array_equal(to_ur_pose(b.matrix[2]), u[2])
+    np.testing.assert_array_equal(to_abb_pose(b.matrix)[1], q)
     assert Pose.from_matrix(b.matrix).allclose(b, 0.0)
 
 

@@ -54,8 +54,18 @@ def _values(values: ArrayLike, n: int, what: str) -> FloatArray:
     return a
 
 
-def to_kuka_xyzabc(pose: Pose) -> FloatArray:
-    """KUKA ``[X, Y, Z, A, B, C]`` (mm, degrees) of pose(s), shape ``(..., 6)``."""
+def _as_pose(pose: Pose | ArrayLike) -> Pose:
+    """A :class:`Pose` as is; anything else is read as 4x4 matrices (validated)."""
+    return pose if isinstance(pose, Pose) else Pose.from_matrix(pose)
+
+
+def to_kuka_xyzabc(pose: Pose | ArrayLike) -> FloatArray:
+    """KUKA ``[X, Y, Z, A, B, C]`` (mm, degrees) of pose(s), shape ``(..., 6)``.
+
+    ``pose`` is a :class:`Pose` or 4x4 matrices (``(4, 4)`` / ``(..., 4, 4)``, metres),
+    as for the other ``to_*`` functions.
+    """
+    pose = _as_pose(pose)
     abc = np.degrees(abc_from_matrix(pose.R))
     return np.concatenate([pose.t * MM_PER_M, abc], axis=-1)
 
@@ -67,7 +77,7 @@ def from_kuka_xyzabc(values: ArrayLike) -> Pose:
     return Pose._trusted(matrix_from_abc(a, b, c), v[..., :3] / MM_PER_M)
 
 
-def to_abb_pose(pose: Pose) -> tuple[FloatArray, FloatArray]:
+def to_abb_pose(pose: Pose | ArrayLike) -> tuple[FloatArray, FloatArray]:
     """ABB ``([x, y, z], [q1, q2, q3, q4])``: mm and unit quaternion (w first, ``q1 >= 0``).
 
     Returns
@@ -75,6 +85,7 @@ def to_abb_pose(pose: Pose) -> tuple[FloatArray, FloatArray]:
     tuple of numpy.ndarray
         Positions ``(..., 3)`` in mm and quaternions ``(..., 4)``.
     """
+    pose = _as_pose(pose)
     return pose.t * MM_PER_M, pose.quat
 
 
@@ -100,8 +111,9 @@ def from_abb_pose(
     return Pose._trusted(matrix_from_quat(q, tol), p / MM_PER_M)
 
 
-def to_ur_pose(pose: Pose) -> FloatArray:
+def to_ur_pose(pose: Pose | ArrayLike) -> FloatArray:
     """UR ``p[x, y, z, rx, ry, rz]`` (metres, rotation vector in rad), shape ``(..., 6)``."""
+    pose = _as_pose(pose)
     return np.concatenate([np.array(pose.t, dtype=float), pose.rotvec], axis=-1)
 
 
