@@ -24,7 +24,6 @@ from pathlib import Path
 import ezdxf
 import numpy as np
 import shapely
-from ezdxf import path as ezpath
 from ezdxf import units as ezunits
 
 from fabflow.errors import InputError
@@ -136,9 +135,19 @@ def _entity_points(
     if kind == "SPLINE":
         pts = np.array(list(e.construction_tool().flattening(flat, segments=8)), dtype=float)
         closed = bool(e.closed) or (len(pts) > 2 and np.linalg.norm(pts[-1] - pts[0]) <= tol)
+    elif kind in ("ARC", "CIRCLE"):
+        pts = np.array(list(e.flattening(flat)), dtype=float)
+        closed = kind == "CIRCLE"
     else:
-        pts = np.array(list(ezpath.make_path(e).flattening(flat, segments=4)), dtype=float)
-        closed = kind == "CIRCLE" or (kind in ("LWPOLYLINE", "POLYLINE") and closed)
+        # polylines: exact arcs for bulges, through their LINE and ARC sub-entities
+        parts = [
+            np.array(
+                [v.dxf.start, v.dxf.end] if v.dxftype() == "LINE" else list(v.flattening(flat)),
+                dtype=float,
+            )
+            for v in e.virtual_entities()
+        ]
+        pts = np.vstack([parts[0]] + [q[1:] for q in parts[1:]])
     if len(pts) >= 2:
         keep = np.concatenate(([True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > tol))
         pts = pts[keep]
@@ -154,15 +163,20 @@ def _entity_points(
 def _chain(
     pieces: list[tuple[np.ndarray, bool, str]], tol: float
 ) -> list[tuple[np.ndarray, bool, np.ndarray]]:
-    """Join open pieces whose ends meet (within ``tol``) into contours."""
-    out: list[tuple[np.ndarray, bool, np.ndarray]] = []
+    """Join open pieces whose ends meet (within ``tol``) into contours.
+
+    Contours come out in the order of their first piece in ``pieces``.
+    """
+    out: list[tuple[int, np.ndarray, bool, np.ndarray]] = []
     open_pieces = []
-    for pts, closed, handle in pieces:
+    first = []
+    for k, (pts, closed, handle) in enumerate(pieces):
         handles = np.full(len(pts) - 1, handle, dtype=object)
         if closed:
-            out.append((pts, True, handles))
+            out.append((k, pts, True, handles))
         else:
             open_pieces.append((pts, handles))
+            first.append(k)
     used = np.zeros(len(open_pieces), dtype=bool)
     starts = np.array([p[0][0] for p in open_pieces]).reshape(-1, 3)
     ends = np.array([p[0][-1] for p in open_pieces]).reshape(-1, 3)
@@ -194,8 +208,9 @@ def _chain(
                 break
             pts, handles = pts[::-1].copy(), handles[::-1].copy()
         closed = len(pts) > 3 and np.linalg.norm(pts[-1] - pts[0]) <= tol
-        out.append((pts, bool(closed), handles))
-    return out
+        out.append((first[i], pts, bool(closed), handles))
+    out.sort(key=lambda item: item[0])
+    return [item[1:] for item in out]
 
 
 def _self_intersection(points: np.ndarray, closed: bool) -> tuple[int, int] | None:
