@@ -205,6 +205,20 @@ def test_immutable() -> None:
     m = p.matrix
     m[0, 3] = 5.0
     assert p.t[0] == 0.0
+    # no memory shared with the caller's arrays
+    R, t = np.eye(3), np.zeros(3)
+    q = Pose(R, t)
+    R[0, 0], t[0] = 5.0, 5.0
+    assert q.R[0, 0] == 1.0 and q.t[0] == 0.0
+    t2 = np.zeros((2, 3))
+    for r in (Pose.from_rotvec(np.zeros(3), t2), Pose.from_quat([1.0, 0, 0, 0], t2)):
+        t2[0, 0] = 7.0
+        assert r.t[0, 0] == 0.0
+        t2[0, 0] = 0.0
+    big = np.tile(np.eye(4), (3, 1, 1))
+    f = Pose.from_matrix(big)
+    big[:, 0, 3] = 1.0
+    assert np.all(f.t == 0.0)
 
 
 def test_batch_broadcast_and_indexing() -> None:

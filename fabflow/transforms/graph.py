@@ -52,7 +52,7 @@ def check_covariance(C: ArrayLike, name: str = "covariance") -> FloatArray:
         If ``C`` is not 6x6, not finite, not symmetric or has a negative eigenvalue
         (beyond :data:`COVARIANCE_TOL` relative to its largest entry).
     """
-    C = np.asarray(C, dtype=float)
+    C = np.array(C, dtype=float)  # a copy: later edits of the caller's array must not leak in
     if C.shape != (6, 6):
         raise InputError(f"{name} must be 6x6 over [dx, dy, dz, rx, ry, rz], got shape {C.shape}")
     if not np.all(np.isfinite(C)):

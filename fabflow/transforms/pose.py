@@ -51,7 +51,7 @@ def _frozen(a: FloatArray) -> FloatArray:
 def _translation(t: ArrayLike | None, batch: tuple[int, ...]) -> FloatArray:
     if t is None:
         return np.zeros((*batch, 3))
-    a = np.asarray(t, dtype=float)
+    a = np.array(t, dtype=float)  # a copy: a Pose must not share memory with its inputs
     if a.ndim == 0 or a.shape[-1] != 3:
         raise InputError(f"translation must have shape (..., 3), got {a.shape}")
     if not np.all(np.isfinite(a)):
@@ -101,7 +101,7 @@ class Pose:
     _t: FloatArray
 
     def __init__(self, R: ArrayLike, t: ArrayLike | None = None, *, tol: float = ROTATION_TOL):
-        R = check_rotation(R, tol)
+        R = np.array(check_rotation(R, tol))  # copy: never share memory with the caller
         t = _translation(t, R.shape[:-2])
         batch = np.broadcast_shapes(R.shape[:-2], t.shape[:-1])
         object.__setattr__(self, "_R", _frozen(np.broadcast_to(R, (*batch, 3, 3))))
