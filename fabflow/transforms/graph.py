@@ -40,7 +40,8 @@ from fabflow.transforms.se3 import compose_covariance, inv_T, inverse_covariance
 FloatArray = NDArray[np.float64]
 
 COVARIANCE_TOL = 1e-12
-"""Absolute tolerance for covariance symmetry and the smallest accepted eigenvalue."""
+"""Absolute part of the tolerance for covariance symmetry and the smallest eigenvalue
+(plus 1e-9 times the largest entry)."""
 
 
 def check_covariance(C: ArrayLike, name: str = "covariance") -> FloatArray:
@@ -49,19 +50,19 @@ def check_covariance(C: ArrayLike, name: str = "covariance") -> FloatArray:
     Raises
     ------
     InputError
-        If ``C`` is not 6x6, not finite, not symmetric or has a negative eigenvalue
-        (beyond :data:`COVARIANCE_TOL` relative to its largest entry).
+        If ``C`` is not 6x6, not finite, not symmetric or has a negative eigenvalue,
+        each beyond ``COVARIANCE_TOL + 1e-9 * max |C_ij|``.
     """
     C = np.array(C, dtype=float)  # a copy: later edits of the caller's array must not leak in
     if C.shape != (6, 6):
         raise InputError(f"{name} must be 6x6 over [dx, dy, dz, rx, ry, rz], got shape {C.shape}")
     if not np.all(np.isfinite(C)):
         raise InputError(f"{name} contains NaN or infinite values")
-    scale = max(float(np.abs(C).max()), 1.0e-300)
-    if np.abs(C - C.T).max() > COVARIANCE_TOL * max(scale, 1.0):
+    tol = COVARIANCE_TOL + 1e-9 * float(np.abs(C).max())
+    if np.abs(C - C.T).max() > tol:
         raise InputError(f"{name} must be symmetric")
     lo = float(np.linalg.eigvalsh(C).min())
-    if lo < -COVARIANCE_TOL * max(scale, 1.0):
+    if lo < -tol:
         raise InputError(f"{name} must be positive semi-definite (smallest eigenvalue {lo:.3g})")
     return C
 
