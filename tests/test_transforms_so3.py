@@ -17,11 +17,13 @@ from fabflow.transforms import (
     apply_T,
     check_rotation,
     compose_covariance,
+    compose_jacobians,
     error_from_body_twist,
     exp_so3,
     exp_T,
     inv_T,
     inverse_covariance,
+    inverse_jacobian,
     log_so3,
     make_T,
     matrix_from_abc,
@@ -200,3 +202,31 @@ def test_covariance_propagation_first_order() -> None:
     err_inv = pose_error(inv_T(T_ab), inv_T(perturb(T_ab, e_ab)))
     C_inv = inverse_covariance(T_ab, C_ab)
     assert np.abs(np.cov(err_inv.T) - C_inv).max() < 0.05 * np.abs(C_inv).max()
+
+
+@settings(deadline=None, max_examples=25)
+@given(st.integers(0, 2**32 - 1))
+def test_error_jacobians_match_finite_differences(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    T_ab = make_T(exp_so3(rng.normal(size=3)), rng.normal(size=3) * 3)
+    T_bc = make_T(exp_so3(rng.normal(size=3)), rng.normal(size=3) * 3)
+    J_ab, J_bc = compose_jacobians(T_ab, T_bc)
+    J_inv = inverse_jacobian(T_ab)
+    h = 1e-6
+    T_ac = T_ab @ T_bc
+    for k in range(6):
+        e = np.zeros(6)
+        e[k] = h
+        d_ab = (
+            pose_error(T_ac, perturb(T_ab, e) @ T_bc) - pose_error(T_ac, perturb(T_ab, -e) @ T_bc)
+        ) / (2 * h)
+        d_bc = (
+            pose_error(T_ac, T_ab @ perturb(T_bc, e)) - pose_error(T_ac, T_ab @ perturb(T_bc, -e))
+        ) / (2 * h)
+        d_inv = (
+            pose_error(inv_T(T_ab), inv_T(perturb(T_ab, e)))
+            - pose_error(inv_T(T_ab), inv_T(perturb(T_ab, -e)))
+        ) / (2 * h)
+        np.testing.assert_allclose(d_ab, J_ab[:, k], atol=1e-6)
+        np.testing.assert_allclose(d_bc, J_bc[:, k], atol=1e-6)
+        np.testing.assert_allclose(d_inv, J_inv[:, k], atol=1e-6)
