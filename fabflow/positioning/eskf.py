@@ -69,51 +69,50 @@ class EskfParams:
     gravity: float = GRAVITY
 
 
-def _quat_to_R(q: np.ndarray) -> np.ndarray:
+Vec = tuple[float, ...]
+
+
+def _quat_to_R(q: Vec) -> list[list[float]]:
     # Hot-loop version of transforms.so3.matrix_from_quat for one unit quaternion
     # (the library function validates and broadcasts, ~100x slower per call).
-    w, x, y, z = q.tolist()
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    w, x, y, z = q
+    return [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
 
 
-def _quat_rotate_right(q: np.ndarray, th: np.ndarray) -> np.ndarray:
+def _quat_rotate_right(q: Vec, th: Vec) -> Vec:
     # q (x) q{th}, renormalized; hot-loop version of the library's rotvec/quaternion maths.
-    tx, ty, tz = th.tolist()
+    tx, ty, tz = th
     a = math.sqrt(tx * tx + ty * ty + tz * tz)
     if a < 1e-12:
         c, s = 1.0, 0.5
     else:
         c, s = math.cos(0.5 * a), math.sin(0.5 * a) / a
     bw, bx, by, bz = c, s * tx, s * ty, s * tz
-    w, x, y, z = q.tolist()
+    w, x, y, z = q
     ow = w * bw - x * bx - y * by - z * bz
     ox = w * bx + x * bw + y * bz - z * by
     oy = w * by - x * bz + y * bw + z * bx
     oz = w * bz + x * by - y * bx + z * bw
     n = math.sqrt(ow * ow + ox * ox + oy * oy + oz * oz)
-    return np.array([ow / n, ox / n, oy / n, oz / n])
+    return (ow / n, ox / n, oy / n, oz / n)
 
 
-def _exp_transpose(th: np.ndarray) -> np.ndarray:
+def _exp_transpose(th: Vec) -> list[list[float]]:
     # Exp(th)^T for one small rotation vector, via the hot-loop quaternion helpers.
-    return _quat_to_R(_quat_rotate_right(_UNIT_QUAT, th)).T
-
-
-_UNIT_QUAT = np.array([1.0, 0.0, 0.0, 0.0])
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    R = _quat_to_R(_quat_rotate_right((1.0, 0.0, 0.0, 0.0), th))
+    return [[R[0][0], R[1][0], R[2][0]], [R[0][1], R[1][1], R[2][1]], [R[0][2], R[1][2], R[2][2]]]
 
 
 class Eskf:
     """Error-state Kalman filter for UWB ranges and an IMU (see the module docstring).
+
+    The nominal state is kept in plain Python floats and the 15x15 covariance in
+    numpy: the filter is sequential, and at this size per-call overhead, not
+    arithmetic, sets the speed.
 
     Parameters
     ----------
@@ -140,26 +139,25 @@ class Eskf:
         gyro_bias: np.ndarray | None = None,
     ) -> None:
         self.params = params or EskfParams()
-        self.p = np.array(p, dtype=float)
-        self.v = np.array(v, dtype=float)
-        q = np.asarray(q, dtype=float)
-        self.q = q / np.linalg.norm(q)
-        self.ab = np.zeros(3) if accel_bias is None else np.array(accel_bias, dtype=float)
-        self.wb = np.zeros(3) if gyro_bias is None else np.array(gyro_bias, dtype=float)
         P = np.array(P, dtype=float)
         if P.shape != (15, 15):
             raise InputError(f"ESKF covariance must be 15x15, got {P.shape}")
         self.P = 0.5 * (P + P.T)
-        self.R = _quat_to_R(self.q)
-        self.g = np.array([0.0, 0.0, -self.params.gravity])
-        self.lever = np.asarray(self.params.lever_arm, dtype=float)
+        self._p = tuple(float(x) for x in np.asarray(p, dtype=float))
+        self._v = tuple(float(x) for x in np.asarray(v, dtype=float))
+        qa = np.asarray(q, dtype=float)
+        self._q = tuple(float(x) for x in qa / np.linalg.norm(qa))
+        self._ab = (0.0, 0.0, 0.0) if accel_bias is None else tuple(map(float, accel_bias))
+        self._wb = (0.0, 0.0, 0.0) if gyro_bias is None else tuple(map(float, gyro_bias))
+        self._R = _quat_to_R(self._q)
+        self._g = -self.params.gravity
+        self._lever = tuple(float(x) for x in self.params.lever_arm)
         self.n_updates = 0
         self.n_rejected = 0
         self._F = np.eye(15)
-        self._eye15 = np.eye(15)
+        self._F_dt = -1.0
         self._eye3 = np.eye(3)
         self._H = np.zeros(15)
-        self._has_lever = bool(np.any(self.lever != 0.0))
         pr = self.params
         self._q_rate = np.concatenate(
             [
@@ -171,38 +169,87 @@ class Eskf:
             ]
         )
 
-    def propagate(self, accel: np.ndarray, gyro: np.ndarray, dt: float) -> None:
+    @property
+    def p(self) -> np.ndarray:
+        """Position of the body origin in the world (m)."""
+        return np.array(self._p)
+
+    @property
+    def v(self) -> np.ndarray:
+        """Velocity in the world (m/s)."""
+        return np.array(self._v)
+
+    @property
+    def q(self) -> np.ndarray:
+        """Attitude quaternion (w, x, y, z) of the body in the world."""
+        return np.array(self._q)
+
+    @property
+    def R(self) -> np.ndarray:
+        """Attitude as a rotation matrix (body to world)."""
+        return np.array(self._R)
+
+    @property
+    def ab(self) -> np.ndarray:
+        """Accelerometer bias estimate (m/s^2, body)."""
+        return np.array(self._ab)
+
+    @property
+    def wb(self) -> np.ndarray:
+        """Gyro bias estimate (rad/s, body)."""
+        return np.array(self._wb)
+
+    def propagate(self, accel: Vec, gyro: Vec, dt: float) -> None:
         """Integrate one IMU reading (body specific force, angular rate) over ``dt`` seconds."""
         if dt <= 0.0:
             return
+        accel, gyro = tuple(map(float, accel)), tuple(map(float, gyro))
         self.propagate_covariance(accel, gyro, dt)
         self.propagate_nominal(accel, gyro, dt)
 
-    def propagate_nominal(self, accel: np.ndarray, gyro: np.ndarray, dt: float) -> None:
-        """Integrate the nominal state only (equation 20, first line)."""
+    def propagate_nominal(self, accel: Vec, gyro: Vec, dt: float) -> None:
+        """Integrate the nominal state only (equation 20, first line); readings as float tuples."""
         if dt <= 0.0:
             return
-        a_w = self.R @ (accel - self.ab) + self.g
-        self.p = self.p + (self.v + (0.5 * dt) * a_w) * dt
-        self.v = self.v + a_w * dt
-        self.q = _quat_rotate_right(self.q, (gyro - self.wb) * dt)
-        self.R = _quat_to_R(self.q)
+        ab, wb, R = self._ab, self._wb, self._R
+        ax, ay, az = accel[0] - ab[0], accel[1] - ab[1], accel[2] - ab[2]
+        wx = R[0][0] * ax + R[0][1] * ay + R[0][2] * az
+        wy = R[1][0] * ax + R[1][1] * ay + R[1][2] * az
+        wz = R[2][0] * ax + R[2][1] * ay + R[2][2] * az + self._g
+        (px, py, pz), (vx, vy, vz) = self._p, self._v
+        h = 0.5 * dt
+        self._p = (px + (vx + h * wx) * dt, py + (vy + h * wy) * dt, pz + (vz + h * wz) * dt)
+        self._v = (vx + wx * dt, vy + wy * dt, vz + wz * dt)
+        self._q = _quat_rotate_right(
+            self._q, ((gyro[0] - wb[0]) * dt, (gyro[1] - wb[1]) * dt, (gyro[2] - wb[2]) * dt)
+        )
+        self._R = _quat_to_R(self._q)
 
-    def propagate_covariance(self, accel: np.ndarray, gyro: np.ndarray, dt: float) -> None:
+    def propagate_covariance(self, accel: Vec, gyro: Vec, dt: float) -> None:
         """Propagate the error covariance over ``dt`` from the current nominal state (eq. 21)."""
         if dt <= 0.0:
             return
-        R = self.R
         F = self._F
-        F[0:3, 3:6] = self._eye3 * dt
-        ax, ay, az = (accel - self.ab).tolist()
-        # -R [a]x dt, written out (one small product instead of building the skew matrix)
-        F[3:6, 6:9] = np.column_stack(
-            (R[:, 1] * az - R[:, 2] * ay, R[:, 2] * ax - R[:, 0] * az, R[:, 0] * ay - R[:, 1] * ax)
-        ) * (-dt)
-        F[3:6, 9:12] = R * (-dt)
-        F[6:9, 6:9] = _exp_transpose((gyro - self.wb) * dt)
-        F[6:9, 12:15] = self._eye3 * (-dt)
+        if dt != self._F_dt:
+            F[0:3, 3:6] = self._eye3 * dt
+            F[6:9, 12:15] = self._eye3 * (-dt)
+            self._F_dt = dt
+        R = self._R
+        ab, wb = self._ab, self._wb
+        ax, ay, az = accel[0] - ab[0], accel[1] - ab[1], accel[2] - ab[2]
+        # -R [a]x dt, written out
+        F[3:6, 6:9] = [
+            [
+                (r[2] * ay - r[1] * az) * dt,
+                (r[0] * az - r[2] * ax) * dt,
+                (r[1] * ax - r[0] * ay) * dt,
+            ]
+            for r in R
+        ]
+        F[3:6, 9:12] = [[-r[0] * dt, -r[1] * dt, -r[2] * dt] for r in R]
+        F[6:9, 6:9] = _exp_transpose(
+            ((gyro[0] - wb[0]) * dt, (gyro[1] - wb[1]) * dt, (gyro[2] - wb[2]) * dt)
+        )
         P = F @ self.P @ F.T
         P.ravel()[::16] += self._q_rate * dt
         self.P = P
@@ -216,19 +263,22 @@ class Eskf:
             self.n_rejected += 1
             return nis
         K = PHt / S
-        # P - K S K^T: equal to the Joseph form for the optimal gain; symmetrized here
+        # P - K S K^T: equal to the Joseph form for the optimal gain; symmetrized below
         # and checked for positive definiteness in run_eskf.
-        P = self.P - K[:, None] * PHt[None, :]
-        dx = K * innovation
-        self.p = self.p + dx[0:3]
-        self.v = self.v + dx[3:6]
-        dth = dx[6:9]
-        self.q = _quat_rotate_right(self.q, dth)
-        self.R = _quat_to_R(self.q)
-        self.ab = self.ab + dx[9:12]
-        self.wb = self.wb + dx[12:15]
+        P = self.P - np.outer(K, PHt)
+        dx = (K * innovation).tolist()
+        p, v, ab, wb = self._p, self._v, self._ab, self._wb
+        self._p = (p[0] + dx[0], p[1] + dx[1], p[2] + dx[2])
+        self._v = (v[0] + dx[3], v[1] + dx[4], v[2] + dx[5])
+        tx, ty, tz = dx[6], dx[7], dx[8]
+        self._q = _quat_rotate_right(self._q, (tx, ty, tz))
+        self._R = _quat_to_R(self._q)
+        self._ab = (ab[0] + dx[9], ab[1] + dx[10], ab[2] + dx[11])
+        self._wb = (wb[0] + dx[12], wb[1] + dx[13], wb[2] + dx[14])
         # reset (eq. 28): G = I except its attitude block I - [dtheta/2]x
-        B = self._eye3 - _skew(0.5 * dth)
+        B = np.array(
+            [[1.0, 0.5 * tz, -0.5 * ty], [-0.5 * tz, 1.0, 0.5 * tx], [0.5 * ty, -0.5 * tx, 1.0]]
+        )
         P[6:9, :] = B @ P[6:9, :]
         P[:, 6:9] = P[:, 6:9] @ B.T
         self.P = 0.5 * (P + P.T)
@@ -251,7 +301,7 @@ class Eskf:
             return True
 
     def update_range(
-        self, anchor: np.ndarray, measured: float, sigma: float, lever: np.ndarray | None = None
+        self, anchor: Vec, measured: float, sigma: float, lever: Vec | None = None
     ) -> float:
         """Apply one UWB range (metres) to ``anchor`` with noise ``sigma`` (metres).
 
@@ -259,24 +309,28 @@ class Eskf:
         omitted). Returns the squared normalized innovation (the range was
         rejected when it exceeds ``params.gate``).
         """
+        lx, ly, lz = self._lever if lever is None else lever
+        R = self._R
+        px, py, pz = self._p
+        dx = px + R[0][0] * lx + R[0][1] * ly + R[0][2] * lz - anchor[0]
+        dy = py + R[1][0] * lx + R[1][1] * ly + R[1][2] * lz - anchor[1]
+        dz = pz + R[2][0] * lx + R[2][1] * ly + R[2][2] * lz - anchor[2]
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        inv = 1.0 / max(dist, 1e-9)
+        ux, uy, uz = dx * inv, dy * inv, dz * inv
         H = self._H
-        H[:] = 0.0
-        if lever is None:
-            lever = self.lever
-            has_lever = self._has_lever
+        if lx == 0.0 and ly == 0.0 and lz == 0.0:
+            H[:] = (ux, uy, uz, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
         else:
-            has_lever = True
-        if has_lever:
-            diff = self.p + self.R @ lever - anchor
-        else:
-            diff = self.p - anchor
-        dist = math.sqrt(diff @ diff)
-        u = diff / max(dist, 1e-9)
-        H[0:3] = u
-        if has_lever:
-            w = self.R.T @ u
-            lx, ly, lz = lever.tolist()
-            H[6:9] = (ly * w[2] - lz * w[1], lz * w[0] - lx * w[2], lx * w[1] - ly * w[0])
+            # d range / d dtheta = (l x (R^T u))^T for the local attitude error
+            w0 = R[0][0] * ux + R[1][0] * uy + R[2][0] * uz
+            w1 = R[0][1] * ux + R[1][1] * uy + R[2][1] * uz
+            w2 = R[0][2] * ux + R[1][2] * uy + R[2][2] * uz
+            H[:] = (
+                ux, uy, uz, 0, 0, 0,
+                ly * w2 - lz * w1, lz * w0 - lx * w2, lx * w1 - ly * w0,
+                0, 0, 0, 0, 0, 0,
+            )  # fmt: skip
         return self._correct(H, measured - dist, sigma * sigma)
 
     def update_height(self, z: float, sigma: float) -> float:
@@ -284,7 +338,7 @@ class Eskf:
         H = self._H
         H[:] = 0.0
         H[2] = 1.0
-        return self._correct(H, z - self.p[2], sigma * sigma)
+        return self._correct(H, z - self._p[2], sigma * sigma)
 
 
 @dataclass(frozen=True)
@@ -426,7 +480,7 @@ def run_eskf(
     if lever_arms is not None:
         ti = np.zeros(len(order), dtype=int) if tag_index is None else np.asarray(tag_index)
         L = np.asarray(lever_arms, dtype=float)
-        levers = list(L[ti[order][keep]])
+        levers = [tuple(x) for x in L[ti[order][keep]].tolist()]
     rs = np.asarray(sigma(rv), dtype=float) if callable(sigma) else np.full(rv.shape, sigma)
     A = np.asarray(anchors, dtype=float)
     M = imu_t.size
@@ -438,20 +492,22 @@ def run_eskf(
     out_P = np.empty((M, 15))
     j = 0
     K = rt.size
-    t_now = imu_t[0]
-    accel = np.asarray(accel, dtype=float)
-    gyro = np.asarray(gyro, dtype=float)
+    t_now = float(imu_t[0])
+    acc_l = [tuple(a) for a in np.asarray(accel, dtype=float).tolist()]
+    gyr_l = [tuple(g) for g in np.asarray(gyro, dtype=float).tolist()]
+    anc_l = [tuple(a) for a in A.tolist()]
+    rt_l, ai_l, rv_l, rs_l = rt.tolist(), ai.tolist(), rv.tolist(), rs.tolist()
     n_repairs = 0
     for i in range(M):
-        t_next = imu_t[i]
-        a_i = accel[i - 1] if i > 0 else accel[0]
-        w_i = gyro[i - 1] if i > 0 else gyro[0]
+        t_next = float(imu_t[i])
+        a_i = acc_l[i - 1] if i > 0 else acc_l[0]
+        w_i = gyr_l[i - 1] if i > 0 else gyr_l[0]
         # covariance once per IMU interval; the nominal state to every range's timestamp
         filt.propagate_covariance(a_i, w_i, t_next - t_now)
-        while j < K and rt[j] <= t_next:
-            filt.propagate_nominal(a_i, w_i, rt[j] - t_now)
-            t_now = rt[j]
-            filt.update_range(A[ai[j]], rv[j], rs[j], levers[j])
+        while j < K and rt_l[j] <= t_next:
+            filt.propagate_nominal(a_i, w_i, rt_l[j] - t_now)
+            t_now = rt_l[j]
+            filt.update_range(anc_l[ai_l[j]], rv_l[j], rs_l[j], levers[j])
             j += 1
         filt.propagate_nominal(a_i, w_i, t_next - t_now)
         t_now = t_next
@@ -459,11 +515,11 @@ def run_eskf(
             filt.update_height(*height)
         if i % 100 == 0:
             n_repairs += filt.ensure_positive_definite()
-        out_p[i] = filt.p
-        out_v[i] = filt.v
-        out_q[i] = filt.q
-        out_ab[i] = filt.ab
-        out_wb[i] = filt.wb
+        out_p[i] = filt._p
+        out_v[i] = filt._v
+        out_q[i] = filt._q
+        out_ab[i] = filt._ab
+        out_wb[i] = filt._wb
         out_P[i] = filt.P.ravel()[::16]
     return EskfTrack(
         t=imu_t,

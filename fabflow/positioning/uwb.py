@@ -231,37 +231,38 @@ def _gauss_newton(
     s = _sigma_of(sigma, np.maximum(d, _MIN_RANGE_FOR_WEIGHT))
     w = np.where(mask, 1.0 / s**2, 0.0)
     x = x0.copy()
+    dim = x.shape[1]
     ok = np.all(np.isfinite(x), axis=1)
     active = ok.copy()
     iterations = np.zeros(len(x), dtype=int)
     converged = ~ok
+    # the covariance is (J^T W J)^-1 of the last iteration: its step was below tol, so
+    # the Jacobian is that of the solution to well within the noise
+    cov = np.full((len(x), dim, dim), np.nan)
     for _ in range(max_iter):
         if not active.any():
             break
         idx = np.flatnonzero(active)
-        xa = x[idx]
+        all_active = idx.size == len(x)
+        xa = x if all_active else x[idx]
         diff = xa[:, None, :] - A[None]
-        dist = np.maximum(np.linalg.norm(diff, axis=-1), 1e-9)
+        dist = np.maximum(np.sqrt(np.einsum("nij,nij->ni", diff, diff)), 1e-9)
         J = diff / dist[..., None]
-        res = d[idx] - dist
-        wi = w[idx]
+        res = (d if all_active else d[idx]) - dist
+        wi = w if all_active else w[idx]
         Jw = J * wi[..., None]
         M = np.matmul(Jw.transpose(0, 2, 1), J)
         g = np.einsum("nij,ni->nj", Jw, res)
-        step, _ = _solve_batched(M, g, np.ones(idx.size, dtype=bool))
+        step, Minv = _solve_batched(M, g, np.ones(idx.size, dtype=bool))
         bad = ~np.all(np.isfinite(step), axis=1)
         step[bad] = 0.0
         x[idx] = xa + step
+        cov[idx] = Minv
         iterations[idx] += 1
-        done = np.linalg.norm(step, axis=1) < tol
+        done = np.einsum("ni,ni->n", step, step) < tol * tol
         converged[idx] = done & ~bad
         ok[idx[bad]] = False
         active[idx[done | bad]] = False
-    diff = x[:, None, :] - A[None]
-    dist = np.maximum(np.linalg.norm(diff, axis=-1), 1e-9)
-    J = diff / dist[..., None]
-    M = np.matmul((J * w[..., None]).transpose(0, 2, 1), J)
-    _, cov = _solve_batched(M, np.zeros(x.shape), ok)
     ok &= np.all(np.isfinite(cov), axis=(1, 2))
     return x, cov, ok, iterations, converged
 
