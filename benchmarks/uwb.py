@@ -350,10 +350,8 @@ def moving(rng: np.random.Generator, quick: bool) -> dict[str, Any]:
         f"tau {mp.multipath_tau:.0f} s), which no filter can average away. XOY-PE (cm):"
     )
     sens = {}
-    for name, anchors, two_d in (
-        ("rect3d", PAPER_ANCHORS_3D, False),
-        ("u", PAPER_ANCHORS_2D, True),
-    ):
+    cases = [("rect3d", PAPER_ANCHORS_3D, False), ("u", PAPER_ANCHORS_2D, True)]
+    for name, anchors, two_d in cases[1:] if quick else cases:
         traj = trajs[name][0]
         res, _ = run_moving(rng, traj, anchors, two_d, with_cv=False, model=mp)
         pes = {m: float(v[-1]) for m, v in res.items()}
