@@ -314,5 +314,42 @@ def localize_icp(
     console.print(f"[green]wrote[/] {(Path(out) / 'base_pose.json').resolve()}")
 
 
+@app.command()
+@user_errors
+def preview(
+    project: ProjectArg,
+    port: Annotated[
+        int, typer.Option(help="Port of the live preview (next free one if busy).")
+    ] = 8080,
+    host: Annotated[str, typer.Option(help="Interface to listen on.")] = "127.0.0.1",
+    export: Annotated[
+        Path | None,
+        typer.Option(help="Write one self-contained HTML file that plays offline, then exit."),
+    ] = None,
+    colour_by: Annotated[
+        str | None,
+        typer.Option(
+            "--colour-by",
+            help="station, state, layer or deviation (default: station; state in an export).",
+        ),
+    ] = None,
+    sim: Annotated[
+        Path | None, typer.Option(help="A fabflow simulate output folder: colour by deviation.")
+    ] = None,
+) -> None:
+    """Show the construction sequence in the browser (viser), or export it as one HTML file."""
+    from fabflow.preview.command import run_preview
+
+    run_preview(
+        project,
+        port=port,
+        host=host,
+        export=export,
+        colour_by=colour_by,
+        sim=sim,
+        say=lambda text: console.print(escape(text), highlight=False),
+    )
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()
