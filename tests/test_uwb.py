@@ -317,3 +317,18 @@ def test_trajectory_derivatives_are_consistent() -> None:
     assert np.allclose(s.v[0], 0) and np.allclose(s.v[-1], 0)
     with pytest.raises(InputError):
         PlanarTrajectory(np.array([[0.0, 0.0]]), 1.0)
+
+
+def test_multipath_is_time_correlated() -> None:
+    import dataclasses
+
+    model = dataclasses.replace(
+        UwbErrorModel.gaussian(0.0), multipath_sigma=0.03, multipath_tau=1.0
+    )
+    tags = np.broadcast_to(np.array([3.0, 4.0, 0.0]), (30000, 3))
+    sim = simulate_ranges(np.zeros((1, 3)), tags, model, np.random.default_rng(8), dt=1 / 60)
+    e = sim.ranges[:, 0] - 5.0
+    assert abs(e.std() - 0.03) < 0.005
+    assert abs(np.corrcoef(e[:-60], e[60:])[0, 1] - np.exp(-1.0)) < 0.1
+    with pytest.raises(InputError, match="dt"):
+        simulate_ranges(np.zeros((1, 3)), tags[:10], model, np.random.default_rng(8))
