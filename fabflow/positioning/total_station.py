@@ -54,7 +54,7 @@ from fabflow.positioning.result import BasePose
 from fabflow.positioning.ts_io import read_observations, read_robot_points
 from fabflow.project import TotalStationSetup
 from fabflow.transforms.se3 import apply_T, inv_T, make_T
-from fabflow.transforms.so3 import exp_so3, log_so3, matrix_from_abc, skew
+from fabflow.transforms.so3 import exp_so3, log_so3, matrix_from_abc
 
 if TYPE_CHECKING:
     from fabflow.design.elements import Element
@@ -305,7 +305,10 @@ def _jacobians(R: np.ndarray, points_base: np.ndarray) -> np.ndarray:
     q = np.einsum("...ij,...nj->...ni", R, points_base)
     J = np.zeros((*q.shape, 6))
     J[..., :3] = np.eye(3)
-    J[..., 3:] = -skew(q)
+    # right block -skew(q), filled in place (this runs in every Gauss-Newton step)
+    J[..., 0, 4], J[..., 0, 5] = q[..., 2], -q[..., 1]
+    J[..., 1, 3], J[..., 1, 5] = -q[..., 2], q[..., 0]
+    J[..., 2, 3], J[..., 2, 4] = q[..., 1], -q[..., 0]
     return J
 
 
@@ -440,11 +443,10 @@ def optimize_registration(
 def _loo_test(
     P: np.ndarray,
     M: np.ndarray,
-    w: np.ndarray,
     W: np.ndarray,
     R: np.ndarray,
+    t: np.ndarray,
     known_sigma: bool,
-    refine: bool,
     alpha: float,
 ) -> OutlierTest | None:
     """Leave-one-out prediction test over all points at once (see :class:`OutlierTest`)."""
@@ -452,9 +454,11 @@ def _loo_test(
     if n < 4:
         return None
     idx = np.nonzero(~np.eye(n, dtype=bool))[1].reshape(n, n - 1)
-    Rs, ts = kabsch(P[idx], M[idx], w[idx])
-    if refine:
-        Rs, ts, _ = refine_registration(Rs, ts, P[idx], M[idx], W[idx])
+    # each leave-one-out fit starts from the full fit: a few Gauss-Newton steps
+    # reach its own optimum (the weighted Kabsch one when W is isotropic)
+    Rs, ts, _ = refine_registration(
+        np.broadcast_to(R, (n, 3, 3)), np.broadcast_to(t, (n, 3)), P[idx], M[idx], W[idx], 4
+    )
     d = M - (np.einsum("nij,nj->ni", Rs, P) + ts)
     J = _jacobians(R, P)
     N = _normal_matrices(J, W)
@@ -581,9 +585,7 @@ def register_points(
 
     R, t, iters = solve(keep)
     sel_idx = np.flatnonzero(keep)
-    test = _loo_test(
-        P[keep], M[keep], w[keep], W[keep], R, known_sigma, point_cov is not None, alpha
-    )
+    test = _loo_test(P[keep], M[keep], W[keep], R, t, known_sigma, alpha)
     rejected: tuple[int, ...] = tuple(int(i) for i in np.flatnonzero(~keep))
     if test is not None:
         test = OutlierTest(
