@@ -30,9 +30,9 @@ from scipy import sparse
 from scipy.optimize import Bounds, LinearConstraint, milp
 from scipy.spatial import cKDTree
 
-ILP_MAX_NNZ = 1_000_000
+ILP_MAX_NNZ = 200_000
 """Largest coverage matrix (nonzeros) handed to the exact integer program."""
-ILP_TIME_LIMIT_S = 5.0
+ILP_TIME_LIMIT_S = 3.0
 
 
 @dataclass(frozen=True)

@@ -152,24 +152,29 @@ def assign_passes(
     n = len(reach_sets)
     period = len(pattern)
     k = int(pattern.max()) + 1 if period else 0
-    offsets = [np.flatnonzero(pattern == r) for r in range(k)]
+    offsets = [np.flatnonzero(pattern == r).tolist() for r in range(k)]
     order = np.argsort(dst, kind="stable")
-    starts = np.searchsorted(dst[order], np.arange(n + 1))
-    sup_of = src[order]
-    visit = np.zeros(n, dtype=np.int64)
-    for e in topo:
-        sups = sup_of[starts[e] : starts[e + 1]]
-        need = int(visit[sups].max()) if len(sups) else 0
+    starts = np.searchsorted(dst[order], np.arange(n + 1)).tolist()
+    sup_of = src[order].tolist()
+    sets = [r.tolist() for r in reach_sets]
+    visit = [0] * n
+    # Plain Python ints: the sets are tiny and numpy's per-call cost would dominate.
+    for e in topo.tolist():
+        need = 0
+        for s in sup_of[starts[e] : starts[e + 1]]:
+            if visit[s] > need:
+                need = visit[s]
         base = need - need % period
-        best = None
-        for r in reach_sets[e]:
-            cand = base + offsets[r]
-            cand = np.where(cand >= need, cand, cand + period)
-            m = int(cand.min())
-            best = m if best is None or m < best else best
-        assert best is not None
+        best = -1
+        for r in sets[e]:
+            for o in offsets[r]:
+                p = base + o
+                if p < need:
+                    p += period
+                if best < 0 or p < best:
+                    best = p
         visit[e] = best
-    return visit
+    return np.array(visit, dtype=np.int64)
 
 
 def topological_order(n: int, src: np.ndarray, dst: np.ndarray, key: np.ndarray) -> np.ndarray:
@@ -293,18 +298,19 @@ def schedule(
 
 def _nearest_order(batch: np.ndarray, p: np.ndarray, start: np.ndarray) -> np.ndarray:
     """Greedy nearest-neighbour order of ``batch`` starting near ``start``."""
-    if len(batch) <= 1:
+    m = len(batch)
+    if m <= 1:
         return batch
     pts = p[batch]
-    free = np.ones(len(batch), dtype=bool)
-    out = np.empty(len(batch), dtype=np.intp)
-    here = start
-    for i in range(len(batch)):
-        d = np.where(free, np.sum((pts - here) ** 2, axis=1), np.inf)
-        j = int(np.argmin(d))
+    D = np.sum((pts[:, None, :] - pts[None, :, :]) ** 2, axis=2)
+    d0 = np.sum((pts - start) ** 2, axis=1)
+    out = np.empty(m, dtype=np.intp)
+    j = int(np.argmin(d0))
+    for i in range(m):
         out[i] = batch[j]
-        free[j] = False
-        here = pts[j]
+        D[:, j] = np.inf
+        if i + 1 < m:
+            j = int(np.argmin(D[j]))
     return out
 
 

@@ -106,14 +106,23 @@ class ReachModel:
         np.ndarray
             Boolean array of the broadcast shape.
         """
-        r, z = np.broadcast_arrays(np.asarray(r, dtype=float), np.asarray(z, dtype=float))
-        i = np.floor(r / self.r_step).astype(np.intp)
-        j = np.floor((z - self.z_min) / self.z_step).astype(np.intp)
-        nr, nz = self.table.shape
-        inside = (i >= 0) & (i < nr) & (j >= 0) & (j < nz)
-        out = np.zeros(r.shape, dtype=bool)
-        out[inside] = self.table[i[inside], j[inside]]
-        return out
+        r = np.asarray(r, dtype=float)
+        z = np.asarray(z, dtype=float)
+        padded = self._padded
+        # Indices into the table padded with one unreachable cell on every side;
+        # everything outside the table lands on that border.
+        i = np.clip(np.floor(r * (1.0 / self.r_step)), -1, padded.shape[0] - 2).astype(np.intp) + 1
+        j = (
+            np.clip(
+                np.floor((z - self.z_min) * (1.0 / self.z_step)), -1, padded.shape[1] - 2
+            ).astype(np.intp)
+            + 1
+        )
+        return padded[i, j]
+
+    @functools.cached_property
+    def _padded(self) -> np.ndarray:
+        return np.pad(self.table, 1, constant_values=False)
 
     def shrunk(self, margin: float) -> ReachModel:
         """The model with the reachable set eroded by ``margin`` metres in r and z.

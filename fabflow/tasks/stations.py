@@ -76,10 +76,10 @@ class Candidates:
         return T
 
 
-def footprint_polygons(
+def footprint_corners(
     xy: np.ndarray, heading: np.ndarray, size: tuple[float, float], margin: float
 ) -> np.ndarray:
-    """Plan-view rectangles of platforms, grown by ``margin`` on every side.
+    """Corners (C, 4, 2) of platform footprints grown by ``margin`` (metres), counter-clockwise.
 
     Parameters
     ----------
@@ -91,19 +91,85 @@ def footprint_polygons(
         Footprint (length along platform x, width along y) in metres, centred on the origin.
     margin
         Safety margin added on every side (metres).
-
-    Returns
-    -------
-    np.ndarray
-        (C,) shapely polygons.
     """
     hx = 0.5 * size[0] + margin
     hy = 0.5 * size[1] + margin
     local = np.array([[hx, hy], [-hx, hy], [-hx, -hy], [hx, -hy]])
     c, s = np.cos(heading), np.sin(heading)
     R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-    corners = np.einsum("cij,kj->cki", R, local) + xy[:, None, :]
-    return shapely.polygons(corners)
+    return np.einsum("cij,kj->cki", R, local) + xy[:, None, :]
+
+
+def footprint_polygons(
+    xy: np.ndarray, heading: np.ndarray, size: tuple[float, float], margin: float
+) -> np.ndarray:
+    """Plan-view rectangles (shapely polygons) of platforms grown by ``margin`` on every side.
+
+    See :func:`footprint_corners` for the parameters.
+    """
+    return shapely.polygons(footprint_corners(xy, heading, size, margin))
+
+
+def rectangles_intersect(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pairwise overlap of rectangles by the separating axis test (touching counts).
+
+    Parameters
+    ----------
+    a, b
+        (P, 4, 2) corners of rectangles in order around each (any orientation).
+
+    Returns
+    -------
+    np.ndarray
+        (P,) bool.
+    """
+    out = np.zeros(len(a), dtype=bool)
+    # Cheap circle tests settle most pairs: circumcircles apart -> disjoint,
+    # incircles overlapping -> intersecting; the rest get the separating axis test.
+    ca, cb = a.mean(axis=1), b.mean(axis=1)
+    d = np.hypot(*(ca - cb).T)
+    Ra = np.hypot(*(a[:, 0] - ca).T)
+    Rb = np.hypot(*(b[:, 0] - cb).T)
+    ra = 0.5 * np.minimum(np.hypot(*(a[:, 1] - a[:, 0]).T), np.hypot(*(a[:, 2] - a[:, 1]).T))
+    rb = 0.5 * np.minimum(np.hypot(*(b[:, 1] - b[:, 0]).T), np.hypot(*(b[:, 2] - b[:, 1]).T))
+    out[d <= ra + rb] = True
+    todo = np.flatnonzero((d <= Ra + Rb) & (d > ra + rb))
+    for k in range(0, len(todo), 100_000):
+        idx = todo[k : k + 100_000]
+        aa, bb = a[idx], b[idx]
+        axes = np.concatenate([aa[:, 1:3] - aa[:, 0:2], bb[:, 1:3] - bb[:, 0:2]], axis=1)
+        nx, ny = -axes[..., 1:2], axes[..., 0:1]
+        pa = nx * aa[:, None, :, 0] + ny * aa[:, None, :, 1]
+        pb = nx * bb[:, None, :, 0] + ny * bb[:, None, :, 1]
+        separated = (pa.max(axis=2) < pb.min(axis=2)) | (pb.max(axis=2) < pa.min(axis=2))
+        out[idx] = ~separated.any(axis=1)
+    return out
+
+
+def block_corners(elements: Sequence[Element]) -> tuple[np.ndarray, np.ndarray]:
+    """Plan-view corners of the blocks among ``elements``.
+
+    Returns
+    -------
+    index
+        (B,) indices of the blocks in ``elements``.
+    corners
+        (B, 4, 2) corners around each block's outline (metres).
+    """
+    idx = np.array(
+        [i for i, e in enumerate(elements) if e.type == "block" and e.extents is not None],
+        dtype=np.intp,
+    )
+    if len(idx) == 0:
+        return idx, np.zeros((0, 4, 2))
+    T = np.stack([elements[i].T_world_element for i in idx])
+    ext = np.stack([np.asarray(elements[i].extents, dtype=float) for i in idx])
+    signs = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]], dtype=float)
+    half = 0.5 * ext[:, None, :2] * signs[None]
+    corners = (
+        T[:, None, :2, 3] + half[..., :1] * T[:, None, :2, 0] + half[..., 1:2] * T[:, None, :2, 1]
+    )
+    return idx, corners
 
 
 def obstacle_polygons(site: Site) -> list[shapely.Geometry]:
@@ -125,17 +191,8 @@ def element_polygons(elements: Sequence[Element]) -> np.ndarray:
     """
     n = len(elements)
     geoms = np.full(n, None, dtype=object)
-    blocks = [i for i, e in enumerate(elements) if e.type == "block" and e.extents is not None]
-    if blocks:
-        T = np.stack([elements[i].T_world_element for i in blocks])
-        ext = np.stack([np.asarray(elements[i].extents, dtype=float) for i in blocks])
-        signs = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]], dtype=float)
-        half = 0.5 * ext[:, None, :2] * signs[None]
-        corners = (
-            T[:, None, :2, 3]
-            + half[..., :1] * T[:, None, :2, 0]
-            + half[..., 1:2] * T[:, None, :2, 1]
-        )
+    blocks, corners = block_corners(elements)
+    if len(blocks):
         geoms[blocks] = shapely.polygons(corners)
     for i, e in enumerate(elements):
         if e.type == "print_path" and e.polyline is not None and len(e.polyline) >= 2:
@@ -144,6 +201,32 @@ def element_polygons(elements: Sequence[Element]) -> np.ndarray:
             geoms[i] = shapely.buffer(shapely.linestrings(pts[:, :2]), 0.5 * width)
     geoms[[g is None for g in geoms]] = shapely.empty(1)[0]
     return geoms
+
+
+def unique_outlines(elements: Sequence[Element]) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct plan-view outlines of the elements (stacked blocks share one).
+
+    Returns
+    -------
+    outlines
+        (U,) shapely geometries (blocks are merged when their corners agree to 0.1 mm).
+    outline_of
+        (N,) index into ``outlines`` of every element's outline.
+    """
+    geoms = element_polygons(elements)
+    keys = np.empty(len(geoms), dtype=object)
+    blocks, corners = block_corners(elements)
+    if len(blocks):
+        # A rectangle's key: its corners rounded to 0.1 mm, in sorted order.
+        q = np.round(corners * 1e4).astype(np.int64)
+        order = np.lexsort((q[..., 1], q[..., 0]), axis=1)
+        q = np.take_along_axis(q, order[..., None], axis=1).reshape(len(blocks), 8)
+        keys[blocks] = [b"r" + row.tobytes() for row in q]
+    others = np.setdiff1d(np.arange(len(geoms)), blocks)
+    if len(others):
+        keys[others] = [b"g" + k for k in shapely.to_wkb(shapely.normalize(geoms[others]))]
+    _, first, outline_of = np.unique(keys, return_index=True, return_inverse=True)
+    return geoms[first], outline_of.ravel()
 
 
 def generate_candidates(
@@ -200,9 +283,9 @@ def generate_candidates(
     xy, heading, base_xy = xy[near], heading[near], base_xy[near]
 
     margin = float(platform.safety_margin)
-    fp = footprint_polygons(xy, heading, platform.footprint, margin)
-    coords = shapely.get_coordinates(fp).reshape(len(fp), -1, 2)
-    inside = np.all((coords >= lo) & (coords <= hi), axis=(1, 2))
+    fp_corners = footprint_corners(xy, heading, platform.footprint, margin)
+    fp = shapely.polygons(fp_corners)
+    inside = np.all((fp_corners >= lo) & (fp_corners <= hi), axis=(1, 2))
 
     bad = ~inside
     obstacles = obstacle_polygons(site)
@@ -211,20 +294,44 @@ def generate_candidates(
         bad[hit[0]] = True
 
     n = len(elements)
-    geoms = element_polygons(elements)
     robot_built = np.array([e.robot_built for e in elements], dtype=bool)
-    hit = shapely.STRtree(geoms).query(fp, predicate="intersects") if n else np.zeros((2, 0), int)
-    prebuilt_hit = ~robot_built[hit[1]]
-    bad[hit[0][prebuilt_hit]] = True
+    outlines, outline_of = unique_outlines(elements)
+    U = len(outlines)
+    if n:
+        # Bounding-box candidates from the tree, then an exact test: the separating
+        # axis test for rectangles, shapely for the other outlines.
+        hit = shapely.STRtree(outlines).query(fp)
+        is_rect = np.array([len(shapely.get_coordinates(g)) == 5 for g in outlines], dtype=bool)
+        rect_corners = np.zeros((U, 4, 2))
+        if is_rect.any():
+            rect_corners[is_rect] = shapely.get_coordinates(outlines[is_rect]).reshape(-1, 5, 2)[
+                :, :4
+            ]
+        rect = is_rect[hit[1]]
+        exact = np.zeros(hit.shape[1], dtype=bool)
+        exact[rect] = rectangles_intersect(fp_corners[hit[0][rect]], rect_corners[hit[1][rect]])
+        other = ~rect
+        exact[other] = shapely.intersects(fp[hit[0][other]], outlines[hit[1][other]])
+        hit = hit[:, exact]
+    else:
+        hit = np.zeros((2, 0), dtype=np.intp)
+    # Outline -> elements with that outline (stacked blocks share one).
+    members = sparse.csr_matrix((np.ones(n, dtype=bool), (outline_of, np.arange(n))), shape=(U, n))
+    has_prebuilt = np.bincount(outline_of[~robot_built], minlength=U) > 0
+    bad[hit[0][has_prebuilt[hit[1]]]] = True
 
     keep = np.flatnonzero(~bad)
     remap = np.full(len(xy), -1)
     remap[keep] = np.arange(len(keep))
     rows = remap[hit[0]]
-    sel = (rows >= 0) & robot_built[hit[1]]
-    blocked = sparse.csr_matrix(
-        (np.ones(int(sel.sum()), dtype=bool), (rows[sel], hit[1][sel])), shape=(len(keep), n)
+    sel = rows >= 0
+    H = sparse.csr_matrix(
+        (np.ones(int(sel.sum()), dtype=bool), (rows[sel], hit[1][sel])), shape=(len(keep), U)
     )
+    blocked = (H.astype(np.int32) @ members.astype(np.int32)).tocsr()
+    blocked = blocked.multiply(robot_built[None, :].astype(np.int32)).tocsr()
+    blocked.eliminate_zeros()
+    blocked = blocked.astype(bool)
     return Candidates(
         xy=xy[keep],
         heading=heading[keep],
