@@ -345,7 +345,9 @@ def voxel_downsample(
     voxel_size
         Edge length of the cubic voxels (metres, > 0).
     normals
-        Optional ``(N, 3)`` normals, averaged per voxel and re-normalized.
+        Optional ``(N, 3)`` normals, averaged per voxel and re-normalized. The
+        average ignores their sign (each is flipped to make its largest component
+        positive first), so the returned normals are unoriented.
     min_points
         Voxels holding fewer points are dropped (``n_min`` of paper 002, Table 3).
 
@@ -374,6 +376,10 @@ def voxel_downsample(
     out_n = None
     if normals is not None:
         n = np.asarray(normals, dtype=float)
+        # sign-invariant average: normals of one surface may point either way (PCA
+        # normals of a wall), so flip each to make its largest component positive
+        big = np.take_along_axis(n, np.argmax(np.abs(n), axis=1)[:, None], axis=1)
+        n = np.where(big < 0, -n, n)
         ns = np.stack([np.bincount(inverse, weights=n[:, i], minlength=n_vox) for i in range(3)], 1)
         ns = ns[keep]
         norm = np.linalg.norm(ns, axis=1, keepdims=True)

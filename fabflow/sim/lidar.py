@@ -90,12 +90,16 @@ class LidarScan:
         ``(N,)`` index of each return's ray in :meth:`LidarModel.directions`.
     T_world_lidar
         The true sensor pose the scan was taken from.
+    face_index
+        ``(N,)`` index of the scene triangle each return hit (ground truth, e.g. for
+        exact normals of a simulated map).
     """
 
     points: FloatArray
     ranges: FloatArray
     ray_index: NDArray[np.int64]
     T_world_lidar: FloatArray
+    face_index: NDArray[np.int64]
 
     def __len__(self) -> int:
         return len(self.points)
@@ -130,9 +134,9 @@ def simulate_scan(
     dirs_world = dirs_lidar @ T[:3, :3].T
     origins = np.broadcast_to(T[:3, 3], dirs_world.shape)
     if len(scene.faces) == 0:
-        empty = np.zeros((0, 3))
-        return LidarScan(empty, np.zeros(0), np.zeros(0, dtype=np.int64), T)
-    locations, index_ray, _ = scene.ray.intersects_location(
+        none = np.zeros(0, dtype=np.int64)
+        return LidarScan(np.zeros((0, 3)), np.zeros(0), none, T, none)
+    locations, index_ray, index_tri = scene.ray.intersects_location(
         origins, dirs_world, multiple_hits=False
     )
     true_range = np.linalg.norm(locations - T[:3, 3], axis=1)
@@ -142,4 +146,10 @@ def simulate_scan(
     index_ray = index_ray[order]
     ranges = true_range[keep][order] + rng.normal(0.0, model.range_sigma, len(order))
     points = dirs_lidar[index_ray] * ranges[:, None]
-    return LidarScan(points=points, ranges=ranges, ray_index=index_ray, T_world_lidar=T)
+    return LidarScan(
+        points=points,
+        ranges=ranges,
+        ray_index=index_ray,
+        T_world_lidar=T,
+        face_index=np.asarray(index_tri, dtype=np.int64)[keep][order],
+    )

@@ -1,0 +1,222 @@
+"""Scan-to-map localization on the simulated site, map building, station and CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fabflow.design.elements import Element
+from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.pointcloud import write_point_cloud
+from fabflow.positioning.scan_matching import (
+    ScanMap,
+    build_map,
+    localize_scan,
+    localize_station,
+    mapping_poses,
+    parse_init,
+    simulated_site_map,
+    to_base_pose,
+)
+from fabflow.project import parse_project
+from fabflow.sim.lidar import LidarModel, simulate_scan
+from fabflow.sim.site_scene import site_scene
+from fabflow.transforms.se3 import apply_T, inv_T, make_T, perturb, pose_error
+from fabflow.transforms.so3 import exp_so3
+
+MAP_MODEL = LidarModel(n_beams=32, horizontal_resolution_deg=1.0)
+
+
+@pytest.fixture(scope="module")
+def site_map() -> ScanMap:
+    # the same cache entry localize_station uses for a project without obstacles
+    return simulated_site_map((), 0.03)
+
+
+def lidar_pose(x: float, y: float, yaw_deg: float, z: float = 1.8) -> np.ndarray:
+    return make_T(exp_so3([0.0, 0.0, np.radians(yaw_deg)]), [x, y, z])
+
+
+def cabin_wall_blocks(n_layers: int) -> list[Element]:
+    """A U of blocks (x 0..4, y 0..3.3) standing in for a half-built cabin."""
+    out = []
+    for layer in range(n_layers):
+        z = 0.0525 + 0.105 * layer
+        for i in range(6):
+            for x, y, yaw in ((0.35 + 0.65 * i, 0.05, 0.0), (0.35 + 0.65 * i, 3.25, 0.0)):
+                out.append((x, y, yaw, z))
+        for j in range(5):
+            out.append((0.05, 0.35 + 0.65 * j, np.pi / 2, z))
+    return [
+        Element(
+            id=f"B{k}",
+            type="block",
+            T_world_element=make_T(exp_so3([0, 0, yaw]), [x, y, z]),
+            layer=round((z - 0.0525) / 0.105),
+            extents=np.array([0.6, 0.105, 0.105]),
+        )
+        for k, (x, y, yaw, z) in enumerate(out)
+    ]
+
+
+@pytest.mark.parametrize(
+    "pose,init_error",
+    [
+        ((6.5, 1.0, 30.0), (0.35, -0.35, 0.0, 0.0, 0.0, np.radians(10.0))),
+        ((-2.0, 2.5, -120.0), (-0.5, 0.0, 0.0, 0.0, 0.0, np.radians(-10.0))),
+        ((2.0, -3.0, 80.0), (0.0, 0.5, 0.0, 0.0, 0.0, np.radians(7.0))),
+    ],
+)
+def test_localizes_from_half_metre_and_ten_degrees(
+    site_map: ScanMap, pose: tuple[float, float, float], init_error: tuple[float, ...]
+) -> None:
+    T_true = lidar_pose(*pose)
+    scene = site_scene(built=cabin_wall_blocks(12))
+    scan = simulate_scan(scene, T_true, np.random.default_rng(1))
+    loc = localize_scan(scan.points, site_map, perturb(T_true, init_error))
+    err = pose_error(loc.T_world_lidar, T_true)
+    assert np.linalg.norm(err[:3]) < 0.005, err
+    assert abs(np.degrees(err[5])) < 0.1
+    assert loc.icp.fitness > 0.5 and loc.structure_fitness > 0.5
+    assert loc.icp.inlier_rmse < 0.02
+    sd = np.sqrt(np.diag(loc.covariance))
+    assert np.all(sd > 0) and sd[0] < 0.005
+
+
+def test_fails_loudly_instead_of_silently_wrong(site_map: ScanMap) -> None:
+    T_true = lidar_pose(6.5, 1.0, 30.0)
+    scan = simulate_scan(site_scene(), T_true, np.random.default_rng(2))
+    with pytest.raises(LocalizationError, match=r"fitness|correspondences"):
+        localize_scan(scan.points, site_map, perturb(T_true, [6.0, -5.0, 0, 0, 0, 2.0]))
+    # only the ground in view (sensor high above an empty plane): degenerate
+    flat = site_scene(built=(), landmarks=None, obstacles=[((-30, -30, -0.1), (30, 30, 0.0))])
+    ground = simulate_scan(flat, T_true, np.random.default_rng(3))
+    with pytest.raises(LocalizationError):
+        localize_scan(ground.points, site_map, T_true)
+
+
+def test_rejects_a_match_held_only_by_the_ground(site_map: ScanMap) -> None:
+    T_true = lidar_pose(6.5, 1.0, 30.0)
+    scan = simulate_scan(site_scene(), T_true, np.random.default_rng(4))
+    wrong = perturb(T_true, [0.8, 0.0, 0.0, 0.0, 0.0, 0.15])
+    with pytest.raises(LocalizationError, match="walls"):
+        localize_scan(
+            scan.points,
+            site_map,
+            wrong,
+            coarse_schedule=None,
+            fine_schedule=(0.05,),
+            min_fitness=0.1,
+        )
+
+
+def test_build_map_registers_scans_from_odometry_guesses() -> None:
+    scene = site_scene()
+    rng = np.random.default_rng(5)
+    poses = mapping_poses()[:4]
+    scans = [simulate_scan(scene, T, rng, MAP_MODEL).points for T in poses]
+    guesses = [poses[0]] + [perturb(T, [0.1, -0.08, 0.0, 0.0, 0.0, 0.03]) for T in poses[1:]]
+    built = build_map(scans, guesses, voxel_size=0.05)
+    for T_est, T_true in zip(built.T_world_scans, poses, strict=True):
+        err = pose_error(T_est, T_true)
+        assert np.linalg.norm(err[:3]) < 0.01 and abs(err[5]) < 0.002
+    assert len(built.coarse) < len(built)
+    with pytest.raises(InputError):
+        build_map(scans, guesses[:2])
+
+
+def test_base_pose_covariance_moves_to_the_base(site_map: ScanMap) -> None:
+    T_true = lidar_pose(6.5, 1.0, 30.0)
+    scan = simulate_scan(site_scene(), T_true, np.random.default_rng(6))
+    loc = localize_scan(scan.points, site_map, T_true)
+    T_base_lidar = make_T(np.eye(3), [0.9, 0.0, 0.6])
+    pose = to_base_pose(loc, T_base_lidar, station="S1")
+    np.testing.assert_allclose(pose.T_world_base, loc.T_world_lidar @ inv_T(T_base_lidar))
+    assert pose.method == "icp" and pose.station == "S1"
+    assert pose.residuals.shape[1] == 1 and len(pose.residuals) <= 1000
+    # a yaw uncertainty at the sensor becomes a lateral one at the base 0.9 m behind it
+    assert pose.covariance[1, 1] > loc.covariance[1, 1] or pose.covariance[0, 0] > 0
+    np.testing.assert_allclose(pose.covariance, pose.covariance.T)
+    assert json.loads(json.dumps(pose.to_dict()))["quality"]["fitness"] == loc.icp.fitness
+
+
+PROJECT = """
+name: icp test
+localization:
+  method: icp
+  icp:
+    voxel_size: 0.05
+elements:
+  - task_points:
+      - id: T1
+        pose: {xyz: [1, 1, 1]}
+simulation:
+  driving_error: 0.2
+  driving_heading_error_deg: 4.0
+"""
+
+
+def test_localize_station_on_the_simulated_site() -> None:
+    project = parse_project(PROJECT)
+    T_world_platform = make_T(exp_so3([0, 0, np.radians(-60.0)]), [1.0, 5.5, 0.0])
+    T_world_base = T_world_platform @ project.robot.platform.T_platform_base.matrix()
+    pose = localize_station(
+        project, T_world_base, np.random.default_rng(7), "S2", built=cabin_wall_blocks(6)
+    )
+    err = pose_error(pose.T_world_base, T_world_base)
+    assert np.linalg.norm(err[:3]) < 0.005 and abs(np.degrees(err[5])) < 0.1
+    assert pose.station == "S2" and pose.method == "icp"
+    assert pose.quality["map"] == "simulated"
+
+
+def test_parse_init() -> None:
+    assert parse_init("1, -2.5,30") == (1.0, -2.5, 30.0)
+    for bad in ("1,2", "a,b,c", "1,2,3,4", "1,2,nan"):
+        with pytest.raises(InputError, match="--init"):
+            parse_init(bad)
+
+
+def test_cli_localize_icp(tmp_path: Path, cli, site_map: ScanMap) -> None:
+    write_point_cloud(tmp_path / "map.ply", site_map.points, site_map.normals)
+    T_world_platform = make_T(exp_so3([0, 0, np.radians(30.0)]), [6.0, 1.0, 0.0])
+    T_platform_lidar = make_T(np.eye(3), [0.9, 0.0, 1.2])
+    T_world_lidar = T_world_platform @ T_platform_lidar
+    scan = simulate_scan(site_scene(), T_world_lidar, np.random.default_rng(8))
+    write_point_cloud(tmp_path / "scan.ply", scan.points)
+    res = cli(
+        "localize", "icp", str(tmp_path / "scan.ply"), "--map", str(tmp_path / "map.ply"),
+        "--init", "6.3,0.8,25", "-o", str(tmp_path / "out"), "--station", "S1",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    data = json.loads((tmp_path / "out" / "base_pose.json").read_text())
+    T_true = T_world_platform @ make_T(np.eye(3), [0.0, 0.0, 0.6])
+    err = pose_error(np.array(data["T_world_base"]), T_true)
+    assert np.linalg.norm(err[:3]) < 0.005
+    assert data["method"] == "icp" and data["station"] == "S1"
+    assert np.array(data["covariance"]).shape == (6, 6)
+
+    bad = cli(
+        "localize", "icp", str(tmp_path / "scan.ply"), "--map", str(tmp_path / "map.ply"),
+        "--init", "14,9", "-o", str(tmp_path / "out"),
+    )  # fmt: skip
+    assert bad.returncode == 2
+    assert "--init" in bad.stderr and "Traceback" not in bad.stderr
+    # the earlier result is left in place
+    assert json.loads((tmp_path / "out" / "base_pose.json").read_text()) == data
+
+    missing = cli(
+        "localize", "icp", str(tmp_path / "nope.ply"), "--map", str(tmp_path / "map.ply"),
+        "--init", "6,1,30", "-o", str(tmp_path / "o2"),
+    )  # fmt: skip
+    assert missing.returncode == 2 and "nope.ply" in missing.stderr
+
+
+def test_scan_points_transform_consistently(site_map: ScanMap) -> None:
+    """The scan lands on the map at the true pose (simulator and map agree)."""
+    T_true = lidar_pose(0.0, -3.0, 10.0)
+    scan = simulate_scan(site_scene(), T_true, np.random.default_rng(9))
+    d, _ = site_map.target.tree.query(apply_T(T_true, scan.points), k=1)
+    assert np.median(d) < 0.05
