@@ -3,8 +3,9 @@
 Boxes are given by their poses ``T_world_box`` (centre of the box, metres) and
 their ``extents`` (size along the box's own x, y, z). The plan footprint of a box
 is the convex hull of its eight corners projected on the world xy plane, its
-vertical range the span of the corners' z. Pairs are found with an STR-tree and
-tested with shapely's vectorized predicates, so no Python loop runs over pairs.
+vertical range the span of the corners' z. Candidate pairs come from an STR-tree
+of the footprints' bounding boxes, are filtered by their z ranges with numpy and
+only then intersected exactly (shapely, vectorized): no Python loop over pairs.
 """
 
 from __future__ import annotations
@@ -47,8 +48,9 @@ def box_footprints(corners: np.ndarray) -> np.ndarray:
 
 
 def _pairs(footprints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs of different footprints whose bounding boxes overlap."""
     tree = shapely.STRtree(footprints)
-    i, j = tree.query(footprints, predicate="intersects")
+    i, j = tree.query(footprints)
     keep = i != j
     return i[keep], j[keep]
 
