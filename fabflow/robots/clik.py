@@ -227,9 +227,9 @@ class Clik:
         lo, hi = self._lo, self._hi
         num = self._span2 * (2.0 * q - hi - lo)
         den = 4.0 * (hi - q) ** 2 * (q - lo) ** 2
-        with np.errstate(divide="ignore", invalid="ignore"):
-            g = np.abs(num / den)
-        return np.where(den > 0, g, np.inf)
+        g = np.full(q.shape, np.inf)
+        np.divide(np.abs(num), den, out=g, where=den > 0)
+        return g
 
     def weights(self, q: FloatArray) -> FloatArray:
         """Diagonal of W (eq. 8): ``1 + |dH/dq|`` for joints moving towards a limit, else 1."""
@@ -247,7 +247,8 @@ class Clik:
     def pinv(self, J: FloatArray, w: FloatArray, lam: float) -> FloatArray:
         """Weighted damped pseudo-inverse ``W^-1 J^T (J W^-1 J^T + lambda^2 I)^-1`` (eq. 7)."""
         WiJt = J.T / w[:, None]
-        A = J @ WiJt + (lam * lam) * np.eye(J.shape[0])
+        A = J @ WiJt
+        A.flat[:: A.shape[0] + 1] += lam * lam
         try:
             return np.linalg.solve(A, WiJt.T).T
         except np.linalg.LinAlgError:

@@ -68,9 +68,10 @@ class HydraulicJoints:
     tau
         Time constant of the flow build-up (s).
     kp, ki
-        PI gains (valve fraction per radian, per radian-second). The defaults
-        put the loop crossover at ``kp * v_max`` = 0.35 rad/s, below the
-        ~1.2 rad/s where a 1.3 s dead time costs 90 degrees of phase.
+        PI gains (valve fraction per radian, per radian-second). The default
+        tuning (:meth:`for_robot`) puts the loop crossover ``kp * v_max`` at
+        ``0.5 / (dead_time + tau)`` rad/s (0.31 rad/s for 1.3 s), where the
+        delay and lag cost less than 30 degrees of phase.
     dt
         Integration step (s).
     """
@@ -88,7 +89,7 @@ class HydraulicJoints:
     ) -> HydraulicJoints:
         """Joints with the robot's speed limits and the default PI tuning."""
         v = np.asarray(robot.velocity_limits, dtype=float)
-        kp = 0.35 / v
+        kp = 0.5 / (dead_time + tau) / v
         return cls(v_max=v, dead_time=dead_time, tau=tau, kp=kp, ki=0.05 * kp)
 
     def simulate(

@@ -1,0 +1,149 @@
+"""Kinematics benchmarks: FK, closed-form and numerical IK, CLIK rate, CLIK tracking error.
+
+Run ``python benchmarks/kinematics.py`` (full) or ``--quick`` (a small version,
+under ~20 s). Prints one table of medians: throughput of FK and IK (batch and
+single), CLIK iterations per second (target >= 1 kHz, a controller rate), and the
+TCP tracking RMSE of the BROKK on a path divided at 4 cm, kinematic and with the
+simulated hydraulic joints (PI, 0.3 s lag, 1.3 s dead time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from fabflow.robots import Clik, HydraulicJoints, divide_path, get_robot, reach_map, tracking_rmse
+from fabflow.robots.hydraulic import reference_times
+from fabflow.robots.numeric_ik import dls_solve
+
+ARMS_6 = ("kuka_kr60_3", "abb_irb4600_60_205", "ur10e")
+
+
+def median_time(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
+    """Median wall-clock seconds of ``repeats`` calls, and the last result."""
+    times, result = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), result
+
+
+def rate_row(what: str, n: int, seconds: float, unit: str) -> tuple[str, str, str]:
+    return what, f"{n / seconds:,.0f} {unit}/s", f"{seconds * 1e3:.2f} ms for {n}"
+
+
+def run(quick: bool) -> list[tuple[str, str, str]]:
+    rows: list[tuple[str, str, str]] = []
+    rng = np.random.default_rng(0)
+    n_batch = 2_000 if quick else 10_000
+    n_single = 100 if quick else 1_000
+    reps = 3 if quick else 7
+
+    for name in ARMS_6:
+        r = get_robot(name)
+        q = rng.uniform(r.joint_limits[:, 0], r.joint_limits[:, 1], (n_batch, r.dof))
+        T = r.fk(q)
+        t, _ = median_time(lambda r=r, q=q: r.fk(q), reps)
+        rows.append(rate_row(f"{name} FK batch", n_batch, t, "poses"))
+        t, _ = median_time(lambda r=r, q=q: [r.fk(qi) for qi in q[:n_single]], reps)
+        rows.append(rate_row(f"{name} FK single", n_single, t, "calls"))
+        t, (qs, valid) = median_time(lambda r=r, T=T: r.ik_batch(T), reps)
+        rows.append(rate_row(f"{name} IK batch (8 branches)", n_batch, t, "poses"))
+        t, _ = median_time(
+            lambda r=r, T=T, q=q: [
+                r.ik(Ti, q_ref=qi) for Ti, qi in zip(T[:n_single], q[:n_single], strict=True)
+            ],
+            reps,
+        )
+        rows.append(rate_row(f"{name} IK single (ik())", n_single, t, "calls"))
+        Ts = r.fk(qs.reshape(-1, r.dof)).reshape(qs.shape[0], qs.shape[1], 4, 4)
+        err = np.linalg.norm(Ts[..., :3, 3] - T[:, None, :3, 3], axis=-1)[valid].max()
+        rows.append(
+            (f"{name} IK round trip", f"max {err:.1e} m", f"{valid.sum(1).mean():.2f} sol/pose")
+        )
+
+    r = get_robot("kuka_kr60_3")
+    n_dls = 200 if quick else 1_000
+    q = rng.uniform(r.joint_limits[:, 0] * 0.7, r.joint_limits[:, 1] * 0.7, (n_dls, 6))
+    T = r.fk(q)
+    seeds = q + rng.normal(0.0, 0.2, q.shape)
+    t, (_, ok) = median_time(lambda: dls_solve(r, T, seeds), max(1, reps // 2))
+    rows.append(rate_row("kuka_kr60_3 DLS IK batch (seed +-0.2 rad)", n_dls, t, "poses"))
+    rows.append(("  converged to 1e-10", f"{ok.mean() * 100:.1f} %", ""))
+    b = get_robot("brokk_170")
+    qb = b.q_nominal
+    Tb = b.fk(qb)
+    t, _ = median_time(lambda: b.ik(Tb, q_ref=qb), reps)
+    rows.append(rate_row("brokk_170 DLS IK single (17 seeds)", 1, t, "calls"))
+
+    for name, task in (("kuka_kr60_3", "pose"), ("brokk_170", "position_pitch")):
+        m = get_robot(name)
+        c = Clik(m, task)
+        q0 = m.q_nominal
+        dx = np.full(c.dim, 1e-3)
+        e = np.zeros(c.dim)
+        n_it = 300 if quick else 3_000
+        t, _ = median_time(
+            lambda c=c, q0=q0, dx=dx, e=e, n_it=n_it: [c.step(q0, dx, e) for _ in range(n_it)], reps
+        )
+        rows.append(rate_row(f"{name} CLIK iteration ({task})", n_it, t, "it"))
+
+    # The paper's path tracking: a Cartesian path divided at 4 cm, orientation neglected.
+    c = Clik(b, "position")
+    p0 = b.fk(qb)[:3, 3]
+    pts = p0 + np.array([[0.0, 0.0, 0.0], [0.6, 0.0, 0.0], [0.6, 0.6, -0.3], [0.0, 0.6, -0.3]])
+    W = divide_path(pts, 0.04)
+    res = c.track(qb, W)
+    t_ref = reference_times(b, res.q, rate=2.0)
+    kin = tracking_rmse(b, t_ref, res.q, t_ref, res.q)
+    p_kin = b.fk(res.q[1 : len(W)])[:, :3, 3]
+    kin_wp = float(np.sqrt(np.mean(np.sum((p_kin - W[1:]) ** 2, axis=1))))
+    rows.append(("BROKK path 4 cm: waypoints", f"{len(W)}", f"{t_ref[-1]:.1f} s at 2 Hz"))
+    rows.append(("  RMSE kinematic (CLIK vs waypoints)", f"{kin_wp * 1e3:.3f} mm", ""))
+    for dead in (0.0, 1.3):
+        hyd = HydraulicJoints.for_robot(b, dead_time=dead)
+        t, q = hyd.simulate(t_ref, res.q, t_extra=0.0)
+        err = tracking_rmse(b, t, q, t_ref, res.q)
+        x, y, z = err.rmse_xyz * 1e2
+        rows.append(
+            (
+                f"  RMSE hydraulic, dead time {dead:.1f} s",
+                f"{err.rmse * 1e2:.1f} cm (x {x:.1f}, y {y:.1f}, z {z:.1f})",
+                f"path {err.path_rmse * 1e2:.1f} cm, max {err.max_path * 1e2:.1f} cm",
+            )
+        )
+    del kin
+
+    step = 0.05 if quick else None
+    t, rm = median_time(lambda: reach_map("kuka_kr60_3", np.eye(4), step=step, disk_cache=False), 1)
+    rows.append(
+        (
+            f"kuka_kr60_3 reach map (step {rm.step:.3f} m, {rm.n_yaw} yaws)",
+            f"{t:.2f} s",
+            f"{rm.grid.size} nodes",
+        )
+    )
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="small version (under ~20 s)")
+    args = parser.parse_args()
+    rows = run(args.quick)
+    w0 = max(len(r[0]) for r in rows)
+    w1 = max(len(r[1]) for r in rows)
+    print(f"{'benchmark':<{w0}}  {'median':<{w1}}  detail")
+    print("-" * (w0 + w1 + 30))
+    for a, b, c in rows:
+        print(f"{a:<{w0}}  {b:<{w1}}  {c}")
+
+
+if __name__ == "__main__":
+    main()
