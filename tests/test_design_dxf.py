@@ -238,3 +238,17 @@ def test_site_plan_round_trip(tmp_path) -> None:
     platforms = read_dxf_contours(out, layers=["PLATFORMS"])
     assert len(platforms) == 2
     assert math.isclose(np.ptp(platforms[0].points[:, 0]), 2.2)
+
+
+def test_cli_build_reports_a_missing_layer(cli, tmp_path) -> None:
+    doc, msp = _doc()
+    _square_lines(msp, 100.0)
+    doc.saveas(tmp_path / "wall.dxf")
+    (tmp_path / "project.yaml").write_text(
+        "name: bad\nelements:\n  - print_path: {dxf: wall.dxf, layers: [WALL]}\n"
+    )
+    result = cli("build", str(tmp_path), "-o", str(tmp_path / "out"))
+    assert result.returncode == 2
+    assert "wall.dxf" in result.stderr and "layer WALL" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "out").exists()
