@@ -54,6 +54,22 @@ class ExportResult:
     seconds_per_step: float
 
 
+def check_export_target(path: str | Path) -> Path:
+    """Check that ``path`` can be written as the export file (an existing folder, not a dir).
+
+    Raises
+    ------
+    InputError
+        If ``path`` is a folder or its folder does not exist.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise InputError("export target is a folder; expected an .html file name", source=path)
+    if not path.parent.is_dir():
+        raise InputError("the folder of the export file does not exist", source=path)
+    return path
+
+
 def default_seconds_per_step(n_steps: int, target_s: float = 45.0) -> float:
     """Playback time per step so the whole sequence lasts about ``target_s`` seconds."""
     return min(0.5, max(0.02, target_s / max(n_steps, 1)))
@@ -94,7 +110,9 @@ def record_html(
     dt = default_seconds_per_step(model.n_steps) if seconds_per_step is None else seconds_per_step
     if dt <= 0:
         raise InputError(f"seconds per step must be positive, got {dt}")
-    scene = PreviewScene(server, model, project, colour_mode=colour_mode, ghost=ghost, step=0)
+    scene = PreviewScene(
+        server, model, project, colour_mode=colour_mode, ghost=ghost, step=0, atomic=False
+    )
     serializer = server.get_scene_serializer()
     serializer.insert_sleep(1.0)
     for k in range(1, model.n_steps + 1):
@@ -132,11 +150,7 @@ def export_html(
     ghost
         Show the elements not built yet as a faint ghost.
     """
-    path = Path(path)
-    if path.exists() and path.is_dir():
-        raise InputError("export target is a folder; expected an .html file name", source=path)
-    if not path.parent.exists():
-        raise InputError("the folder of the export file does not exist", source=path)
+    path = check_export_target(path)
     dt = default_seconds_per_step(model.n_steps) if seconds_per_step is None else seconds_per_step
     with quiet_server() as server:
         text = record_html(server, model, project, colour_mode, dt, ghost)

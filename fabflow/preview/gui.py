@@ -11,6 +11,7 @@ from collections.abc import Callable
 import numpy as np
 import viser
 
+from fabflow.errors import FabflowError
 from fabflow.preview.model import PreviewModel
 from fabflow.preview.scene import PreviewScene
 
@@ -25,11 +26,11 @@ def work_package_json(model: PreviewModel, package: int) -> tuple[str, bytes]:
 
     The targets are ``T_base_tool = inv(T_world_base) @ T_world_target`` (metres),
     the form a controller takes them in; the base pose is the planned one, or the
-    localized one when the model holds a localization result for the station.
+    localized one when the model holds a localization result for the visit.
     """
     m = model
     sid = m.station_ids[int(m.package_station[package])]
-    result = m.localization.get(sid)
+    result = m.localization_at(package)
     T_world_base = (
         np.asarray(result.T_world_base, dtype=float)
         if result is not None
@@ -81,7 +82,7 @@ def step_info(model: PreviewModel, step: int) -> str:
             f"Station **{sid}**: visit {p + 1} of {len(m.T_world_platform)}, "
             f"lift {m.lift[p]:.2f} m, travel {m.travel[p]:.2f} m"
         )
-        result = m.localization.get(sid)
+        result = m.localization_at(p)
         method = METHOD_NAMES.get(m.method, m.method)
         if result is None:
             lines.append(f"Localization: {method}, planned pose (no result loaded)")
@@ -195,7 +196,13 @@ class PreviewGui:
         p = self.model.package_at(self.scene.step)
         if p < 0 or event.client is None:
             return
-        name, content = self.program_source(p)
+        try:
+            name, content = self.program_source(p)
+        except FabflowError as exc:
+            event.client.add_notification(
+                title="No program for this station", body=str(exc), color="red"
+            )
+            return
         event.client.send_file_download(name, content)
 
     @property

@@ -140,7 +140,8 @@ class PreviewModel:
     tolerance
         Position tolerance of the project (metres), the deviation colour scale.
     localization
-        Localization results by station id (residuals, RMSE, method).
+        Localization results keyed by work-package index (one per visit) or by
+        station id (one per station); see :meth:`localization_at`.
     method
         The project's localization method.
     """
@@ -174,7 +175,7 @@ class PreviewModel:
     platform: Platform
     deviation: np.ndarray | None = None
     tolerance: float = 0.01
-    localization: Mapping[str, BasePose] = field(default_factory=dict)
+    localization: Mapping[int | str, BasePose] = field(default_factory=dict)
     method: str = "total_station"
 
     @property
@@ -198,6 +199,15 @@ class PreviewModel:
         """The element placed at ``step`` (``None`` at step 0)."""
         step = self.check_step(step)
         return None if step == 0 else self.elements[int(self.sequence[step - 1])]
+
+    def localization_at(self, package: int) -> BasePose | None:
+        """The localization result of a work package (by its index, else its station id)."""
+        if package < 0:
+            return None
+        result = self.localization.get(package)
+        if result is None:
+            result = self.localization.get(self.station_ids[int(self.package_station[package])])
+        return result
 
     def check_step(self, step: int) -> int:
         """Return ``step`` as an int, or raise :class:`InputError` if outside 0..n_steps."""
@@ -359,7 +369,7 @@ def build_model(
     arm: ArmModel | None = None,
     deviation: Mapping[str, float] | None = None,
     tolerance: float = 0.01,
-    localization: Mapping[str, BasePose] | None = None,
+    localization: Mapping[int | str, BasePose] | None = None,
     method: str = "total_station",
 ) -> PreviewModel:
     """Precompute everything the preview draws.
@@ -383,7 +393,7 @@ def build_model(
     tolerance
         Position tolerance (metres); the deviation colour scale runs to twice this.
     localization
-        Localization results by station id.
+        Localization results by work-package index or station id.
     method
         The project's localization method, shown in the info panel.
 

@@ -8,6 +8,7 @@ one batched mesh, and a block is hidden by giving its instance a zero scale.
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import numpy as np
@@ -60,6 +61,9 @@ class PreviewScene:
         Show the elements not built yet as a faint ghost.
     step
         Initial step (``None``: the last step, the finished building).
+    atomic
+        Group each step's updates so browsers apply them together (live use);
+        a recording for export does not need it.
     """
 
     def __init__(
@@ -70,6 +74,7 @@ class PreviewScene:
         colour_mode: str = "station",
         ghost: bool = True,
         step: int | None = None,
+        atomic: bool = True,
     ) -> None:
         if colour_mode not in model.colour_modes():
             raise InputError(
@@ -80,10 +85,12 @@ class PreviewScene:
         self.model = model
         self.colour_mode = colour_mode
         self.ghost_enabled = ghost
+        self.atomic = atomic
         self.step = model.n_steps if step is None else model.check_step(step)
         self._colour_cache: dict[str, np.ndarray] = {}
         self._visible = model.visible(self.step)
         self._draw_extents = np.maximum(model.block_extents - BLOCK_GAP, 1e-4).astype(np.float32)
+        self._precompute_poses()
         scene = server.scene
         scene.set_up_direction("+z")
         with server.atomic():
@@ -347,10 +354,11 @@ class PreviewScene:
                     colors=(90, 140, 200),
                     point_size=0.02,
                 )
-        for sid, result in self.model.localization.items():
+        for key, result in self.model.localization.items():
             T = np.asarray(result.T_world_base, dtype=float)
+            name = f"visit_{key + 1}" if isinstance(key, int) else str(key)
             scene.add_frame(
-                f"/localization/results/{sid}",
+                f"/localization/results/{name}",
                 axes_length=0.25,
                 axes_radius=0.01,
                 wxyz=tuple(_wxyz(T)),
@@ -382,6 +390,21 @@ class PreviewScene:
             self._colour_cache[mode] = self.model.element_colours(mode, step)
         return self._colour_cache[mode]
 
+    def _precompute_poses(self) -> None:
+        """Per-package platform quaternions and per-step tool and arm-link poses."""
+        m = self.model
+        self._platform_wxyz = _wxyz(m.T_world_platform).reshape(-1, 4)
+        self._tool_wxyz = _wxyz(m.T_world_tool).reshape(-1, 4)
+        pts = m.arm_points
+        seg = pts[:, 1:] - pts[:, :-1]
+        length = np.linalg.norm(seg, axis=2)
+        direction = seg / np.maximum(length, 1e-9)[..., None]
+        radius = np.where(length > 1e-6, LINK_RADIUS, 0.0)
+        self._link_positions = ((pts[:, 1:] + pts[:, :-1]) / 2).astype(np.float32)
+        self._link_wxyz = _quat_z_to(direction.reshape(-1, 3)).reshape(*direction.shape[:2], 4)
+        self._link_scales = np.stack([radius, radius, length], axis=2).astype(np.float32)
+        self._package: int | None = None
+
     def set_step(self, step: int, force: bool = False) -> None:
         """Show the scene after ``step`` placements (poses, visibility, colours only).
 
@@ -396,7 +419,7 @@ class PreviewScene:
         step = m.check_step(step)
         visible = m.visible(step)
         changed = force or not np.array_equal(visible, self._visible)
-        with self.server.atomic():
+        with self.server.atomic() if self.atomic else contextlib.nullcontext():
             if changed:
                 vb = visible[m.block_index]
                 self.blocks.batched_scales = self._draw_extents * vb[:, None]
@@ -407,39 +430,35 @@ class PreviewScene:
                     self.task_points.batched_scales = visible[m.point_index].astype(np.float32)
             if force or self.colour_mode == "state":
                 self._apply_colours(self._colours(self.colour_mode, step))
-            self._pose_platform_and_arm(step)
+            self._pose_platform_and_arm(step, force)
         self._visible = visible
         self.step = step
 
-    def _pose_platform_and_arm(self, step: int) -> None:
+    def _pose_platform_and_arm(self, step: int, force: bool) -> None:
         m = self.model
         p = m.package_at(step)
         if p < 0:
             return
-        T = m.T_world_platform[p]
-        self.platform.position = tuple(T[:3, 3])
-        self.platform.wxyz = tuple(_wxyz(T))
-        base_z = float(m.platform.T_platform_base.xyz[2]) + float(m.lift[p])
-        column = max(base_z - self._body_h, 0.01)
-        self.lift.scale = (1.0, 1.0, column)
-        self.lift.position = (
-            float(self._lift_xy[0]),
-            float(self._lift_xy[1]),
-            self._body_h + column / 2,
-        )
+        if force or p != self._package:
+            T = m.T_world_platform[p]
+            self.platform.position = tuple(T[:3, 3])
+            self.platform.wxyz = tuple(self._platform_wxyz[p])
+            base_z = float(m.platform.T_platform_base.xyz[2]) + float(m.lift[p])
+            column = max(base_z - self._body_h, 0.01)
+            self.lift.scale = (1.0, 1.0, column)
+            self.lift.position = (
+                float(self._lift_xy[0]),
+                float(self._lift_xy[1]),
+                self._body_h + column / 2,
+            )
+            self._package = p
         if self.arm_links is not None and self.arm_joints is not None:
-            pts = m.arm_points[step]
-            seg = pts[1:] - pts[:-1]
-            length = np.linalg.norm(seg, axis=1)
-            direction = seg / np.maximum(length, 1e-9)[:, None]
-            radius = np.where(length > 1e-6, LINK_RADIUS, 0.0)
-            self.arm_links.batched_positions = (pts[1:] + pts[:-1]) / 2
-            self.arm_links.batched_wxyzs = _quat_z_to(direction)
-            self.arm_links.batched_scales = np.stack([radius, radius, length], axis=1)
-            self.arm_joints.batched_positions = pts
-        Tt = m.T_world_tool[step]
-        self.tool.position = tuple(Tt[:3, 3])
-        self.tool.wxyz = tuple(_wxyz(Tt))
+            self.arm_links.batched_positions = self._link_positions[step]
+            self.arm_links.batched_wxyzs = self._link_wxyz[step]
+            self.arm_links.batched_scales = self._link_scales[step]
+            self.arm_joints.batched_positions = m.arm_points[step]
+        self.tool.position = tuple(m.T_world_tool[step, :3, 3])
+        self.tool.wxyz = tuple(self._tool_wxyz[step])
         self.target_warning.visible = not bool(m.arm_reached[step])
 
     def _apply_colours(self, colours: np.ndarray) -> None:
@@ -456,7 +475,7 @@ class PreviewScene:
                 f"{self.model.colour_modes()}"
             )
         self.colour_mode = mode
-        with self.server.atomic():
+        with self.server.atomic() if self.atomic else contextlib.nullcontext():
             self._apply_colours(self._colours(mode, self.step))
 
     def set_ghost(self, enabled: bool) -> None:

@@ -1,0 +1,142 @@
+"""What ``fabflow preview`` does: load, plan, then serve the scene or export it."""
+
+from __future__ import annotations
+
+import io
+import time
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from fabflow.design.elements import Element
+from fabflow.errors import InputError
+from fabflow.positioning.result import BasePose
+from fabflow.preview.gui import ProgramSource
+from fabflow.preview.model import COLOUR_MODES, PreviewModel
+from fabflow.project import Project
+from fabflow.tasks.plan import Plan
+
+
+def project_program_source(
+    project: Project, elements: list[Element], plan: Plan, model: PreviewModel
+) -> ProgramSource:
+    """The download button's programs: the project's own writer, per work package.
+
+    The program is compiled (with its inverse-kinematics checks) when it is
+    asked for, in the project's program format, in the station's localized base
+    frame when the model holds a localization result for the visit, else the planned
+    one. A format that writes several files (KRL ``.src`` + ``.dat``) comes as
+    a zip.
+    """
+    from fabflow.tasks.programs import WRITERS, work_package_program
+
+    by_id = {e.id: e for e in elements}
+
+    def source(package: int) -> tuple[str, bytes]:
+        wp = plan.work_packages[package]
+        base_pose = model.localization_at(package) or BasePose(
+            T_world_base=model.T_world_base[package],
+            covariance=np.zeros((6, 6)),
+            method="planned",
+            station=wp.station.id,
+        )
+        program = work_package_program(wp, by_id, project, base_pose)
+        files = WRITERS[project.program.format](program)
+        if len(files) == 1:
+            name, text = next(iter(files.items()))
+            return name, text.encode()
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+            for name, text in sorted(files.items()):
+                zf.writestr(name, text)
+        return f"{program.name}.zip", buf.getvalue()
+
+    return source
+
+
+def check_colour_mode(colour_by: str | None, sim: Path | None) -> None:
+    """Reject an unknown colour mode, or ``deviation`` without simulation results."""
+    if colour_by is None:
+        return
+    if colour_by not in COLOUR_MODES:
+        raise InputError(f"--colour-by must be one of {', '.join(COLOUR_MODES)}, got '{colour_by}'")
+    if colour_by == "deviation" and sim is None:
+        raise InputError("--colour-by deviation needs simulation results: pass --sim DIR")
+
+
+def run_preview(
+    project_path: Path,
+    port: int = 8080,
+    host: str = "127.0.0.1",
+    export: Path | None = None,
+    colour_by: str | None = None,
+    sim: Path | None = None,
+    say: Callable[[str], None] = print,
+    wait: Callable[[], None] | None = None,
+) -> None:
+    """Load a project, plan it and show it live, or export it as one HTML file.
+
+    Parameters
+    ----------
+    project_path
+        Project YAML file or folder.
+    port, host
+        Where the live server listens (the next free port if ``port`` is busy).
+    export
+        Write this HTML file instead of serving.
+    colour_by
+        Colour mode; ``station`` live and ``state`` in an export if ``None``.
+    sim
+        A ``fabflow simulate`` output folder (deviations, localization results).
+    say
+        Prints progress and the address.
+    wait
+        Blocks while the live preview runs (default: until Ctrl-C).
+    """
+    from fabflow.design.generate import generate_elements
+    from fabflow.preview.inputs import model_for_project
+    from fabflow.project import load_project
+    from fabflow.tasks.planner import plan_project
+
+    check_colour_mode(colour_by, sim)
+    if export is not None:
+        from fabflow.preview.export import check_export_target
+
+        check_export_target(export)
+    project = load_project(project_path)
+    elements = generate_elements(project)
+    plan = plan_project(project, elements)
+    model = model_for_project(project, elements, plan, sim_dir=sim)
+    if export is not None:
+        from fabflow.preview.export import export_html
+
+        result = export_html(model, export, project, colour_mode=colour_by or "state")
+        say(
+            f"wrote {result.path.resolve()} ({result.size_bytes / 1e6:.1f} MB, "
+            f"{result.n_steps} steps, plays {result.duration_s:.0f} s)"
+        )
+        return
+
+    from fabflow.preview.app import serve
+
+    live = serve(
+        model,
+        project,
+        host=host,
+        port=port,
+        colour_mode=colour_by or "station",
+        program_source=project_program_source(project, elements, plan, model),
+    )
+    say(f"preview of '{project.name}' at {live.url} (Ctrl-C to stop)")
+    try:
+        if wait is not None:
+            wait()
+        else:
+            while True:
+                time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        live.stop()

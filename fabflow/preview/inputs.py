@@ -1,0 +1,167 @@
+"""Building a preview model from a project, and reading simulation results for it."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from fabflow.design.elements import Element
+from fabflow.errors import InputError
+from fabflow.positioning.result import BasePose
+from fabflow.preview.arm import RobotArm
+from fabflow.preview.model import PreviewModel, build_model
+from fabflow.project import Project
+from fabflow.tasks.plan import Plan
+
+ID_COLUMNS = ("element", "element_id", "id")
+"""Column names accepted for the element id in a deviation table."""
+DEVIATION_COLUMNS = (
+    "deviation_m",
+    "deviation",
+    "translation_error_m",
+    "translation_m",
+    "position_error_m",
+    "dev_translation_m",
+)
+"""Column names accepted for the translational deviation (metres) in a deviation table."""
+
+
+def model_for_project(
+    project: Project,
+    elements: Sequence[Element] | None = None,
+    plan: Plan | None = None,
+    sim_dir: str | Path | None = None,
+    localization: Mapping[int | str, BasePose] | None = None,
+) -> PreviewModel:
+    """The preview model of a project: its elements, plan, robot and results.
+
+    Parameters
+    ----------
+    project
+        The validated project.
+    elements
+        The design's elements; generated from the project if ``None``.
+    plan
+        The plan; planned from the project if ``None``.
+    sim_dir
+        A ``fabflow simulate`` output folder: per-element deviations (mean over
+        runs) and any base-pose JSON files (localization results by station).
+    localization
+        Localization results by work-package index or station id (e.g. from the
+        build's ``localize`` stage); they take precedence over ``sim_dir``'s.
+    """
+    from fabflow.robots import get_robot
+
+    if elements is None:
+        from fabflow.design.generate import generate_elements
+
+        elements = generate_elements(project)
+    if plan is None:
+        from fabflow.tasks.planner import plan_project
+
+        plan = plan_project(project, elements)
+    deviation = None
+    results: dict[int | str, BasePose] = {}
+    if sim_dir is not None:
+        deviation = read_deviations(sim_dir)
+        results.update(read_base_poses(sim_dir))
+    results.update(localization or {})
+    T_flange_tool = project.robot.tool.T_flange_tool.matrix()
+    return build_model(
+        elements,
+        plan,
+        name=project.name,
+        platform=project.robot.platform,
+        T_flange_tool=T_flange_tool,
+        arm=RobotArm(get_robot(project.robot.model), T_flange_tool),
+        deviation=deviation,
+        tolerance=project.tolerances.position,
+        localization=results,
+        method=project.localization.method,
+    )
+
+
+def _deviation_table(path: Path) -> dict[str, list[float]] | None:
+    """Deviations by element id from one CSV file, or ``None`` if it is not such a table."""
+    with path.open(newline="", encoding="utf-8") as f:
+        reader = csv.DictReader(f)
+        fields = [c.strip() for c in (reader.fieldnames or [])]
+        id_col = next((c for c in ID_COLUMNS if c in fields), None)
+        dev_col = next((c for c in DEVIATION_COLUMNS if c in fields), None)
+        if id_col is None or dev_col is None:
+            return None
+        values: dict[str, list[float]] = defaultdict(list)
+        for line, row in enumerate(reader, start=2):
+            row = {k.strip(): v for k, v in row.items() if k is not None}
+            try:
+                values[row[id_col].strip()].append(float(row[dev_col]))
+            except (TypeError, ValueError):
+                raise InputError(
+                    f"column '{dev_col}' must hold a number in metres, got {row.get(dev_col)!r}",
+                    source=path,
+                    location=f"line {line}",
+                ) from None
+    return values
+
+
+def read_deviations(sim_dir: str | Path) -> dict[str, float]:
+    """Mean simulated deviation (metres) per element id from a simulation output folder.
+
+    Every CSV file in the folder (not its subfolders) with an element id column
+    (one of :data:`ID_COLUMNS`) and a deviation column (one of
+    :data:`DEVIATION_COLUMNS`) is read; rows of the same element (one per run)
+    are averaged.
+
+    Raises
+    ------
+    InputError
+        If the folder does not exist or holds no such table.
+    """
+    folder = Path(sim_dir)
+    if not folder.is_dir():
+        raise InputError("simulation output folder does not exist", source=folder)
+    values: dict[str, list[float]] = defaultdict(list)
+    found = False
+    for path in sorted(folder.glob("*.csv")):
+        table = _deviation_table(path)
+        if table is None:
+            continue
+        found = True
+        for eid, v in table.items():
+            values[eid].extend(v)
+    if not found:
+        raise InputError(
+            "no per-element deviation table found: expected a CSV with columns "
+            f"{' or '.join(ID_COLUMNS)} and {' or '.join(DEVIATION_COLUMNS)}",
+            source=folder,
+        )
+    return {eid: float(np.mean(v)) for eid, v in values.items()}
+
+
+def read_base_poses(folder: str | Path) -> dict[str, BasePose]:
+    """Localization results by station id: every base-pose JSON file in a folder tree.
+
+    A file counts when it is a JSON object with ``T_world_base``, ``method`` and
+    ``station``; other JSON files are ignored.
+    """
+    out: dict[str, BasePose] = {}
+    for path in sorted(Path(folder).rglob("*.json")):
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            continue
+        if not isinstance(data, dict) or not {"T_world_base", "method"} <= data.keys():
+            continue
+        if not data.get("station"):
+            continue
+        try:
+            result = BasePose.from_dict(data)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"malformed base pose: {exc}", source=path) from None
+        out[str(result.station)] = result
+    return out
