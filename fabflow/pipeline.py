@@ -15,8 +15,10 @@ from typing import Any
 
 from fabflow import __version__
 from fabflow.design.stage import stage_design
+from fabflow.localization import stage_localize
 from fabflow.output import atomic_output_dir, write_json
 from fabflow.project import Project
+from fabflow.tasks.programs import stage_program
 from fabflow.tasks.stage import stage_plan
 
 
@@ -64,7 +66,13 @@ def stage_project(ctx: BuildContext) -> None:
 
 def stages() -> list[tuple[str, Stage]]:
     """The stages of ``fabflow build``, in order."""
-    return [("project", stage_project), ("design", stage_design), ("plan", stage_plan)]
+    return [
+        ("project", stage_project),
+        ("design", stage_design),
+        ("plan", stage_plan),
+        ("localize", stage_localize),
+        ("program", stage_program),
+    ]
 
 
 def run_build(

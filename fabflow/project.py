@@ -510,9 +510,9 @@ class Simulation(StrictModel):
     """Sensor and execution noise for simulated runs."""
 
     seed: int = 0
-    driving_error: NonNegativeFloat = 0.05
+    driving_error: NonNegativeFloat = 0.02
     """Standard deviation of the platform's parking error per axis (metres)."""
-    driving_heading_error_deg: NonNegativeFloat = 2.0
+    driving_heading_error_deg: NonNegativeFloat = 0.5
     robot_repeatability: NonNegativeFloat = 0.0002
     lift_error: NonNegativeFloat = 0.001
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -76,15 +75,6 @@ def _interpolate(T0: np.ndarray, T1: np.ndarray, s: np.ndarray) -> np.ndarray:
     return out
 
 
-@dataclass(frozen=True)
-class _Segment:
-    """Samples of one linear move, for the batched IK check."""
-
-    move: int
-    start: int
-    stop: int
-
-
 def _fail(wp: Waypoint, why: str, T_base_tool: np.ndarray) -> InfeasibleError:
     x, y, z = T_base_tool[:3, 3]
     return InfeasibleError(
@@ -132,91 +122,62 @@ def solve_moves(
     n = len(waypoints)
     if n == 0:
         return np.zeros((0, robot.dof)), [], []
-    T_flange_tool = np.asarray(T_flange_tool, dtype=float)
-    T_tool_flange = np.linalg.inv(T_flange_tool)
+    T_tool_flange = np.linalg.inv(np.asarray(T_flange_tool, dtype=float))
     T_world_tool = np.stack([w.T_world_tool for w in waypoints])
-    T_base_tool = T_base_world @ T_world_tool
-    T_base_flange = T_base_tool @ T_tool_flange
-    q_all, valid = robot.ik_batch(T_base_flange)
+    # Every target, preceded for linear moves by samples one controller step apart.
+    blocks: list[np.ndarray] = []
+    for i, wp in enumerate(waypoints):
+        if wp.kind == "lin" and i > 0:
+            T0, T1 = T_world_tool[i - 1], T_world_tool[i]
+            dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+            angle = float(np.linalg.norm(log_so3(T0[:3, :3].T @ T1[:3, :3])))
+            k = max(math.ceil(dist / STEP_TRANSLATION), math.ceil(angle / STEP_ROTATION), 1)
+            blocks.append(_interpolate(T0, T1, np.arange(1, k + 1) / k))
+        else:
+            blocks.append(T_world_tool[i][None])
+    stops = np.cumsum([len(b) for b in blocks])
+    flat = np.concatenate(blocks)
+    flat[stops - 1] = T_world_tool  # targets exactly as given, not re-interpolated
+    T_base_tool = T_base_world @ flat
+    q_all, valid = robot.ik_batch(T_base_tool @ T_tool_flange)
+
     q_prev = (
         robot.joint_limits.mean(axis=1) if q_start is None else np.asarray(q_start, dtype=float)
     )
     q_out = np.zeros((n, robot.dof))
-    branch = np.full(n, -1)
-    for i, wp in enumerate(waypoints):
-        if wp.kind == "lin" and i > 0:
-            b = branch[i - 1]
-            if not valid[i, b]:
-                raise _fail(
-                    wp,
-                    "cannot be reached by a linear move in the same configuration",
-                    T_base_tool[i],
-                )
-        else:
-            candidates = np.flatnonzero(valid[i])
-            if len(candidates) == 0:
-                raise _fail(
-                    wp, "no inverse kinematics solution within the joint limits", T_base_tool[i]
-                )
-            turned = robot.nearest_turn(q_all[i, candidates], q_prev)
-            b = candidates[int(np.argmin(np.abs(turned - q_prev).max(axis=1)))]
-        q = robot.nearest_turn(q_all[i, b], q_prev)
-        if not robot.within_limits(q):
-            raise _fail(
-                wp,
-                "the configuration reached from the previous one leaves the joint limits",
-                T_base_tool[i],
-            )
-        q_out[i], branch[i] = q, b
-        q_prev = q
-
-    # Sample every linear move and check it in one batch.
-    segments: list[_Segment] = []
-    samples: list[np.ndarray] = []
-    count = 0
-    for i in range(1, n):
-        if waypoints[i].kind != "lin":
-            continue
-        T0, T1 = T_world_tool[i - 1], T_world_tool[i]
-        dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
-        angle = float(np.linalg.norm(log_so3(T0[:3, :3].T @ T1[:3, :3])))
-        k = max(math.ceil(dist / STEP_TRANSLATION), math.ceil(angle / STEP_ROTATION), 1)
-        if k > 1:
-            samples.append(_interpolate(T0, T1, np.arange(1, k) / k))
-            segments.append(_Segment(i, count, count + k - 1))
-            count += k - 1
     via_q: list[np.ndarray | None] = [None] * n
     via_T: list[np.ndarray | None] = [None] * n
-    if not segments:
-        return q_out, via_q, via_T
-    S_world = np.concatenate(samples)
-    refs = np.concatenate(
-        [np.repeat(q_out[s.move - 1][None], s.stop - s.start, 0) for s in segments]
-    )
-    qs, ok = robot.ik_batch(T_base_world @ S_world @ T_tool_flange, q_ref=refs)
-    for s in segments:
-        b = branch[s.move]
-        seg_ok = ok[s.start : s.stop, b]
-        wp = waypoints[s.move]
-        if not seg_ok.all():
-            bad = s.start + int(np.argmin(seg_ok))
-            raise _fail(
-                wp,
-                "the linear move to it crosses a joint limit or leaves the workspace",
-                T_base_world @ S_world[bad],
-            )
-        path = np.concatenate(
-            [q_out[s.move - 1][None], qs[s.start : s.stop, b], q_out[s.move][None]]
-        )
-        jumps = np.abs(np.diff(path, axis=0)).max(axis=1)
-        if jumps.max() > MAX_JOINT_JUMP:
-            raise _fail(
-                wp,
-                "the linear move to it passes a singularity or changes configuration",
-                T_base_tool[s.move],
-            )
-        via_q[s.move] = qs[s.start : s.stop, b]
-        via_T[s.move] = S_world[s.start : s.stop]
+    start = 0
+    for i, wp in enumerate(waypoints):
+        linear = wp.kind == "lin" and i > 0
+        path = np.zeros((stops[i] - start, robot.dof))
+        for j in range(start, stops[i]):
+            at_target = j == stops[i] - 1
+            candidates = q_all[j][valid[j]]
+            if len(candidates) == 0:
+                why = (
+                    "no inverse kinematics solution within the joint limits"
+                    if at_target
+                    else "the linear move to it crosses a joint limit or leaves the workspace"
+                )
+                raise _fail(wp, why, T_base_tool[j])
+            turned = robot.nearest_turn(candidates, q_prev)
+            jump = np.abs(turned - q_prev).max(axis=1)
+            best = int(np.argmin(jump))
+            if linear and jump[best] > MAX_JOINT_JUMP:
+                raise _fail(
+                    wp,
+                    "the linear move to it changes configuration (a joint would jump "
+                    f"{np.degrees(jump[best]):.0f} deg)",
+                    T_base_tool[j],
+                )
+            q_prev = turned[best]
+            path[j - start] = q_prev
+        q_out[i] = q_prev
+        if len(path) > 1:
+            via_q[i] = path[:-1]
+            via_T[i] = flat[start : stops[i] - 1]
+        start = stops[i]
     return q_out, via_q, via_T
 
 
