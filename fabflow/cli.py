@@ -178,6 +178,12 @@ def localize_total_station(
     keep_outliers: Annotated[
         bool, typer.Option("--keep-outliers", help="Do not drop a flagged bad prism reading.")
     ] = False,
+    robot: Annotated[
+        str | None, typer.Option(help="Robot model for robot points given as joint values.")
+    ] = None,
+    tcp_xyz: Annotated[
+        str | None, typer.Option(help="Prism position 'x,y,z' in the flange frame (m).")
+    ] = None,
     station: Annotated[str | None, typer.Option(help="Station id stored in the result.")] = None,
 ) -> None:
     """Localize the robot base from total station readings of prisms on the robot."""
@@ -202,6 +208,8 @@ def localize_total_station(
         method="optimize" if optimize else "closed_form",
         reject_outlier=not keep_outliers,
         station=station,
+        robot=robot,
+        tcp_xyz=tcp_xyz,
     )
     with atomic_output_dir(out) as staging:
         pose.write(staging / "base_pose.json")
