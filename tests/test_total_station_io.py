@@ -91,16 +91,18 @@ def test_csv_sample_and_robot_points() -> None:
     assert obs.point_ids == ("P1", "P2", "P3", "P4", "P5")
     assert obs.lines[0] == 3  # after the comment and the header
     assert obs.hz[2] == pytest.approx(51.72527 * GON)
-    ids, pts = read_robot_points(DATA / "robot_points.csv")
-    assert ids[-1] == "P9" and pts.shape == (6, 3)
-    np.testing.assert_allclose(pts[1], [1.5, -0.8, 1.6])
+    rp = read_robot_points(DATA / "robot_points.csv")
+    assert rp.point_ids[-1] == "P9" and rp.xyz is not None and rp.xyz.shape == (6, 3)
+    assert rp.joints is None and rp.lines[0] == 2
+    np.testing.assert_allclose(rp.xyz[1], [1.5, -0.8, 1.6])
 
 
 @pytest.mark.parametrize("name", ["obs_gsi8.gsi", "obs_gsi16.gsi", "obs.csv"])
 def test_samples_localize_the_known_pose(name: str) -> None:
     obs = read_observations(DATA / name)
-    ids, pts = read_robot_points(DATA / "robot_points.csv")
-    reg, matched = localize_observations(obs, ids, pts, INSTRUMENTS["leica_ms50"])
+    rp = read_robot_points(DATA / "robot_points.csv")
+    assert rp.xyz is not None
+    reg, matched = localize_observations(obs, rp.point_ids, rp.xyz, INSTRUMENTS["leica_ms50"])
     assert matched == ("P1", "P2", "P3", "P4", "P5")
     err = pose_error(reg.T_world_base, T_TRUE)
     assert np.linalg.norm(err[:3]) < 1e-3  # readings rounded to 1 mm / 0.1 mm
@@ -151,6 +153,48 @@ def test_localize_files_with_instrument_pose() -> None:
     assert pose.station == "S1" and pose.quality["point_ids"][0] == "P1"
     with pytest.raises(InputError, match="three numbers"):
         localize_files(DATA / "obs.csv", DATA / "robot_points.csv", instrument_xyz="1,2")
+
+
+def test_robot_points_as_joint_values(tmp_path: Path) -> None:
+    from fabflow.positioning.polar import cartesian_to_polar
+    from fabflow.robots import get_robot
+    from fabflow.transforms.se3 import apply_T
+
+    q_deg = np.array(
+        [
+            [10, -70, 100, 0, 40, 0],
+            [-35, -50, 80, 20, 60, 10],
+            [60, -80, 110, -10, 30, 0],
+            [0, -40, 60, 0, 70, 45],
+            [-70, -65, 95, 5, 45, -20],
+        ],
+        dtype=float,
+    )
+    T_flange_prism = make_T(np.eye(3), [0.0, 0.0, 0.2])
+    P = (get_robot("kuka_kr60_3").fk(np.radians(q_deg)) @ T_flange_prism)[:, :3, 3]
+    hz, v, sd = cartesian_to_polar(apply_T(T_TRUE, P))
+    obs = tmp_path / "obs.csv"
+    obs.write_text(
+        "point_id,hz_gon,v_gon,slope_distance_m\n"
+        + "".join(f"J{k},{hz[k] / GON:.6f},{v[k] / GON:.6f},{sd[k]:.5f}\n" for k in range(5))
+    )
+    pts = tmp_path / "joints.csv"
+    pts.write_text(
+        "point_id,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg\n"
+        + "".join(f"J{k}," + ",".join(f"{x:g}" for x in q_deg[k]) + "\n" for k in range(5))
+    )
+    rp = read_robot_points(pts)
+    assert rp.xyz is None and rp.joints is not None and rp.joints.shape == (5, 6)
+    pose = localize_files(obs, pts, robot="kuka_kr60_3", tcp_xyz="0,0,0.2")
+    assert np.linalg.norm(pose_error(pose.T_world_base, T_TRUE)[:3]) < 2e-4
+    with pytest.raises(InputError, match="name the robot"):
+        localize_files(obs, pts)
+    with pytest.raises(InputError, match="has 5 joints but the file gives 6"):
+        localize_files(obs, pts, robot="brokk_170")
+    far = tmp_path / "far.csv"
+    far.write_text(pts.read_text().replace("J2,60,", "J2,200,"))
+    with pytest.raises(InputError, match="line 4: joint values outside the limits"):
+        localize_files(obs, far, robot="kuka_kr60_3")
 
 
 def test_cli_writes_base_pose(tmp_path: Path) -> None:

@@ -1005,6 +1005,37 @@ def localize_station(
     return reg.to_base_pose(station=station_id, quality=quality)
 
 
+def prism_points_from_joints(
+    model: str,
+    joints: np.ndarray,
+    T_flange_prism: np.ndarray,
+    source: str | None = None,
+    lines: Sequence[int] = (),
+) -> np.ndarray:
+    """Prism positions ``(n, 3)`` in the base frame from joint values ``(n, dof)`` (radians).
+
+    Raises
+    ------
+    InputError
+        When the number of joints does not match the robot or a configuration
+        lies outside the joint limits (the robot cannot have stood there).
+    """
+    from fabflow.robots import get_robot
+
+    rob = get_robot(model)
+    q = np.asarray(joints, dtype=float)
+    if q.shape[1] != rob.dof:
+        raise InputError(
+            f"{model} has {rob.dof} joints but the file gives {q.shape[1]} (q1_deg..)", source
+        )
+    ok = rob.within_limits(q)
+    if not ok.all():
+        k = int(np.argmin(ok))
+        where = f"line {lines[k]}" if lines else None
+        raise InputError(f"joint values outside the limits of {model}", source, where)
+    return (rob.fk(q) @ np.asarray(T_flange_prism, dtype=float))[:, :3, 3]
+
+
 def _triple(text: str | None, name: str, default: tuple[float, float, float]) -> np.ndarray:
     if text is None:
         return np.asarray(default, dtype=float)
@@ -1033,6 +1064,8 @@ def localize_files(
     method: Literal["closed_form", "optimize"] = "closed_form",
     reject_outlier: bool = True,
     station: str | None = None,
+    robot: str | None = None,
+    tcp_xyz: str | None = None,
 ) -> BasePose:
     """Localize from an observation file and a robot point file (CLI ``localize total-station``).
 
@@ -1040,7 +1073,10 @@ def localize_files(
     ``localization.total_station`` section when ``project`` is given, else from
     the defaults (Leica MS50, instrument frame = world); the keyword arguments
     override either. Pose strings are ``"x,y,z"`` (metres) and ``"A,B,C"``
-    (degrees, R = Rz(A) Ry(B) Rx(C)).
+    (degrees, R = Rz(A) Ry(B) Rx(C)). A robot point file of joint values is
+    turned into prism positions by forward kinematics of ``robot`` (else the
+    project's robot) with the prism at the project's TCP, or at ``tcp_xyz``
+    (metres, flange frame).
     """
     setup = TotalStationSetup()
     if project is not None and project.localization.total_station is not None:
@@ -1058,9 +1094,25 @@ def localize_files(
     hi = setup.instrument_height if instrument_height is None else instrument_height
     T_world_instrument[:3, 3] += T_world_instrument[:3, 2] * hi
     obs = read_observations(observations_path)
-    ids, pts = read_robot_points(robot_points_path)
+    rp = read_robot_points(robot_points_path)
+    if rp.xyz is not None:
+        pts = rp.xyz
+    else:
+        assert rp.joints is not None
+        model = robot or (project.robot.model if project is not None else None)
+        if model is None:
+            raise InputError(
+                "the robot point file holds joint values; name the robot (--robot or --project)",
+                rp.source,
+            )
+        T_flange_tool = (
+            project.robot.tool.T_flange_tool.matrix() if project is not None else np.eye(4)
+        )
+        if tcp_xyz is not None:
+            T_flange_tool = make_T(T_flange_tool[:3, :3], _triple(tcp_xyz, "--tcp-xyz", (0, 0, 0)))
+        pts = prism_points_from_joints(model, rp.joints, T_flange_tool, rp.source, rp.lines)
     reg, matched = localize_observations(
-        obs, ids, pts, inst, T_world_instrument, robot_sigma, method, reject_outlier
+        obs, rp.point_ids, pts, inst, T_world_instrument, robot_sigma, method, reject_outlier
     )
     quality = {
         "instrument": inst.name,

@@ -14,6 +14,12 @@ controller's forward kinematics)::
 
     point_id,x_m,y_m,z_m
     P1,1.2,0.4,0.9
+
+or the joint values the robot stood at, in degrees, which fabflow turns into
+prism positions by forward kinematics of the robot model and the tool::
+
+    point_id,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg
+    P1,10,-60,100,0,50,0
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -157,23 +164,58 @@ def read_observations(path: str | Path) -> Observations:
     return parse_gsi(_read_text(path, "GSI"), path)
 
 
-def read_robot_points(path: str | Path) -> tuple[tuple[str, ...], np.ndarray]:
-    """Read a robot point CSV: ids and ``(n, 3)`` prism positions in the base frame (metres)."""
+@dataclass(frozen=True, eq=False)
+class RobotPoints:
+    """Prism positions read from a robot point file.
+
+    Attributes
+    ----------
+    point_ids
+        Ids matched against the observations.
+    xyz
+        ``(n, 3)`` prism positions in the base frame (metres), or None when the
+        file holds joint values.
+    joints
+        ``(n, dof)`` joint values (radians) from columns ``q1_deg, q2_deg, ...``,
+        or None when the file holds positions.
+    source
+        The file.
+    lines
+        1-based line of each row.
+    """
+
+    point_ids: tuple[str, ...]
+    xyz: np.ndarray | None
+    joints: np.ndarray | None
+    source: str
+    lines: tuple[int, ...]
+
+
+def read_robot_points(path: str | Path) -> RobotPoints:
+    """Read a robot point CSV: ``point_id,x_m,y_m,z_m`` or ``point_id,q1_deg,...,qN_deg``."""
     path = Path(path)
     header, rows = _rows(_read_text(path, "robot point"), path)
     ic = _id_column(header, path)
-    cols = next(
+    cols: tuple[str, ...] | None = next(
         (c for c in (("x_m", "y_m", "z_m"), ("x", "y", "z")) if all(k in header for k in c)),
         None,
     )
-    if cols is None:
+    joints = cols is None
+    if joints:
+        k = 1
+        while f"q{k}_deg" in header:
+            k += 1
+        cols = tuple(f"q{j}_deg" for j in range(1, k))
+    if not cols:
         raise InputError(
-            f"expected columns point_id,x_m,y_m,z_m; header is {', '.join(header)}",
+            "expected columns point_id,x_m,y_m,z_m (base frame) or point_id,q1_deg,...,qN_deg "
+            f"(joint values); header is {', '.join(header)}",
             path,
             "line 1",
         )
     ids: list[str] = []
-    pts: list[list[float]] = []
+    values: list[list[float]] = []
+    lines: list[int] = []
     seen: dict[str, int] = {}
     for line, row in rows:
         if len(row) != len(header):
@@ -189,12 +231,22 @@ def read_robot_points(path: str | Path) -> tuple[tuple[str, ...], np.ndarray]:
                 path,
                 f"line {line}",
             )
-        xyz = [_number(row[header.index(c)], c, path, line) for c in cols]
-        if not all(math.isfinite(v) for v in xyz):
-            raise InputError(f"point {pid!r}: x, y and z are required", path, f"line {line}")
+        v = [_number(row[header.index(c)], c, path, line) for c in cols]
+        if not all(math.isfinite(x) for x in v):
+            raise InputError(
+                f"point {pid!r}: every one of {', '.join(cols)} is required", path, f"line {line}"
+            )
         seen[pid] = line
         ids.append(pid)
-        pts.append(xyz)
-    if not pts:
+        values.append(v)
+        lines.append(line)
+    if not values:
         raise InputError("no robot points after the header", path)
-    return tuple(ids), np.asarray(pts, dtype=float)
+    a = np.asarray(values, dtype=float)
+    return RobotPoints(
+        point_ids=tuple(ids),
+        xyz=None if joints else a,
+        joints=np.radians(a) if joints else None,
+        source=str(path),
+        lines=tuple(lines),
+    )
