@@ -36,6 +36,17 @@ def site_sensors(project: Project) -> tuple[dict[str, np.ndarray] | None, np.nda
     return anchors, instrument
 
 
+def _runs(counts: np.ndarray) -> str:
+    """Counts per layer as runs: ``"25 (0-7), 21 (8-17), ..."``."""
+    edges = np.flatnonzero(np.diff(counts)) + 1
+    starts = np.concatenate(([0], edges))
+    ends = np.concatenate((edges, [len(counts)])) - 1
+    return ", ".join(
+        f"{counts[a]} ({a})" if a == b else f"{counts[a]} ({a}-{b})"
+        for a, b in zip(starts, ends, strict=True)
+    )
+
+
 def design_summary(elements: list[Element]) -> list[tuple[str, Any]]:
     """Summary rows: counts per type and part, layers, print path lengths."""
     rows: list[tuple[str, Any]] = []
@@ -47,6 +58,8 @@ def design_summary(elements: list[Element]) -> list[tuple[str, Any]]:
         robot_layers = {e.layer for e in blocks if e.robot_built}
         rows.append(("blocks", f"{len(blocks)} ({robot} robot-built)"))
         rows.append(("blocks per part", ", ".join(f"{p} {n}" for p, n in sorted(parts.items()))))
+        per_layer = np.bincount([e.layer for e in blocks])
+        rows.append(("blocks per layer", _runs(per_layer)))
         rows.append(
             (
                 "block layers",
