@@ -223,6 +223,10 @@ class TotalStationSetup(StrictModel):
     """Lowest allowed prism height above the arm base (metres)."""
     tool_half_extents: tuple[PositiveFloat, PositiveFloat, PositiveFloat] = (0.15, 0.15, 0.2)
     """Half sizes of the tool's bounding box around the prism, kept clear of the structure."""
+    setup_sigma_mm: NonNegativeFloat = 0.0
+    """Uncertainty of the instrument's set-up position, per axis (mm)."""
+    setup_sigma_arcsec: NonNegativeFloat = 0.0
+    """Uncertainty of the instrument's set-up orientation (Hz zero) about the vertical (")."""
 
     @model_validator(mode="after")
     def _custom_and_files(self) -> TotalStationSetup:
