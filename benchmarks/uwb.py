@@ -98,8 +98,9 @@ def cm(v: Any) -> str:
     return " ".join(f"{100 * x:5.1f}" for x in np.atleast_1d(v))
 
 
-def gain(a: float, b: float) -> str:
-    return f"{100 * (1 - b / a):4.0f} %"
+def pct(a: float, b: float) -> str:
+    """Gain of ``b`` over ``a`` in percent, as an integer string (no "-0")."""
+    return str(round(100 * (1 - b / a)) + 0)
 
 
 # ------------------------------------------------------------------- static
@@ -204,13 +205,8 @@ def static_full(rng: np.random.Generator, n: int) -> dict[str, Any]:
             paper = PAPER_STATIC[name].get(m)
             if paper is not None:
                 pl = PAPER_STATIC[name]["ls"]
-                pg = (
-                    " / ".join(f"{100 * (1 - b / a):.0f}" for a, b in zip(pl, paper, strict=True))
-                    + " %"
-                )
-            g = " / ".join(
-                f"{100 * (1 - b / a):.0f}" for a, b in zip(full["mae"]["ls"], f, strict=True)
-            )
+                pg = " / ".join(pct(a, b) for a, b in zip(pl, paper, strict=True)) + " %"
+            g = " / ".join(pct(a, b) for a, b in zip(full["mae"]["ls"], f, strict=True))
             print(
                 f"   {m:6s}  {cm(c):20s} {cm(f):20s} {g + ' %':14s} "
                 f"{' '.join(f'{v:5.1f}' for v in paper) if paper else '':14s} {pg}"
