@@ -181,3 +181,26 @@ def test_procedure_a_error_grows_and_b_does_not() -> None:
     assert a[-1] > 3 * b[-1]
     rows = study.table()
     assert len(rows) == 4 and rows[0][0] == 1
+
+
+def test_instrument_setup_uncertainty_propagates() -> None:
+    from fabflow.positioning.total_station import add_instrument_uncertainty, register_points
+
+    # a heading error a of an instrument 10 m away moves the base sideways by 10 a
+    T_wi = make_T(np.eye(3), [0.0, -10.0, 1.6])
+    T_base = make_T(np.eye(3), [0.0, 0.0, 0.6])
+    P = np.array([[1.0, 0.5, 0.5], [1.5, -0.5, 1.0], [0.5, 1.0, 1.5], [2.0, 0.0, 0.8]])
+    reg = register_points(P, apply_T(T_base, P), sigma=1e-6)
+    a = 1e-4
+    C_wi = np.diag([0.0, 0.0, 0.0, 0.0, 0.0, a * a])
+    out = add_instrument_uncertainty(reg, T_wi, C_wi)
+    extra = out.covariance - reg.covariance
+    assert np.sqrt(extra[0, 0]) == pytest.approx(10.0 * a, rel=1e-6)
+    assert extra[1, 1] == pytest.approx(0.0, abs=1e-15)
+    assert np.sqrt(extra[5, 5]) == pytest.approx(a)
+    setup = "setup_sigma_mm: 3\n    setup_sigma_arcsec: 10"
+    p = parse_project(PROJECT.replace("n_points: 5", setup))
+    bp = localize_station(p, T_base, np.random.default_rng(2), "S1")
+    assert np.sqrt(bp.covariance[2, 2]) > 3e-3
+    err = pose_error(bp.T_world_base, T_base)
+    assert err @ np.linalg.solve(bp.covariance, err) < 30

@@ -42,6 +42,7 @@ from fabflow.positioning.point_selection import (
     workspace_for_robot,
 )
 from fabflow.positioning.polar import (
+    ARCSEC,
     Instrument,
     Observations,
     make_instrument,
@@ -53,7 +54,7 @@ from fabflow.positioning.polar import (
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.ts_io import read_observations, read_robot_points
 from fabflow.project import TotalStationSetup
-from fabflow.transforms.se3 import apply_T, inv_T, make_T
+from fabflow.transforms.se3 import apply_T, compose_covariance, inv_T, make_T, perturb
 from fabflow.transforms.so3 import exp_so3, log_so3, matrix_from_abc
 
 if TYPE_CHECKING:
@@ -895,6 +896,33 @@ def _cached_optimal_points(n: int, workspace: Workspace) -> np.ndarray:
     return optimal_points(n, replace(workspace, reachable=None), np.random.default_rng(0))
 
 
+def setup_covariance(setup: TotalStationSetup) -> np.ndarray:
+    """6x6 covariance of ``T_world_instrument`` from the set-up uncertainty fields.
+
+    The instrument is levelled by its compensator, so only its position and
+    its orientation about the vertical are uncertain.
+    """
+    s = setup.setup_sigma_mm * 1e-3
+    a = setup.setup_sigma_arcsec * ARCSEC
+    return np.diag([s * s, s * s, s * s, 0.0, 0.0, a * a])
+
+
+def add_instrument_uncertainty(
+    reg: Registration, T_world_instrument: np.ndarray, C_world_instrument: np.ndarray
+) -> Registration:
+    """Add the uncertainty of the instrument pose to a registration made in the world frame.
+
+    The measured world points are ``T_world_instrument`` applied to the
+    instrument's readings, so ``T_world_base = T_world_instrument @ T_instrument_base``
+    and the set-up error propagates by :func:`~fabflow.transforms.se3.compose_covariance`.
+    """
+    if not np.any(C_world_instrument):
+        return reg
+    T_instrument_base = inv_T(T_world_instrument) @ reg.T_world_base
+    C = compose_covariance(T_world_instrument, C_world_instrument, T_instrument_base, None)
+    return replace(reg, covariance=reg.covariance + 0.5 * (C + C.T))
+
+
 def instrument_for(setup: TotalStationSetup) -> Instrument:
     """The accuracy model of a project's total station setup."""
     return make_instrument(
@@ -981,7 +1009,12 @@ def localize_station(
     P_base = kin.prism_points(P_des) if kin is not None else P_des
     sigma_robot = project.simulation.robot_repeatability
     P_true = P_base + rng.normal(0.0, 1.0, P_base.shape) * sigma_robot
-    p_instr = apply_T(inv_T(T_world_instrument), apply_T(T_world_base, P_true))
+    # the instrument really stands where its (uncertain) set-up puts it, off by a draw
+    C_setup = setup_covariance(setup)
+    T_world_instrument_true = perturb(
+        T_world_instrument, rng.normal(0.0, 1.0, 6) * np.sqrt(np.diag(C_setup))
+    )
+    p_instr = apply_T(inv_T(T_world_instrument_true), apply_T(T_world_base, P_true))
     hz, v, sd = simulate_polar(p_instr, instrument, rng)
     M, C = to_world(
         T_world_instrument, polar_to_cartesian(hz, v, sd), polar_covariance(hz, v, sd, instrument)
@@ -993,6 +1026,7 @@ def localize_station(
         reg = register_points(
             P_base, M, point_cov=C, base_sigma=sigma_robot, reject_outlier=setup.n_points >= 5
         )
+    reg = add_instrument_uncertainty(reg, T_world_instrument, C_setup)
     quality = {
         "procedure": setup.procedure,
         "instrument": instrument.name,
@@ -1114,6 +1148,8 @@ def localize_files(
     reg, matched = localize_observations(
         obs, rp.point_ids, pts, inst, T_world_instrument, robot_sigma, method, reject_outlier
     )
+    if project is not None:
+        reg = add_instrument_uncertainty(reg, T_world_instrument, setup_covariance(setup))
     quality = {
         "instrument": inst.name,
         "point_ids": list(matched),
