@@ -1,0 +1,163 @@
+"""``fabflow preview``: export and live mode on a small project, inputs, errors, build stage."""
+
+from __future__ import annotations
+
+import io
+import json
+import urllib.request
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from fabflow.cli import app
+from fabflow.design.generate import generate_elements
+from fabflow.errors import InputError
+from fabflow.pipeline import BuildContext
+from fabflow.positioning.result import BasePose
+from fabflow.preview.command import project_program_source, run_preview
+from fabflow.preview.inputs import model_for_project, read_base_poses, read_deviations
+from fabflow.preview.stage import stage_preview
+from fabflow.project import load_project
+from fabflow.tasks.planner import plan_project
+
+TINY = """\
+name: tiny
+site:
+  extent_min: [-3.0, -3.0]
+  extent_max: [5.0, 5.0]
+robot:
+  model: kuka_kr60_3
+localization:
+  method: total_station
+elements:
+  - cabin:
+      length: 1.8
+      width: 1.2
+      height: 0.42
+      eave_height: 0.42
+      openings: []
+"""
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("tiny")
+    (folder / "project.yaml").write_text(TINY, encoding="utf-8")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def planned(tiny: Path):
+    project = load_project(tiny)
+    elements = generate_elements(project)
+    return project, elements, plan_project(project, elements)
+
+
+def test_export_command_writes_one_html_file(tiny: Path, tmp_path: Path) -> None:
+    out = tmp_path / "tiny.html"
+    result = CliRunner().invoke(app, ["preview", str(tiny), "--export", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "wrote" in result.output and "steps" in result.output
+    html = out.read_text(encoding="utf-8")
+    assert html.startswith("<!") and "__VISER_EMBED_DATA__" in html
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--colour-by", "rainbow"], "--colour-by must be one of"),
+        (["--colour-by", "deviation"], "--sim DIR"),
+        (["--export", "/nonexistent-folder/x.html"], "does not exist"),
+        (["--sim", "/nonexistent-folder", "--export", "x.html"], "does not exist"),
+    ],
+)
+def test_bad_options_are_one_message_and_exit_2(tiny: Path, args: list[str], message: str) -> None:
+    result = CliRunner().invoke(app, ["preview", str(tiny), *args])
+    assert result.exit_code == 2, result.output
+    assert message in result.output
+    assert "Traceback" not in result.output
+
+
+def test_live_mode_serves_the_page(tiny: Path) -> None:
+    seen: list[str] = []
+    pages: list[bytes] = []
+
+    def wait() -> None:
+        url = seen[-1].split(" at ")[1].split()[0]
+        with urllib.request.urlopen(url, timeout=30) as response:
+            pages.append(response.read())
+
+    run_preview(tiny, port=0, say=seen.append, wait=wait)
+    assert "preview of 'tiny' at http://127.0.0.1:" in seen[-1]
+    assert b"<html" in pages[0].lower()
+
+
+def test_sim_folder_gives_deviation_colours_and_base_poses(planned, tmp_path: Path) -> None:
+    project, elements, plan = planned
+    blocks = [e for e in elements if e.robot_built][:4]
+    rows = ["run,element_id,deviation_m"]
+    for run in range(2):
+        rows += [f"{run},{e.id},{0.001 * (i + 1) * (run + 1)}" for i, e in enumerate(blocks)]
+    (tmp_path / "elements.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
+    (tmp_path / "summary.json").write_text(json.dumps({"rmse": 0.01}), encoding="utf-8")
+    wp = plan.work_packages[0]
+    pose = BasePose(
+        T_world_base=np.eye(4),
+        covariance=np.eye(6) * 1e-6,
+        method="total_station",
+        residuals=np.full((4, 3), 0.001),
+        rmse=0.0017,
+        station=wp.station.id,
+    )
+    (tmp_path / "stations").mkdir()
+    pose.write(tmp_path / "stations" / "base_pose.json")
+
+    dev = read_deviations(tmp_path)
+    assert dev[blocks[1].id] == pytest.approx((0.002 + 0.004) / 2)
+    assert read_base_poses(tmp_path)[wp.station.id].rmse == pytest.approx(0.0017)
+
+    model = model_for_project(project, elements, plan, sim_dir=tmp_path)
+    assert "deviation" in model.colour_modes()
+    colours = model.element_colours("deviation", 0)
+    i0, i3 = (model.elements.index(b) for b in (blocks[0], blocks[3]))
+    assert colours[i0, 0] < colours[i3, 0]  # redder with more deviation
+    assert model.localization_at(0).rmse == pytest.approx(0.0017)
+
+    out = tmp_path / "dev.html"
+    result = CliRunner().invoke(
+        app,
+        ["preview", str(project.path), "--sim", str(tmp_path), "--colour-by", "deviation",
+         "--export", str(out)],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert out.stat().st_size > 0
+
+
+def test_bad_deviation_table_names_file_and_line(tmp_path: Path) -> None:
+    (tmp_path / "d.csv").write_text("element,deviation_m\nB0000,0.001\nB0001,abc\n")
+    with pytest.raises(InputError, match=r"d\.csv: line 3: column 'deviation_m'"):
+        read_deviations(tmp_path)
+    (tmp_path / "d.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(InputError, match="no per-element deviation table"):
+        read_deviations(tmp_path)
+
+
+def test_download_gives_the_projects_program(planned) -> None:
+    project, elements, plan = planned
+    model = model_for_project(project, elements, plan)
+    name, data = project_program_source(project, elements, plan, model)(0)
+    assert name.endswith(".zip")
+    names = zipfile.ZipFile(io.BytesIO(data)).namelist()
+    assert {Path(n).suffix for n in names} == {".src", ".dat"}
+
+
+def test_build_stage_writes_preview_html(planned, tmp_path: Path) -> None:
+    project, elements, plan = planned
+    ctx = BuildContext(project=project, out=tmp_path)
+    ctx.results.update(elements=elements, plan=plan)
+    stage_preview(ctx)
+    assert (tmp_path / "preview.html").stat().st_size == ctx.results["preview"].size_bytes
+    assert any(stage == "preview" for stage, _, _ in ctx.summary)
