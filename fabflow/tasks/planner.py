@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import shapely
+from scipy import sparse
 
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError, InputError, UnsupportedError
@@ -171,6 +172,34 @@ def _explain_unreachable(
     )
 
 
+def _descendants(
+    blocked: sparse.csr_matrix, src: np.ndarray, dst: np.ndarray, n: int
+) -> sparse.csr_matrix:
+    """Per candidate, its blocked elements and everything resting on them (transitively).
+
+    Parameters
+    ----------
+    blocked
+        (C, n) bool: elements under each candidate's footprint.
+    src, dst
+        Support edges (dst rests on src).
+    n
+        Number of elements.
+    """
+    up = sparse.csr_matrix((np.ones(len(src), dtype=np.int64), (src, dst)), shape=(n, n))
+    reach = blocked.astype(np.int64).tocsr()
+    frontier = reach
+    while frontier.nnz:
+        step = (frontier @ up).tocsr()
+        step.data[:] = 1
+        new = step - step.multiply(reach)
+        new.eliminate_zeros()
+        reach = (reach + new).tocsr()
+        frontier = new
+    reach.data[:] = 1
+    return reach
+
+
 def plan_project(
     project: Project,
     elements: Sequence[Element],
@@ -265,6 +294,23 @@ def plan_project(
     blocked = cands.blocked[:, idx_work].tocsr()
     t_cov = time.perf_counter()
 
+    # A candidate standing where robot-built elements go cannot build anything that
+    # rests on them. Such candidates are used only when the others cannot reach
+    # everything, and then lose the elements above what they stand on.
+    n_blocked = np.diff(blocked.indptr)
+    A_free = A.multiply((n_blocked == 0)[:, None].astype(np.int64)).tocsr()
+    A_free.eliminate_zeros()
+    if (np.diff(A_free.tocsc().indptr) > 0).all():
+        A = A_free.tocsr()
+    elif n_blocked.any():
+        above = _descendants(blocked, src, dst, n)
+        A = (A - A.multiply(above)).tocsr()
+        A.eliminate_zeros()
+        notes.append(
+            f"{int((n_blocked > 0).sum())} candidate stations stand where robot-built elements "
+            "go; they were considered because the others do not reach everything"
+        )
+
     reachable = np.diff(A.tocsc().indptr) > 0
     if not reachable.all():
         raise _explain_unreachable(
@@ -272,7 +318,6 @@ def plan_project(
         )
 
     start = np.asarray(planning.start if planning.start is not None else project.site.extent_min)
-    n_blocked = np.diff(blocked.indptr)
     res = select_stations(
         A, np.ones(n, dtype=bool), cands.base_xy, cands.xy, n_blocked, reach.r_max, start
     )

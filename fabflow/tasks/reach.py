@@ -13,8 +13,9 @@ tool and cached:
   the wrist centre, ``d6 + tool offset`` above the TCP, must lie in the annulus
   the shoulder and elbow links sweep (shrunk by a small margin), and the
   forearm may rise at most ``A5_max - 90 deg`` above horizontal so the wrist
-  can still turn the tool straight down. Joint limits of A2 and A3 and the
-  tool's sideways offset are not modelled by this fallback.
+  can still turn the tool straight down; targets closer than 0.6 m to axis 1
+  are left out. Joint limits of A2 and A3 and the tool's sideways offset are
+  not modelled by this fallback.
 
 The table is eroded by one cell, so a grid lookup errs on the unreachable side.
 """
@@ -49,6 +50,9 @@ Z_STEP = 0.02
 R_MAX_TABLE = 3.5
 Z_MIN_TABLE = -3.0
 Z_MAX_TABLE = 4.0
+R_MIN_FALLBACK = 0.6
+"""The fallback ignores targets closer to axis 1 than this (metres): folding that
+tight hits the A2/A3 limits or the arm itself."""
 ANNULUS_MARGIN = 0.02
 """Fraction by which the fallback shrinks the link annulus (keeps away from full stretch)."""
 
@@ -200,7 +204,7 @@ def geometric_table(robot: str, tool_offset: float) -> np.ndarray:
         fx = dx - L2 * np.cos(theta2)
         fz = dz - L2 * np.sin(theta2)
         ok_wrist |= np.arctan2(fz, np.abs(fx)) <= max_rise
-    return ok_len & ok_wrist
+    return ok_len & ok_wrist & (R >= R_MIN_FALLBACK)
 
 
 def _ik_table(robot: str, T_flange_tool: np.ndarray) -> np.ndarray | None:
