@@ -135,3 +135,15 @@ def test_platform_from_project_and_lift() -> None:
     high = np.array([[6.0, 2.0, 2.6]])
     lift, n = plat.best_lift(rm, high, T_wp)
     assert n == 1 and lift > 0.0
+
+
+def test_yaw_invariance_only_for_axial_tools() -> None:
+    kuka = get_robot("kuka_kr60_3")
+    assert reach_module._yaw_invariant(kuka, TOOL)
+    offset = TOOL.copy()
+    offset[0, 3] = 0.15  # TCP beside the flange axis: yaw moves the wrist
+    assert not reach_module._yaw_invariant(kuka, offset)
+    assert not reach_module._yaw_invariant(get_robot("brokk_170"), TOOL)
+    rm = reach_map("kuka_kr60_3", offset, step=0.1, n_yaw=6, disk_cache=False)
+    assert 0.0 < rm.yaw_fraction[rm.grid].min() <= 1.0
+    assert (rm.yaw_fraction[rm.grid] < 1.0).any()  # some nodes only at some yaws

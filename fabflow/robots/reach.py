@@ -35,7 +35,7 @@ from fabflow.robots.chain import RobotModel
 
 FloatArray = NDArray[np.float64]
 
-_MAP_VERSION = 1
+_MAP_VERSION = 2
 _MEMORY: dict[str, ReachMap] = {}
 
 
@@ -175,7 +175,9 @@ def reach_map(
         rounded to millimetres, at least 2 cm.
     n_yaw
         Yaw angles about the vertical sampled per grid node; a node is reachable
-        when any of them is.
+        when any of them is. When the tool sits on the axis of a last joint with
+        a full turn of range (all catalogue arms with an axial tool), yaw is
+        only a turn of that joint and a single sample is used.
     disk_cache
         Read and write the map under the user cache directory.
 
@@ -216,6 +218,34 @@ def reach_map(
     return m
 
 
+def _yaw_invariant(robot: RobotModel, T_flange_tool: FloatArray) -> bool:
+    """Whether turning the tool about the vertical is just a turn of the last joint.
+
+    True when the last joint axis is the flange z axis through the flange origin,
+    the last joint has at least a full turn of range, and the tool lies on that
+    axis (TCP offset along flange z, tool z parallel to flange z). Then any yaw
+    reaches the same points, and one yaw sample is enough.
+    """
+    a, alpha = robot.dh[-1, 0], robot.dh[-1, 1]
+    Tn = robot.T_n_flange
+    lo, hi = robot.joint_limits[-1]
+
+    def axial(T: FloatArray) -> bool:
+        return bool(
+            np.allclose(T[:3, 2], [0.0, 0.0, 1.0], atol=1e-12)
+            and np.allclose(T[:2, 3], 0.0, atol=1e-12)
+        )
+
+    return (
+        robot.analytic_ik is not None
+        and abs(a) < 1e-12
+        and abs(alpha) < 1e-12
+        and axial(Tn)
+        and axial(T_flange_tool)
+        and hi - lo >= 2 * np.pi - 1e-9
+    )
+
+
 def _compute(
     robot: RobotModel,
     T_flange_tool: FloatArray,
@@ -231,6 +261,8 @@ def _compute(
     z = np.arange(np.floor(z_lo / step) * step, robot.dh[0, 2] + extent + step / 2, step)
     R_grid, Z_grid = np.meshgrid(r, z, indexing="ij")
     yaw = np.arange(n_yaw) * (2 * np.pi / n_yaw)
+    if _yaw_invariant(robot, T_flange_tool):
+        yaw = yaw[:1]
     T_flange_tool_inv = np.linalg.inv(T_flange_tool)
     n_nodes = R_grid.size
     hits = np.zeros((n_nodes, n_yaw), dtype=bool)
@@ -247,9 +279,10 @@ def _compute(
             T_base_tool[:, 2, 3] = pz[a:b]
             T_base_flange = T_base_tool @ T_flange_tool_inv
             hits[a:b, k] = _any_solution(robot, T_base_flange)
-        if robot.analytic_ik is None:
-            # The pitch-chain solver ignores the roll about the tool axis (the slew
-            # sets it), so further yaw samples would give the same answer.
+        if robot.analytic_ik is None or len(yaw) == 1:
+            # Further yaws give the same answer: the pitch-chain solver ignores the
+            # roll about the tool axis (the slew sets it), and a yaw-invariant
+            # arm/tool only turns its last joint.
             hits[:, k + 1 :] = hits[:, [k]]
             break
     grid = hits.any(axis=1).reshape(R_grid.shape)
