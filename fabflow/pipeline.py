@@ -17,6 +17,7 @@ from fabflow import __version__
 from fabflow.design.stage import stage_design
 from fabflow.localization import stage_localize
 from fabflow.output import atomic_output_dir, write_json
+from fabflow.preview.stage import stage_preview
 from fabflow.project import Project
 from fabflow.tasks.programs import stage_program
 from fabflow.tasks.stage import stage_plan
@@ -72,6 +73,7 @@ def stages() -> list[tuple[str, Stage]]:
         ("plan", stage_plan),
         ("localize", stage_localize),
         ("program", stage_program),
+        ("preview", stage_preview),
     ]
 
 

@@ -4,9 +4,6 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from fabflow.preview.export import export_html
-from fabflow.preview.inputs import model_for_project
-
 if TYPE_CHECKING:
     from fabflow.pipeline import BuildContext
 
@@ -18,6 +15,9 @@ def stage_preview(ctx: BuildContext) -> None:
     ``["localization"]`` (``{visit index: (BasePose, ...)}``); sets
     ``ctx.results["preview"]`` (:class:`~fabflow.preview.export.ExportResult`).
     """
+    from fabflow.preview.export import export_html
+    from fabflow.preview.inputs import model_for_project
+
     localization = {int(i): value[0] for i, value in ctx.results.get("localization", {}).items()}
     model = model_for_project(
         ctx.project, ctx.results["elements"], ctx.results["plan"], localization=localization
