@@ -86,14 +86,35 @@ def compute_supports(
     n = len(T_world_box)
     if n == 0:
         return []
+    T_world_box = np.asarray(T_world_box, dtype=float)
     corners = box_corners(T_world_box, extents)
-    bottom = corners[:, :, 2].min(axis=1)
-    top = corners[:, :, 2].max(axis=1)
-    fp = box_footprints(corners)
-    i, j = _pairs(fp)
-    touching = np.abs(top[j] - bottom[i]) <= contact_tol
-    i, j = i[touching], j[touching]
-    area = shapely.area(shapely.intersection(fp[i], fp[j]))
+    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    bottom, top = lo[:, 2], hi[:, 2]
+    # Contact levels: cluster all face heights (gaps > contact_tol split clusters).
+    # Shifting every bounding box sideways by its level number puts boxes at
+    # different levels far apart in plan, so the 2D tree only pairs boxes that can touch.
+    z = np.concatenate([bottom, top])
+    order = np.argsort(z)
+    level = np.empty(2 * n, dtype=int)
+    level[order] = np.concatenate(([0], np.cumsum(np.diff(z[order]) > contact_tol)))
+    pitch = float(hi[:, 0].max() - lo[:, 0].min()) + 1.0
+    up_dx, low_dx = level[:n] * pitch, level[n:] * pitch
+    upper = shapely.box(lo[:, 0] + up_dx, lo[:, 1], hi[:, 0] + up_dx, hi[:, 1])
+    lower = shapely.box(lo[:, 0] + low_dx, lo[:, 1], hi[:, 0] + low_dx, hi[:, 1])
+    j, i = shapely.STRtree(lower).query(upper)[::-1]
+    keep = (i != j) & (level[i] == level[n + j])
+    i, j = i[keep], j[keep]
+    # Upright boxes turned by a multiple of 90 degrees are their own bounding boxes:
+    # their shared area is plain interval arithmetic. Others go through shapely.
+    R = T_world_box[:, :3, :3]
+    aligned = (np.abs(R[:, 2, 2] - 1.0) < 1e-9) & (np.abs(R[:, 0, 0] * R[:, 0, 1]) < 1e-12)
+    both = aligned[i] & aligned[j]
+    overlap = np.clip(np.minimum(hi[i, :2], hi[j, :2]) - np.maximum(lo[i, :2], lo[j, :2]), 0, None)
+    area = overlap[:, 0] * overlap[:, 1]
+    if not both.all():
+        k = np.flatnonzero(~both)
+        fp = box_footprints(corners)
+        area[k] = shapely.area(shapely.intersection(fp[i[k]], fp[j[k]]))
     i, j = i[area > min_area], j[area > min_area]
     order = np.lexsort((j, i))
     i, j = i[order], j[order]
