@@ -458,6 +458,7 @@ def locate_platform(
     heading_prior: tuple[float, float] | None = None,
     outlier_k: float = 4.0,
     max_iter: int = 20,
+    anchor_bias_sigma: np.ndarray | None = None,
 ) -> PlatformFix:
     """Estimate a standing platform's ``x, y, z, yaw`` from the ranges of its tags.
 
@@ -486,6 +487,10 @@ def locate_platform(
         Residual test threshold in standard deviations.
     max_iter
         Gauss-Newton iteration cap.
+    anchor_bias_sigma
+        (n_anchors,) standard deviation (metres) of a range error shared by every
+        range to an anchor (what the calibration leaves); added to the covariance,
+        since averaging over epochs does not reduce it.
 
     Raises
     ------
@@ -559,6 +564,14 @@ def locate_platform(
     if ev[0] <= ev[-1] / _COND_LIMIT:
         raise LocalizationError("the tag and anchor geometry does not determine the platform pose")
     cov = np.linalg.inv(info)
+    if anchor_bias_sigma is not None:
+        J = _platform_jac(A, L, state, tag_idx[use], anc_idx[use])
+        if not yaw_fixed:
+            J[:, 3] = 0.0
+        G = cov @ (J / s[use][:, None] ** 2).T
+        for j, sb in enumerate(np.asarray(anchor_bias_sigma, dtype=float)):
+            g = G[:, anc_idx[use] == j].sum(axis=1)
+            cov = cov + sb**2 * np.outer(g, g)
     res = d - _platform_h(A, L, state, tag_idx, anc_idx)
     per_anchor = np.array(
         [
@@ -678,8 +691,9 @@ def localize_station(
     ``sigma_1m = uwb.sigma``): distance-dependent noise, a per-anchor linear bias
     (fitted by a simulated calibration campaign and corrected), 2 % NLOS outliers,
     and NLOS with probability 0.5 on lines of sight blocked by ``built`` blocks.
-    Outliers are rejected by a running median, then :func:`locate_platform` gives
-    ``x, y, z, yaw``.
+    Outliers are rejected around each link's robust centre
+    (:func:`~fabflow.positioning.uwb_calibration.reject_outliers_static`), then
+    :func:`locate_platform` gives ``x, y, z, yaw``.
 
     Parameters
     ----------
@@ -704,7 +718,7 @@ def localize_station(
         observed (level platform assumed) and carry ``UNOBSERVED_VARIANCE``, as
         ``quality["unobserved"]`` says.
     """
-    from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers
+    from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers_static
     from fabflow.sim.uwb import (
         UwbErrorModel,
         calibration_campaign,
@@ -748,9 +762,18 @@ def localize_station(
         else np.broadcast_to(occluded, (n_rounds, *occluded.shape)),
     )
     ranges = cal.apply(sim.ranges)
-    rej = reject_outliers(ranges, model.sigma(ranges), window=15, max_range=100.0)
+    rej = reject_outliers_static(ranges, model.sigma(ranges))
     method: Method = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
-    fix = locate_platform(A, rej.ranges, L, model.sigma, method=method, heading_prior=heading_prior)
+    dist = np.linalg.norm(tags_world.mean(axis=0) - A, axis=1)
+    fix = locate_platform(
+        A,
+        rej.ranges,
+        L,
+        model.sigma,
+        method=method,
+        heading_prior=heading_prior,
+        anchor_bias_sigma=cal.bias_sigma(dist),
+    )
     T_world_platform_est = fix.T
     T_world_base_est = T_world_platform_est @ T_platform_base
     cov = platform_to_base_covariance(T_world_platform_est, T_platform_base, fix.covariance)
@@ -765,7 +788,7 @@ def localize_station(
         "n_anchors": len(ids),
         "n_rounds": n_rounds,
         "n_ranges": int(sim.ranges.size),
-        "n_rejected_median": int(rej.rejected.sum()),
+        "n_rejected_robust_centre": int(rej.rejected.sum()),
         "n_rejected_residual": fix.n_ranges - fix.n_used,
         "n_used": fix.n_used,
         "n_nlos_simulated": int(sim.nlos.sum()),
@@ -776,7 +799,7 @@ def localize_station(
         "unobserved": unobserved,
         "unobserved_variance_rad2": UNOBSERVED_VARIANCE,
         "note": "level platform assumed: roll and pitch are not observed by UWB ranging; "
-        "covariance assumes white range noise after calibration",
+        "covariance: white range noise plus the calibration's remaining per-anchor error",
     }
     return BasePose(
         T_world_base=T_world_base_est,

@@ -32,12 +32,15 @@ class RangeCalibration:
     scale
         (n_anchors,) ``b`` (dimensionless, near 1).
     rms
-        (n_anchors,) RMS of the fit residuals (metres); zeros when not fitted.
+        (n_anchors,) RMS of the fit residuals (metres); None when not fitted.
+    cov
+        (n_anchors, 2, 2) covariance of the fitted ``(a, b)``; None when not fitted.
     """
 
     offset: np.ndarray
     scale: np.ndarray
     rms: np.ndarray | None = None
+    cov: np.ndarray | None = None
 
     @classmethod
     def identity(cls, n_anchors: int) -> RangeCalibration:
@@ -71,6 +74,7 @@ class RangeCalibration:
         offset = np.empty(y.shape[1])
         scale = np.empty(y.shape[1])
         rms = np.empty(y.shape[1])
+        cov = np.empty((y.shape[1], 2, 2))
         for j in range(y.shape[1]):
             ok = np.isfinite(y[:, j])
             if np.unique(x[ok]).size < 2:
@@ -80,8 +84,24 @@ class RangeCalibration:
             if b <= 0:
                 raise InputError(f"calibration of anchor {j}: fitted scale {b:.3f} is not positive")
             offset[j], scale[j] = a, b
-            rms[j] = float(np.sqrt(np.mean((y[ok, j] - a - b * x[ok]) ** 2)))
-        return cls(offset=offset, scale=scale, rms=rms)
+            res = y[ok, j] - a - b * x[ok]
+            rms[j] = float(np.sqrt(np.mean(res**2)))
+            dof = max(int(ok.sum()) - 2, 1)
+            cov[j] = float(res @ res) / dof * np.linalg.inv(A.T @ A)
+        return cls(offset=offset, scale=scale, rms=rms, cov=cov)
+
+    def bias_sigma(self, distance: np.ndarray | float) -> np.ndarray:
+        """Standard deviation (metres) of the range error the fitted line leaves at ``distance``.
+
+        From the fit covariance: ``sqrt([1, d] cov [1, d]^T) / b`` per anchor (last
+        axis); zeros when the calibration was not fitted here.
+        """
+        d = np.asarray(distance, dtype=float)
+        if self.cov is None:
+            return np.zeros(np.broadcast_shapes(d.shape, self.offset.shape))
+        c = self.cov
+        var = c[:, 0, 0] + 2 * d * c[:, 0, 1] + d * d * c[:, 1, 1]
+        return np.sqrt(np.maximum(var, 0.0)) / self.scale
 
     def apply(self, ranges: np.ndarray) -> np.ndarray:
         """Corrected ranges ``(y - a) / b``; the last axis indexes anchors."""
@@ -201,5 +221,65 @@ def reject_outliers(
     med = running_median(clean, window, causal=causal)
     thr = np.maximum(k * np.asarray(sigma, dtype=float), floor)
     far = np.isfinite(clean) & (np.abs(clean - med) > thr)
+    rejected = oob | far
+    return Rejection(ranges=np.where(rejected, np.nan, y), rejected=rejected, out_of_bounds=oob)
+
+
+def shortest_half_center(series: np.ndarray, fraction: float = 0.25) -> np.ndarray:
+    """Robust centre of each series: the median of the densest ``fraction`` of its samples.
+
+    NLOS excess delays are positive and spread over a metre, line-of-sight ranges
+    cluster within centimetres: the shortest interval holding a quarter of the
+    samples lies inside the line-of-sight cluster even when half of a link's
+    ranges are NLOS (where a median is already pulled away).
+
+    Parameters
+    ----------
+    series
+        (N, ...) samples along axis 0 (NaN ignored).
+    fraction
+        Share of the finite samples the interval must hold.
+
+    Returns
+    -------
+    np.ndarray
+        (...) centres; NaN for series with fewer than 3 finite samples.
+    """
+    x = np.asarray(series, dtype=float)
+    flat = x.reshape(x.shape[0], -1)
+    out = np.full(flat.shape[1], np.nan)
+    for j in range(flat.shape[1]):
+        v = np.sort(flat[np.isfinite(flat[:, j]), j])
+        if v.size < 3:
+            continue
+        h = max(2, int(np.ceil(fraction * v.size)))
+        widths = v[h - 1 :] - v[: v.size - h + 1]
+        i = int(np.argmin(widths))
+        out[j] = float(np.median(v[i : i + h]))
+    return out.reshape(x.shape[1:])
+
+
+def reject_outliers_static(
+    ranges: np.ndarray,
+    sigma: np.ndarray | float,
+    k: float = 3.0,
+    min_range: float = 0.0,
+    max_range: float = 100.0,
+    floor: float = 0.1,
+) -> Rejection:
+    """Outlier rejection for a standing platform: every series measures one distance.
+
+    Like :func:`reject_outliers`, but the reference of each series is its
+    :func:`shortest_half_center` instead of a running median, which stays on the
+    line-of-sight distance under heavy NLOS contamination (lines of sight blocked
+    by the structure).
+    """
+    y = np.asarray(ranges, dtype=float)
+    finite = np.isfinite(y)
+    oob = finite & ((y < min_range) | (y > max_range))
+    clean = np.where(oob, np.nan, y)
+    center = shortest_half_center(clean)
+    thr = np.maximum(k * np.asarray(sigma, dtype=float), floor)
+    far = np.isfinite(clean) & (np.abs(clean - center[None]) > thr)
     rejected = oob | far
     return Rejection(ranges=np.where(rejected, np.nan, y), rejected=rejected, out_of_bounds=oob)

@@ -300,7 +300,11 @@ def localize_from_files(
         locate_platform,
         platform_to_base_covariance,
     )
-    from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers
+    from fabflow.positioning.uwb_calibration import (
+        RangeCalibration,
+        reject_outliers,
+        reject_outliers_static,
+    )
     from fabflow.sim.uwb import UwbErrorModel
     from fabflow.transforms.se3 import compose_covariance
     from fabflow.transforms.so3 import matrix_from_quat
@@ -317,7 +321,10 @@ def localize_from_files(
     sigma = UwbErrorModel(sigma_1m=setup.sigma).sigma
     corrected = cal.apply_indexed(log.range, log.anchor)
     epochs = cal.apply(log.epochs(len(L), len(ids)))
-    rej = reject_outliers(epochs, sigma(epochs))
+    if imu_csv is None:
+        rej = reject_outliers_static(epochs, sigma(epochs))
+    else:
+        rej = reject_outliers(epochs, sigma(epochs))
     quality: dict[str, Any] = {
         "n_ranges": int(log.range.size),
         "n_tags": len(L),
@@ -333,7 +340,7 @@ def localize_from_files(
         quality.update(
             estimator=estimator,
             solver="static platform: joint Gauss-Newton over all ranges",
-            n_rejected_median=int(rej.rejected.sum()),
+            n_rejected_robust_centre=int(rej.rejected.sum()),
             n_used=fix.n_used,
             std_xyz_yaw=[float(v) for v in np.sqrt(np.diag(fix.covariance))],
             unobserved=["rx", "ry"] + ([] if fix.heading_observed else ["rz"]),
