@@ -224,7 +224,8 @@ def unique_outlines(elements: Sequence[Element]) -> tuple[np.ndarray, np.ndarray
         keys[blocks] = [b"r" + row.tobytes() for row in q]
     others = np.setdiff1d(np.arange(len(geoms)), blocks)
     if len(others):
-        keys[others] = [b"g" + k for k in shapely.to_wkb(shapely.normalize(geoms[others]))]
+        wkb = shapely.to_wkb(shapely.normalize(geoms[others]))
+        keys[others] = [b"e" if k is None else b"g" + k for k in wkb]
     _, first, outline_of = np.unique(keys, return_index=True, return_inverse=True)
     return geoms[first], outline_of.ravel()
 
