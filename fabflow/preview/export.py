@@ -110,15 +110,17 @@ def record_html(
     dt = default_seconds_per_step(model.n_steps) if seconds_per_step is None else seconds_per_step
     if dt <= 0:
         raise InputError(f"seconds per step must be positive, got {dt}")
-    scene = PreviewScene(
-        server, model, project, colour_mode=colour_mode, ghost=ghost, step=0, atomic=False
-    )
-    serializer = server.get_scene_serializer()
-    serializer.insert_sleep(1.0)
-    for k in range(1, model.n_steps + 1):
-        scene.set_step(k)
-        serializer.insert_sleep(dt)
-    serializer.insert_sleep(2.0)
+    # One atomic block around the whole recording: no browser is connected, so
+    # nothing needs to be delivered until the end, and the server thread is not
+    # woken for every message.
+    with server.atomic():
+        scene = PreviewScene(server, model, project, colour_mode=colour_mode, ghost=ghost, step=0)
+        serializer = server.get_scene_serializer()
+        serializer.insert_sleep(1.0)
+        for k in range(1, model.n_steps + 1):
+            scene.set_step(k)
+            serializer.insert_sleep(dt)
+        serializer.insert_sleep(2.0)
     return serializer.as_html()
 
 

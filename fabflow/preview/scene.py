@@ -8,7 +8,6 @@ one batched mesh, and a block is hidden by giving its instance a zero scale.
 
 from __future__ import annotations
 
-import contextlib
 from typing import Any
 
 import numpy as np
@@ -61,9 +60,6 @@ class PreviewScene:
         Show the elements not built yet as a faint ghost.
     step
         Initial step (``None``: the last step, the finished building).
-    atomic
-        Group each step's updates so browsers apply them together (live use);
-        a recording for export does not need it.
     """
 
     def __init__(
@@ -74,7 +70,6 @@ class PreviewScene:
         colour_mode: str = "station",
         ghost: bool = True,
         step: int | None = None,
-        atomic: bool = True,
     ) -> None:
         if colour_mode not in model.colour_modes():
             raise InputError(
@@ -85,7 +80,6 @@ class PreviewScene:
         self.model = model
         self.colour_mode = colour_mode
         self.ghost_enabled = ghost
-        self.atomic = atomic
         self.step = model.n_steps if step is None else model.check_step(step)
         self._colour_cache: dict[str, np.ndarray] = {}
         self._visible = model.visible(self.step)
@@ -419,7 +413,7 @@ class PreviewScene:
         step = m.check_step(step)
         visible = m.visible(step)
         changed = force or not np.array_equal(visible, self._visible)
-        with self.server.atomic() if self.atomic else contextlib.nullcontext():
+        with self.server.atomic():
             if changed:
                 vb = visible[m.block_index]
                 self.blocks.batched_scales = self._draw_extents * vb[:, None]
@@ -475,7 +469,7 @@ class PreviewScene:
                 f"{self.model.colour_modes()}"
             )
         self.colour_mode = mode
-        with self.server.atomic() if self.atomic else contextlib.nullcontext():
+        with self.server.atomic():
             self._apply_colours(self._colours(mode, self.step))
 
     def set_ghost(self, enabled: bool) -> None:
