@@ -270,7 +270,8 @@ def reject_outliers_static(
     """Outlier rejection for a standing platform: every series measures one distance.
 
     Like :func:`reject_outliers`, but the reference of each series is its
-    :func:`shortest_half_center` instead of a running median, which stays on the
+    :func:`shortest_half_center` (then the median of the samples within the
+    threshold of it) instead of a running median, which stays on the
     line-of-sight distance under heavy NLOS contamination (lines of sight blocked
     by the structure).
     """
@@ -278,8 +279,17 @@ def reject_outliers_static(
     finite = np.isfinite(y)
     oob = finite & ((y < min_range) | (y > max_range))
     clean = np.where(oob, np.nan, y)
-    center = shortest_half_center(clean)
     thr = np.maximum(k * np.asarray(sigma, dtype=float), floor)
+    center = shortest_half_center(clean)
+    # the densest quarter finds the line-of-sight cluster but not its middle: re-centre
+    # twice on the samples within the threshold
+    for _ in range(2):
+        near = np.isfinite(clean) & (np.abs(clean - center[None]) <= thr)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            center = np.where(
+                near.any(axis=0), np.nanmedian(np.where(near, clean, np.nan), axis=0), center
+            )
     far = np.isfinite(clean) & (np.abs(clean - center[None]) > thr)
     rejected = oob | far
     return Rejection(ranges=np.where(rejected, np.nan, y), rejected=rejected, out_of_bounds=oob)
