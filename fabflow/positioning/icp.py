@@ -211,6 +211,8 @@ def icp(
     kernel: Kernel = "huber",
     kernel_scale: float | None = None,
     target_normals: ArrayLike | None = None,
+    min_step: float = 1e-5,
+    workers: int = -1,
 ) -> IcpResult:
     """Register ``source`` to ``target`` with ICP.
 
@@ -242,6 +244,12 @@ def icp(
         Kernel scale (metres); default: a third of the stage's correspondence distance.
     target_normals
         ``(M, 3)`` target normals when ``target`` is an array (else estimated).
+    min_step
+        A stage also ends when an update moves no source point by more than this
+        (metres; bounded by the centroid's motion plus rotation angle times the
+        source radius).
+    workers
+        Threads for the KD-tree queries (``-1``: all cores).
 
     Returns
     -------
@@ -281,6 +289,8 @@ def icp(
         )
 
     plane = method == "point_to_plane"
+    src_mean = src.mean(axis=0)
+    src_radius = float(np.max(np.linalg.norm(src - src_mean, axis=1)))
     q_all = tgt.points
     n_all = tgt.normals
     iterations = 0
@@ -291,7 +301,7 @@ def icp(
         converged = False
         for _ in range(max_iterations):
             p = apply_T(T, src)
-            d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=-1)
+            d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=workers)
             ok = np.isfinite(d)
             n_ok = int(ok.sum())
             if n_ok < MIN_CORRESPONDENCES:
@@ -329,20 +339,21 @@ def icp(
                 dT = np.eye(4)
                 dT[:3, :3] = exp_so3(x[3:])
                 dT[:3, 3] = x[:3]
-                step = x
             else:
                 R, t = _kabsch(p, q, w)
                 dT = np.eye(4)
                 dT[:3, :3] = R
                 dT[:3, 3] = t
-                step = np.concatenate([t, [np.linalg.norm(R - np.eye(3))]])
+            c = T[:3, :3] @ src_mean + T[:3, 3]
+            angle = float(np.arccos(np.clip((np.trace(dT[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+            moved = float(np.linalg.norm(dT[:3, :3] @ c + dT[:3, 3] - c)) + angle * src_radius
             T = dT @ T
-            if np.max(np.abs(step)) < 1e-9:
+            if moved < min_step:
                 converged = True
                 break
 
     return _final_result(
-        src, tgt, T, float(schedule[-1]), plane, kernel, scale, iterations, converged
+        src, tgt, T, float(schedule[-1]), plane, kernel, scale, iterations, converged, workers
     )
 
 
@@ -356,9 +367,10 @@ def _final_result(
     scale: float,
     iterations: int,
     converged: bool,
+    workers: int,
 ) -> IcpResult:
     p = apply_T(T, src)
-    d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=-1)
+    d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=workers)
     ok = np.isfinite(d)
     n_ok = int(ok.sum())
     if n_ok < MIN_CORRESPONDENCES:

@@ -46,11 +46,13 @@ FloatArray = NDArray[np.float64]
 
 COARSE_SCHEDULE = (2.0, 0.5)
 """Correspondence distances (m) of the coarse stage, on a 4x coarser voxel grid."""
-FINE_SCHEDULE = (0.15, 0.05)
+FINE_SCHEDULE = (0.1,)
 """Correspondence distances (m) of the fine stage, on the scan voxel grid."""
 MIN_CONDITION = 1e-5
 """Smallest accepted ratio of smallest to largest information eigenvalue."""
 MAX_STORED_RESIDUALS = 1000
+MIN_STEP = 1e-4
+"""ICP stops when an update moves no scan point by more than this (metres)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -216,8 +218,9 @@ def localize_scan(
     Two stages: point-to-plane ICP on the scan voxelized at ``4 * voxel_size``
     with correspondence distances ``coarse_schedule`` (pulls in initial errors of
     0.5 m and 10 deg), then on the scan voxelized at ``voxel_size`` with
-    ``fine_schedule``. A Tukey kernel discounts what the map does not hold (new
-    construction, people, machines). Tracking at 10 Hz from the previous pose
+    ``fine_schedule``. A Huber kernel (scale a third of the correspondence
+    distance) discounts what the map does not hold (new construction, people,
+    machines). Tracking at 10 Hz from the previous pose
     (initial errors of a few centimetres) can skip the coarse stage.
 
     Parameters
@@ -268,8 +271,16 @@ def localize_scan(
             init=T,
             max_correspondence_distance=coarse_schedule,
             kernel="huber",
+            min_step=MIN_STEP,
         ).T
-    res = icp(fine, target, init=T, max_correspondence_distance=fine_schedule, kernel="tukey")
+    res = icp(
+        fine,
+        target,
+        init=T,
+        max_correspondence_distance=fine_schedule,
+        kernel="huber",
+        min_step=MIN_STEP,
+    )
     structure = structure_fitness(fine, target, res.T, float(fine_schedule[-1]))
     if res.fitness < min_fitness:
         raise LocalizationError(
