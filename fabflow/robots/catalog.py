@@ -189,9 +189,8 @@ ROBOT_NAMES: tuple[str, ...] = tuple(_FACTORIES)
 """Names accepted by :func:`get_robot`."""
 
 
-@cache
 def get_robot(name: str) -> RobotModel:
-    """The machine model for a catalogue name.
+    """The machine model for a catalogue name (one shared instance per name).
 
     Parameters
     ----------
@@ -203,10 +202,13 @@ def get_robot(name: str) -> RobotModel:
     UnsupportedError
         For an unknown name (the message lists the known ones).
     """
-    try:
-        factory = _FACTORIES[name]
-    except KeyError:
+    if not isinstance(name, str) or name not in _FACTORIES:
         raise UnsupportedError(
             f"unknown robot model {name!r}; known models: {', '.join(ROBOT_NAMES)}"
-        ) from None
-    return factory()
+        )
+    return _build(name)
+
+
+@cache
+def _build(name: str) -> RobotModel:
+    return _FACTORIES[name]()
