@@ -518,7 +518,14 @@ class Simulation(StrictModel):
     """Standard deviation of the platform's parking error per axis (metres)."""
     driving_heading_error_deg: NonNegativeFloat = 0.5
     robot_repeatability: NonNegativeFloat = 0.0002
+    """Standard deviation of the placed tool position per axis (metres)."""
     lift_error: NonNegativeFloat = 0.001
+    """Standard deviation of the lift height at each placement (metres, vertical)."""
+    sensor_noise: bool = True
+    """``false``: simulated localization is exact (estimate = true base pose, zero
+    covariance), e.g. to isolate driving and execution errors in ``fabflow simulate``."""
+    runs: Annotated[int, Field(ge=1)] = 100
+    """Default number of Monte Carlo runs of ``fabflow simulate``."""
 
 
 class Project(StrictModel):
