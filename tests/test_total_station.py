@@ -346,3 +346,16 @@ def test_levelled_fit_exact() -> None:
     L = rng.uniform(-5, 5, (6, 3))
     R, t = register_leveled(L, apply_T(T, L))
     np.testing.assert_allclose(make_T(R, t), T, atol=1e-12)
+
+
+def test_zero_weights_leave_points_out() -> None:
+    rng = np.random.default_rng(13)
+    T = random_pose(rng)
+    P = spread_points(rng, 5)
+    M = apply_T(T, P)
+    M[4] += 1.0  # wildly wrong, but weighted out
+    reg = register_points(P, M, weights=[1, 1, 1, 1, 0])
+    np.testing.assert_allclose(reg.T_world_base, T, atol=1e-9)
+    assert reg.rejected == (4,) and np.linalg.norm(reg.residuals[4]) == pytest.approx(np.sqrt(3))
+    with pytest.raises(LocalizationError, match="positive weight"):
+        register_points(P, M, weights=[1, 1, 0, 0, 0])

@@ -527,7 +527,8 @@ def register_points(
         ``"closed_form"`` (weighted Kabsch, then Gauss-Newton on the full
         covariances) or ``"optimize"`` (the paper's SLSQP problem, eqs 7-8).
     reject_outlier
-        Refit without the point the leave-one-out test flags (needs n >= 4).
+        Refit without the point the leave-one-out test flags (needs n >= 4, and
+        the other points must not be collinear; otherwise it is only reported).
     alpha
         Significance level of the outlier test (Bonferroni-corrected over n).
 
@@ -564,15 +565,11 @@ def register_points(
         if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
             raise InputError(f"weights must be {n} non-negative finite numbers, not all zero")
         s2 = (1.0 if sigma is None else sigma**2) + base_sigma**2
-        with np.errstate(divide="ignore"):
-            C = (s2 / w)[:, None, None] * np.eye(3)
-    try:
-        np.linalg.cholesky(C[w > 0])
-    except np.linalg.LinAlgError:
-        raise InputError("point_cov must be positive definite for every point") from None
+        # zero-weight points get a placeholder: they never enter the fit
+        C = (s2 / np.where(w > 0, w, 1.0))[:, None, None] * np.eye(3)
     keep = w > 0
-    if keep.sum() < 3:
-        raise LocalizationError(f"only {int(keep.sum())} points have positive weight; need 3")
+    if not keep.all():
+        check_geometry(P[keep], "points_base with positive weight")
     W = np.zeros_like(C)
     W[keep] = np.linalg.inv(C[keep])
 
@@ -598,10 +595,10 @@ def register_points(
             loo_residuals=_scatter(test.loo_residuals, sel_idx, n, np.nan),
             known_sigma=test.known_sigma,
         )
-        if reject_outlier and test.flagged:
-            keep = keep.copy()
-            keep[test.index] = False
-            check_geometry(P[keep], "points_base without the rejected point")
+        trial = keep.copy()
+        trial[test.index] = False
+        if reject_outlier and test.flagged and _spans_plane(P[trial]):
+            keep = trial
             R, t, iters = solve(keep)
             rejected = tuple(int(i) for i in np.flatnonzero(~keep))
 
@@ -627,6 +624,14 @@ def register_points(
         rejected=rejected,
         iterations=iters,
     )
+
+
+def _spans_plane(points: np.ndarray) -> bool:
+    try:
+        check_geometry(points)
+    except LocalizationError:
+        return False
+    return True
 
 
 def _scatter(values: np.ndarray, idx: np.ndarray, n: int, fill: float) -> np.ndarray:
