@@ -22,15 +22,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 
 from fabflow.design.dxf_in import Contour, read_dxf_contours
 from fabflow.design.elements import Element
 from fabflow.errors import InputError
 from fabflow.project import PrintPathSpec
 from fabflow.transforms import make_T
+
+if TYPE_CHECKING:
+    import trimesh
 
 _BOUND = 4.0 / 27.0
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(4)
@@ -401,6 +404,8 @@ def _drop_collinear(closed_pts: np.ndarray, tol: float = 1e-9) -> np.ndarray:
 
 
 def _load_mesh(path: Path, factor: float) -> trimesh.Trimesh:
+    import trimesh  # heavy; only mesh sources need it
+
     try:
         mesh = trimesh.load(path, force="mesh")
     except Exception as exc:  # trimesh raises many types for unreadable files
