@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from fabflow.cli import app
@@ -262,3 +264,34 @@ localization:
     bad = text.replace(f"    robot_points: {DATA / 'robot_points.csv'}\n", "")
     with pytest.raises(InputError, match="must be given together"):
         parse_project(bad, base_dir=tmp_path)
+
+
+@settings(deadline=None, max_examples=40)
+@given(
+    hz=st.floats(0.0, 399.99999),
+    v=st.floats(0.001, 199.999),
+    sd=st.floats(0.5, 9999.0),
+    gsi16=st.booleans(),
+    pid=st.from_regex(r"[A-Z][A-Z0-9]{0,6}", fullmatch=True),
+)
+def test_gsi_round_trip(hz: float, v: float, sd: float, gsi16: bool, pid: str) -> None:
+    width = 16 if gsi16 else 8
+    hz_i, v_i, sd_i = round(hz * 1e5), round(v * 1e5), round(sd * (1e5 if gsi16 else 1e3))
+    unit = "8" if gsi16 else "0"  # 0.01 mm in GSI-16, 1 mm in GSI-8
+
+    def word(wi: str, info: str, data: str) -> str:
+        return f"{wi}{info}+{data.rjust(width, '0')}"
+
+    line = " ".join(
+        [
+            word("11", "0001", pid),
+            word("21", ".102", str(hz_i)),
+            word("22", ".102", str(v_i)),
+            word("31", f"..0{unit}", str(sd_i)),
+        ]
+    )
+    obs = parse_gsi(("*" if gsi16 else "") + line + " \n")
+    assert obs.point_ids == (pid,)
+    assert obs.hz[0] == pytest.approx(hz_i * 1e-5 * GON, abs=1e-12)
+    assert obs.v[0] == pytest.approx(v_i * 1e-5 * GON, abs=1e-12)
+    assert obs.sd[0] == pytest.approx(sd_i * (1e-5 if gsi16 else 1e-3), rel=1e-12)
