@@ -8,7 +8,8 @@ Prints
      running median): mean absolute error per axis, gain over LS, with and without outliers;
   3. moving (tables 3, 4, 5, 7): LS / WLS-T / CV-EKF / ESKF mean error per axis and XY,
      beside the paper's numbers;
-  4. speed: batch fixes per second and ESKF steps per second (real-time factor).
+  4. speed: batch fixes per second and ESKF steps per second (real-time factor);
+  5. simulated station localization: error and consistency of the reported covariance.
 
 Run: ``.venv/bin/python benchmarks/uwb.py [--quick] [--seed N] [--json PATH]``.
 """
@@ -425,6 +426,47 @@ def speed(rng: np.random.Generator, quick: bool) -> dict[str, Any]:
     return out
 
 
+# ------------------------------------------------------------------ station
+
+
+def stations(rng: np.random.Generator, n: int) -> dict[str, Any]:
+    from fabflow.design.cabin import cabin_elements
+    from fabflow.positioning.uwb import localize_station
+    from fabflow.project import load_project
+
+    project = load_project(Path(__file__).resolve().parents[1] / "projects" / "cabin")
+    spec = project.elements[0].cabin
+    assert spec is not None
+    blocks = cabin_elements(spec)
+    print(
+        f"\n5. Station localization (localize_station, cabin project, {n} random stations, "
+        "2 tags, 5 s)\n   built blocks   RMS error x / y / z (mm), heading (deg)   "
+        "RMS(error / reported sigma)"
+    )
+    out = {}
+    for label, built in (("none", []), (f"all {len(blocks)}", blocks)):
+        z, err = [], []
+        for _ in range(n):
+            yaw = rng.uniform(-np.pi, np.pi)
+            T = np.eye(4)
+            T[:3, :3] = [[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]
+            T[:3, 3] = [rng.uniform(-1.5, 5.5), rng.uniform(-1.5, 5.5), 1.0]
+            pose = localize_station(project, T, rng, "S", built=built)
+            Te = pose.T_world_base
+            dyaw = np.angle(np.exp(1j * (np.arctan2(Te[1, 0], Te[0, 0]) - yaw)))
+            e = np.r_[Te[:3, 3] - T[:3, 3], dyaw]
+            z.append(e / np.sqrt(np.diag(pose.covariance))[[0, 1, 2, 5]])
+            err.append(e)
+        rms = np.sqrt(np.mean(np.square(err), axis=0)) * [1e3, 1e3, 1e3, 180 / np.pi]
+        nz = np.sqrt(np.mean(np.square(z), axis=0))
+        print(
+            f"   {label:12s}   {rms[0]:.1f} / {rms[1]:.1f} / {rms[2]:.1f}, {rms[3]:.2f}"
+            f"                 {' / '.join(f'{v:.2f}' for v in nz)}"
+        )
+        out[label] = {"rms_error": rms.tolist(), "rms_normalized": nz.tolist()}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small version (< ~20 s)")
@@ -437,6 +479,7 @@ def main() -> None:
         "static_full": static_full(rng, 300 if args.quick else 3000),
         "moving": moving(rng, args.quick),
         "speed": speed(rng, args.quick),
+        "stations": stations(rng, 8 if args.quick else 60),
     }
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2, default=float) + "\n")

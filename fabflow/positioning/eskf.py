@@ -251,6 +251,8 @@ class Eskf:
             ((gyro[0] - wb[0]) * dt, (gyro[1] - wb[1]) * dt, (gyro[2] - wb[2]) * dt)
         )
         P = F @ self.P @ F.T
+        P += P.T
+        P *= 0.5
         P.ravel()[::16] += self._q_rate * dt
         self.P = P
 
@@ -263,9 +265,11 @@ class Eskf:
             self.n_rejected += 1
             return nis
         K = PHt / S
-        # P - K S K^T: equal to the Joseph form for the optimal gain; symmetrized below
-        # and checked for positive definiteness in run_eskf.
-        P = self.P - np.outer(K, PHt)
+        # P - K S K^T: equal to the Joseph form for the optimal gain. It is symmetric in
+        # exact arithmetic; propagate_covariance symmetrizes once per IMU interval and
+        # run_eskf checks positive definiteness.
+        P = self.P
+        P -= np.outer(K, PHt)
         dx = (K * innovation).tolist()
         p, v, ab, wb = self._p, self._v, self._ab, self._wb
         self._p = (p[0] + dx[0], p[1] + dx[1], p[2] + dx[2])
@@ -275,13 +279,14 @@ class Eskf:
         self._R = _quat_to_R(self._q)
         self._ab = (ab[0] + dx[9], ab[1] + dx[10], ab[2] + dx[11])
         self._wb = (wb[0] + dx[12], wb[1] + dx[13], wb[2] + dx[14])
-        # reset (eq. 28): G = I except its attitude block I - [dtheta/2]x
-        B = np.array(
-            [[1.0, 0.5 * tz, -0.5 * ty], [-0.5 * tz, 1.0, 0.5 * tx], [0.5 * ty, -0.5 * tx, 1.0]]
-        )
-        P[6:9, :] = B @ P[6:9, :]
-        P[:, 6:9] = P[:, 6:9] @ B.T
-        self.P = 0.5 * (P + P.T)
+        # reset (eq. 28): G = I except its attitude block I - [dtheta/2]x. Its effect on P
+        # is of relative order |dtheta|; below 1e-4 rad it is skipped (the paper uses G = I).
+        if tx * tx + ty * ty + tz * tz > 1e-8:
+            B = np.array(
+                [[1.0, 0.5 * tz, -0.5 * ty], [-0.5 * tz, 1.0, 0.5 * tx], [0.5 * ty, -0.5 * tx, 1.0]]
+            )
+            P[6:9, :] = B @ P[6:9, :]
+            P[:, 6:9] = P[:, 6:9] @ B.T
         self.n_updates += 1
         return nis
 
