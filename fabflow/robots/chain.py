@@ -19,7 +19,8 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from fabflow.errors import InputError
+from fabflow.errors import InputError, UnsupportedError
+from fabflow.robots.numeric_ik import solve_seeds
 
 FloatArray = NDArray[np.float64]
 
@@ -280,8 +281,6 @@ class RobotModel:
             q, valid = self.ik_batch(T[None], q_ref=ref)
             sols = q[0][valid[0]]
         else:
-            from fabflow.robots.numeric_ik import solve_seeds
-
             sols = solve_seeds(self, T, ref)
         if all_turns and len(sols):
             sols = self._turn_variants(sols)
@@ -315,7 +314,7 @@ class RobotModel:
             and lies within the joint limits.
         """
         if self.analytic_ik is None:
-            raise NotImplementedError(f"{self.name} has no closed-form IK; use ik()")
+            raise UnsupportedError(f"{self.name} has no closed-form IK; use ik()")
         T = np.asarray(T_base_flange, dtype=float)
         q, exists = self.analytic_ik(T)
         ref = np.zeros(self.dof) if q_ref is None else np.asarray(q_ref, dtype=float)

@@ -280,9 +280,10 @@ class Clik:
         _, J = self.measure(q)
         if active is not None:
             J = J * active[None, :]
-        return self._dq(q, J, dx, e)
+        return self.joint_step(q, J, dx, e)
 
-    def _dq(self, q: FloatArray, J: FloatArray, dx: FloatArray, e: FloatArray) -> FloatArray:
+    def joint_step(self, q: FloatArray, J: FloatArray, dx: FloatArray, e: FloatArray) -> FloatArray:
+        """Eq. 6 with a given task Jacobian ``J`` (see :meth:`step`); updates the W history."""
         w = self.weights(q)
         lam = self.damping(J)
         dq = self.pinv(J, w, lam) @ (dx + self.gains.gain * e)
@@ -356,7 +357,7 @@ class Clik:
             dx = self.clamp_step(self.error(g, x_d))
             e = self.error(x_d, x)
             x_d = self.advance(x_d, dx)
-            q = q + self._dq(q, J, dx, e)
+            q = q + self.joint_step(q, J, dx, e)
             traj.append(q.copy())
             x, J = self.measure(q)
             ep, er = self._split(self.error(g, x))
@@ -467,7 +468,7 @@ class Clik:
                 J = J * active[None, :]
             dx = self.error(W[i + 1], W[i]) if k < n - 1 else np.zeros(self.dim)
             e = self.error(W[i], x)
-            q = q + self._dq(q, J, dx, e)
+            q = q + self.joint_step(q, J, dx, e)
             traj.append(q.copy())
         x, _ = self.measure(q)
         ep, er = self._split(self.error(W[-1], x))

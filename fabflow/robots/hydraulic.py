@@ -310,7 +310,7 @@ def contact_search(
         target = x_cmd.copy()
         target[2] = max(target[2], z_surf)
         x, J = clik.measure(q)
-        q = q + clik._dq(q, J, target - x, np.zeros(clik.dim))
+        q = q + clik.joint_step(q, J, target - x, np.zeros(clik.dim))
         if k % per_sample == 0:
             pen = max(0.0, z_surf - x_cmd[2])
             samples.append(base_pressure + stiffness * pen)

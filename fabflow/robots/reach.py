@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import os
 import tempfile
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -206,7 +207,7 @@ def reach_map(
     if path is not None and path.is_file():
         try:
             m = _load(path, robot.name, tool_axis)
-        except (OSError, ValueError, KeyError):
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             m = None
         if m is not None:
             _MEMORY[key] = m
