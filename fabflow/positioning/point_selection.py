@@ -28,14 +28,6 @@ from scipy import optimize
 from fabflow.design.elements import Element
 from fabflow.errors import InputError, LocalizationError
 
-REACH_SPHERES: dict[str, tuple[tuple[float, float, float], float]] = {
-    "kuka_kr60_3": ((0.35, 0.0, 0.815), 2.03),
-    "ur10e": ((0.0, 0.0, 0.181), 1.30),
-    "abb_irb4600_60_205": ((0.175, 0.0, 0.495), 2.05),
-    "brokk_170": ((0.0, 0.0, 0.6), 2.8),
-}
-"""Fallback reach spheres ``(shoulder centre, radius)`` per robot model (base frame, metres)."""
-
 
 @dataclass(frozen=True)
 class Workspace:
@@ -87,14 +79,6 @@ class Workspace:
             flat = ok.reshape(-1)
             flat[flat] = self.reachable(p.reshape(-1, 3)[flat])
         return ok
-
-
-def workspace_for_robot(model: str, z_min: float = 0.0, margin: float = 0.1) -> Workspace:
-    """A robot model's workspace from :data:`REACH_SPHERES` (used without the robot catalogue)."""
-    if model not in REACH_SPHERES:
-        raise InputError(f"no reach sphere known for robot model {model!r}")
-    center, reach = REACH_SPHERES[model]
-    return Workspace(center=center, reach=reach, z_min=z_min, margin=margin)
 
 
 # ------------------------------------------------------------ eqs 9-11

@@ -39,7 +39,6 @@ from fabflow.positioning.point_selection import (
     boxes_from_elements,
     clear_mask,
     optimal_points,
-    workspace_for_robot,
 )
 from fabflow.positioning.polar import (
     ARCSEC,
@@ -881,17 +880,16 @@ class _Kinematics:
         return (self.robot.fk(q) @ self.T_flange_tool)[:, :3, 3]
 
 
-def _kinematics(model: str, T_flange_tool: np.ndarray, z_min: float) -> _Kinematics | None:
-    try:
-        from fabflow.robots import get_robot
-    except ImportError:
-        return None
+def _kinematics(model: str, T_flange_tool: np.ndarray, z_min: float) -> _Kinematics:
+    """Workspace (reach sphere about the shoulder, plus closed-form IK where there is one)."""
+    from fabflow.robots import get_robot
+
     robot = get_robot(model)
     shoulder = robot.frames(np.zeros(robot.dof))[1][:3, 3]
     ws = Workspace(center=(0.0, 0.0, float(shoulder[2])), reach=float(robot.reach), z_min=z_min)
-    if robot.analytic_ik is None:
-        return _Kinematics(ws, robot, T_flange_tool)
     kin = _Kinematics(ws, robot, T_flange_tool)
+    if robot.analytic_ik is None:
+        return kin
     return _Kinematics(replace(ws, reachable=kin.reachable), robot, T_flange_tool)
 
 
@@ -991,7 +989,7 @@ def localize_station(
     T_base_world = inv_T(T_world_base)
     T_flange_tool = project.robot.tool.T_flange_tool.matrix()
     kin = _kinematics(project.robot.model, T_flange_tool, setup.z_min)
-    ws = kin.workspace if kin is not None else workspace_for_robot(project.robot.model, setup.z_min)
+    ws = kin.workspace
     boxes = boxes_from_elements(built, T_world_base)
     rules = ClearanceRules(
         tool_half_extents=setup.tool_half_extents,
@@ -1011,7 +1009,7 @@ def localize_station(
             )
     else:
         P_des, moved = avoid_obstacles(_cached_optimal_points(setup.n_points, ws), ws, boxes, rules)
-    P_base = kin.prism_points(P_des) if kin is not None else P_des
+    P_base = kin.prism_points(P_des)
     sigma_robot = project.simulation.robot_repeatability
     P_true = P_base + rng.normal(0.0, 1.0, P_base.shape) * sigma_robot
     # the instrument really stands where its (uncertain) set-up puts it, off by a draw
@@ -1039,7 +1037,6 @@ def localize_station(
         "points_world": M.tolist(),
         "slope_distances": sd.tolist(),
         "moved_for_obstacles": moved.tolist(),
-        "kinematics": "ik+fk" if kin is not None else "reach sphere",
     }
     return reg.to_base_pose(station=station_id, quality=quality)
 
