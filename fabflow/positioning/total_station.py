@@ -17,7 +17,16 @@ Solvers
   for a single bad prism reading.
 - :func:`three_point_localization` / :func:`localize_three_point`: eqs 1-6 for
   the points ``P1``, ``P1 + d x``, ``P1 + d y``.
-- :func:`localize_station`: the simulated instrument used by ``fabflow build``.
+- :func:`kabsch`, :func:`refine_registration`, :func:`register_leveled`: the
+  batch-capable building blocks (the last one fits a levelled instrument,
+  4 DOF, as in a free-station set-up).
+
+Entry points
+------------
+- :func:`localize_files` / :func:`localize_observations`: measured readings
+  (CSV or Leica GSI) against robot points (``fabflow localize total-station``).
+- :func:`localize_station`: the simulated instrument used by ``fabflow build``
+  and the simulator.
 """
 
 from __future__ import annotations
