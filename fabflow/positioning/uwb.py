@@ -176,7 +176,9 @@ def _solve_batched(M: np.ndarray, rhs: np.ndarray, ok: np.ndarray) -> tuple[np.n
     return x, Minv
 
 
-def _ls(A: np.ndarray, r: np.ndarray, mask: np.ndarray, ok: np.ndarray, sigma: Sigma):
+def _ls(
+    A: np.ndarray, r: np.ndarray, mask: np.ndarray, ok: np.ndarray, sigma: Sigma
+) -> tuple[np.ndarray, np.ndarray]:
     N = r.shape[0]
     ref = np.argmax(mask, axis=1)
     rows = np.arange(N)
@@ -203,7 +205,9 @@ def _ls(A: np.ndarray, r: np.ndarray, mask: np.ndarray, ok: np.ndarray, sigma: S
     return x, cov
 
 
-def _wls(A: np.ndarray, r: np.ndarray, mask: np.ndarray, ok: np.ndarray, sigma: Sigma):
+def _wls(
+    A: np.ndarray, r: np.ndarray, mask: np.ndarray, ok: np.ndarray, sigma: Sigma
+) -> tuple[np.ndarray, np.ndarray]:
     n = r.shape[1]
     dim = A.shape[1]
     d = np.where(mask, r, 0.0)
@@ -226,7 +230,7 @@ def _gauss_newton(
     sigma: Sigma,
     max_iter: int,
     tol: float,
-):
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     d = np.where(mask, r, 0.0)
     s = _sigma_of(sigma, np.maximum(d, _MIN_RANGE_FOR_WEIGHT))
     w = np.where(mask, 1.0 / s**2, 0.0)
@@ -429,6 +433,8 @@ class PlatformFix:
         Gauss-Newton iterations of the final solve.
     heading_observed
         Whether the yaw is determined by the measurements (or a prior).
+    per_anchor_rms
+        (n_anchors,) RMS residual of the used ranges per anchor (metres).
     """
 
     state: np.ndarray
@@ -594,12 +600,16 @@ def locate_platform(
     )
 
 
-def _platform_h(A, L, state, tag_idx, anc_idx) -> np.ndarray:
+def _platform_h(
+    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
+) -> np.ndarray:
     tags = state[:3] + L @ _rotz(state[3]).T
     return np.linalg.norm(tags[tag_idx] - A[anc_idx], axis=1)
 
 
-def _platform_jac(A, L, state, tag_idx, anc_idx) -> np.ndarray:
+def _platform_jac(
+    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
+) -> np.ndarray:
     Rl = L @ _rotz(state[3]).T
     tags = state[:3] + Rl
     diff = tags[tag_idx] - A[anc_idx]
@@ -608,7 +618,15 @@ def _platform_jac(A, L, state, tag_idx, anc_idx) -> np.ndarray:
     return np.column_stack([u, np.sum(u[:, :2] * dyaw, axis=1)])
 
 
-def _platform_info(A, L, s, tag_idx, anc_idx, state, heading_prior) -> np.ndarray:
+def _platform_info(
+    A: np.ndarray,
+    L: np.ndarray,
+    s: np.ndarray,
+    tag_idx: np.ndarray,
+    anc_idx: np.ndarray,
+    state: np.ndarray,
+    heading_prior: tuple[float, float] | None,
+) -> np.ndarray:
     J = _platform_jac(A, L, state, tag_idx, anc_idx)
     info = J.T @ (J / s[:, None] ** 2)
     if heading_prior is not None:
@@ -616,10 +634,21 @@ def _platform_info(A, L, s, tag_idx, anc_idx, state, heading_prior) -> np.ndarra
     return info
 
 
-def _platform_gn(A, L, d, s, tag_idx, anc_idx, state, heading_prior, max_iter):
+def _platform_gn(
+    A: np.ndarray,
+    L: np.ndarray,
+    d: np.ndarray,
+    s: np.ndarray,
+    tag_idx: np.ndarray,
+    anc_idx: np.ndarray,
+    state: np.ndarray,
+    heading_prior: tuple[float, float] | None,
+    max_iter: int,
+) -> tuple[np.ndarray, int]:
     state = state.copy()
-    it = 0
-    for it in range(1, max_iter + 1):  # noqa: B007
+    iterations = 0
+    while iterations < max_iter:
+        iterations += 1
         J = _platform_jac(A, L, state, tag_idx, anc_idx)
         r = d - _platform_h(A, L, state, tag_idx, anc_idx)
         Wj = J / s[:, None] ** 2
@@ -638,7 +667,7 @@ def _platform_gn(A, L, d, s, tag_idx, anc_idx, state, heading_prior, max_iter):
         state += step
         if np.linalg.norm(step) < 1e-8:
             break
-    return state, it
+    return state, iterations
 
 
 def platform_to_base_covariance(
