@@ -287,3 +287,18 @@ def test_design_stage_writes_elements_and_site_plan(mixed_project, tmp_path) -> 
     rows = {item: value for stage, item, value in ctx.summary if stage == "design"}
     assert rows["blocks per part"].startswith("A ")
     assert rows["print path layers"] == "3"
+
+
+def test_element_meshes(mixed_elements) -> None:
+    from fabflow.design import blocks_mesh, element_mesh
+
+    blocks = [e for e in mixed_elements if e.type == "block"]
+    mesh = blocks_mesh(blocks)
+    assert mesh.is_watertight and len(mesh.faces) == 12 * len(blocks)
+    assert mesh.volume == pytest.approx(sum(float(np.prod(e.extents)) for e in blocks))
+    layer = next(e for e in mixed_elements if e.type == "print_path")
+    ribbon = element_mesh(layer)
+    a = layer.attributes
+    assert ribbon.volume == pytest.approx(a["length"] * a["bead_width"] * a["layer_height"])
+    assert ribbon.bounds[1, 2] == pytest.approx(layer.T_world_element[2, 3])
+    assert len(element_mesh(next(e for e in mixed_elements if e.type == "task_point")).faces) == 0

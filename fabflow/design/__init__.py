@@ -23,6 +23,7 @@ if TYPE_CHECKING:
         task_point_elements,
         with_block_supports,
     )
+    from fabflow.design.geometry import blocks_mesh, element_mesh
     from fabflow.design.print_path import (
         LayerPath,
         SampledPath,
@@ -46,6 +47,8 @@ _LAZY = {
     "Contour": "dxf_in",
     "DxfWarning": "dxf_in",
     "read_dxf_contours": "dxf_in",
+    "blocks_mesh": "geometry",
+    "element_mesh": "geometry",
     "generate_elements": "generate",
     "task_point_elements": "generate",
     "with_block_supports": "generate",
@@ -80,9 +83,11 @@ __all__ = [
     "Element",
     "LayerPath",
     "SampledPath",
+    "blocks_mesh",
     "cabin_blocks",
     "cabin_elements",
     "compute_supports",
+    "element_mesh",
     "element_poses",
     "element_tool_frames",
     "elements_from_json",
