@@ -369,3 +369,91 @@ def lift_bands(masks: np.ndarray) -> np.ndarray:
             cur = int(np.argmax(run[i]))
         out[i] = cur
     return out
+
+
+def plan_visits(
+    reach_sets: list[np.ndarray],
+    src: np.ndarray,
+    dst: np.ndarray,
+    topo: np.ndarray,
+    station_xy: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Planned visit of every element, part by part.
+
+    Elements connected by supports form a part (a cabin, a printed wall); parts
+    are planned one after the other, in the order of the first tour station
+    that reaches them, so the platform finishes one part before it moves on.
+    For each part, every sequence of :func:`visit_patterns` over the stations
+    reaching it, in both directions, is tried with :func:`assign_passes`; the
+    one with the fewest visits, then the shortest travel (counted from where
+    the previous part ended), is kept.
+
+    Parameters
+    ----------
+    reach_sets
+        For every element, the sorted tour positions of the stations reaching it.
+    src, dst
+        Support edges (dst rests on src).
+    topo
+        A topological order of the elements.
+    station_xy
+        (k, 2) station positions in tour order (metres).
+
+    Returns
+    -------
+    visit
+        (n,) global visit index of every element.
+    visit_station
+        Station (tour position) of every visit index.
+    """
+    from scipy import sparse
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(reach_sets)
+    graph = sparse.csr_matrix((np.ones(len(src)), (src, dst)), shape=(n, n))
+    n_parts, part = connected_components(graph, directed=False)
+    first = np.array([r[0] for r in reach_sets])
+    part_first = np.full(n_parts, np.iinfo(np.int64).max)
+    np.minimum.at(part_first, part, first)
+    members = np.argsort(part, kind="stable")
+    bounds = np.searchsorted(part[members], np.arange(n_parts + 1))
+    rank = np.empty(n, dtype=np.intp)
+    rank[topo] = np.arange(n)
+    local_index = np.empty(n, dtype=np.intp)
+    edge_part = part[src] if len(src) else np.zeros(0, dtype=np.intp)
+    edge_order = np.argsort(edge_part, kind="stable")
+    edge_bounds = np.searchsorted(edge_part[edge_order], np.arange(n_parts + 1))
+
+    visit = np.zeros(n, dtype=np.int64)
+    visit_station: list[int] = []
+    here: int | None = None
+    for p in np.argsort(part_first, kind="stable"):
+        els = members[bounds[p] : bounds[p + 1]]
+        local_index[els] = np.arange(len(els))
+        stations = np.unique(np.concatenate([reach_sets[e] for e in els]))
+        local_reach = [np.searchsorted(stations, reach_sets[e]) for e in els]
+        edges = edge_order[edge_bounds[p] : edge_bounds[p + 1]]
+        lsrc, ldst = local_index[src[edges]], local_index[dst[edges]]
+        ltopo = local_index[els[np.argsort(rank[els], kind="stable")]]
+        kk = len(stations)
+        best: tuple[tuple[int, float], np.ndarray, np.ndarray] | None = None
+        for perm in (np.arange(kk), np.arange(kk)[::-1]):
+            for period in visit_patterns(kk).values():
+                pattern = perm[period]
+                lv = assign_passes(local_reach, lsrc, ldst, ltopo, pattern)
+                used = np.unique(lv)
+                seq = stations[pattern[used % len(pattern)]]
+                seq = seq[np.r_[True, seq[1:] != seq[:-1]]]
+                hops = seq if here is None else np.r_[here, seq]
+                travel = float(np.hypot(*(station_xy[hops[1:]] - station_xy[hops[:-1]]).T).sum())
+                key = (len(seq), travel)
+                if best is None or key < best[0]:
+                    best = (key, lv, stations[pattern[np.arange(int(lv.max()) + 1) % len(pattern)]])
+            if kk == 1:
+                break
+        assert best is not None
+        _, lv, lstations = best
+        visit[els] = len(visit_station) + lv
+        visit_station.extend(lstations.tolist())
+        here = int(lstations[lv.max()])
+    return visit, np.array(visit_station, dtype=np.intp)

@@ -27,20 +27,19 @@ from typing import Any
 import numpy as np
 import shapely
 from scipy import sparse
+from scipy.spatial import cKDTree
 
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError, InputError, UnsupportedError
 from fabflow.project import Project
 from fabflow.tasks.cover import select_stations
 from fabflow.tasks.order import (
-    Visit,
-    assign_passes,
     find_support_cycle,
     lift_bands,
+    plan_visits,
     schedule,
     support_indices,
     topological_order,
-    visit_patterns,
 )
 from fabflow.tasks.plan import Plan, Station, WorkPackage
 from fabflow.tasks.reach import ReachModel, reach_model
@@ -200,6 +199,12 @@ def _descendants(
     return reach
 
 
+def _embed_rows(M: sparse.csr_matrix, rows: np.ndarray, n_rows: int) -> sparse.csr_matrix:
+    """Place the rows of ``M`` at ``rows`` of an otherwise empty (n_rows, ...) matrix."""
+    coo = M.tocoo()
+    return sparse.csr_matrix((coo.data, (rows[coo.row], coo.col)), shape=(n_rows, M.shape[1]))
+
+
 def plan_project(
     project: Project,
     elements: Sequence[Element],
@@ -286,32 +291,34 @@ def plan_project(
         planning.headings_deg,
     )
     t_cand = time.perf_counter()
-    # Coverage is over all elements so the blocked matrix lines up; columns of pre-built
-    # elements stay empty because they have no frames.
+    # Coverage columns run over all elements (pre-built columns stay empty: no frames).
+    # A candidate standing where robot-built elements go cannot build them nor
+    # anything resting on them; such candidates are used only when the others
+    # do not reach everything, and only near what the others miss.
     owner_all = np.asarray(idx_work, dtype=np.intp)[owner]
-    cov_all = coverage(cands, T_frames, owner_all, len(elements), reach, lifts)
-    A = cov_all[:, idx_work].tocsr()
-    blocked = cands.blocked[:, idx_work].tocsr()
+    n_blocked = cands.n_blocked
+    free_rows = np.flatnonzero(n_blocked == 0)
+    A = coverage(cands, T_frames, owner_all, len(elements), reach, lifts, free_rows)
+    A = A[:, idx_work].tocsr()
+    reachable = np.diff(A.tocsc().indptr) > 0
+    if not reachable.all() and n_blocked.any():
+        missing_xy = T_frames[np.isin(owner, np.flatnonzero(~reachable)), :2, 3]
+        d, _ = cKDTree(missing_xy).query(cands.base_xy, distance_upper_bound=reach.r_max)
+        extra = np.flatnonzero((n_blocked > 0) & np.isfinite(d))
+        A_b = coverage(cands, T_frames, owner_all, len(elements), reach, lifts, extra)
+        A_b = A_b[extra][:, idx_work].tocsr()
+        above = _descendants(cands.blocked(extra)[:, idx_work].tocsr(), src, dst, n)
+        A_b = (A_b - A_b.multiply(above)).tocsr()
+        A_b.eliminate_zeros()
+        A = (A + _embed_rows(A_b, extra, len(cands))).tocsr()
+        reachable = np.diff(A.tocsc().indptr) > 0
+        if len(extra):
+            notes.append(
+                f"{len(extra)} candidate stations stand where robot-built elements go; they "
+                "were considered because the others do not reach everything"
+            )
     t_cov = time.perf_counter()
 
-    # A candidate standing where robot-built elements go cannot build anything that
-    # rests on them. Such candidates are used only when the others cannot reach
-    # everything, and then lose the elements above what they stand on.
-    n_blocked = np.diff(blocked.indptr)
-    A_free = A.multiply((n_blocked == 0)[:, None].astype(np.int64)).tocsr()
-    A_free.eliminate_zeros()
-    if (np.diff(A_free.tocsc().indptr) > 0).all():
-        A = A_free.tocsr()
-    elif n_blocked.any():
-        above = _descendants(blocked, src, dst, n)
-        A = (A - A.multiply(above)).tocsr()
-        A.eliminate_zeros()
-        notes.append(
-            f"{int((n_blocked > 0).sum())} candidate stations stand where robot-built elements "
-            "go; they were considered because the others do not reach everything"
-        )
-
-    reachable = np.diff(A.tocsc().indptr) > 0
     if not reachable.all():
         raise _explain_unreachable(
             project, elements, work, np.flatnonzero(~reachable), p_target, cands, reach, lifts
@@ -336,34 +343,13 @@ def plan_project(
     reach_sets = [A_ch.indices[A_ch.indptr[e] : A_ch.indptr[e + 1]] for e in range(n)]
     layer = np.array([e.layer for e in work], dtype=np.int64)
     topo = topological_order(n, src, dst, layer)
-    blocked_ch = blocked[chosen].tocsr()
+    blocked_ch = cands.blocked(chosen)[:, idx_work].tocsr()
     blocked_by = [
         blocked_ch.indices[blocked_ch.indptr[s] : blocked_ch.indptr[s + 1]] for s in range(k)
     ]
     station_xy = cands.xy[chosen]
-    best: tuple[tuple[int, float], str, list[Visit]] | None = None
-    first_error: InfeasibleError | None = None
-    for direction, tour_perm in (("forward", np.arange(k)), ("reverse", np.arange(k)[::-1])):
-        for name, period in visit_patterns(k).items():
-            pattern = tour_perm[period]
-            visit = assign_passes(reach_sets, src, dst, topo, pattern)
-            visit_station = pattern[np.arange(int(visit.max()) + 1) % len(pattern)]
-            try:
-                vs = schedule(visit, visit_station, layer, p_target, src, dst, blocked_by, ids)
-            except InfeasibleError as exc:
-                first_error = first_error or exc
-                continue
-            hops = np.array([v.station for v in vs])
-            travel = float(np.hypot(*(station_xy[hops[1:]] - station_xy[hops[:-1]]).T).sum())
-            key = (len(vs), travel)
-            if best is None or key < best[0]:
-                best = (key, f"{name}, {direction}", vs)
-        if k == 1:
-            break
-    if best is None:
-        assert first_error is not None
-        raise first_error
-    visits = best[2]
+    visit, visit_station = plan_visits(reach_sets, src, dst, topo, station_xy)
+    visits = schedule(visit, visit_station, layer, p_target, src, dst, blocked_by, ids)
     t_ord = time.perf_counter()
 
     # Station ids in order of first visit.
@@ -434,7 +420,6 @@ def plan_project(
         "selection": res.method,
         "stations_optimal": res.optimal,
         "visits": station_visits,
-        "visit_sequence": best[1],
         "work_packages": len(packages),
         "elements": n,
         "elements_per_station": per_station,

@@ -27,6 +27,8 @@ from fabflow.design.elements import Element
 from fabflow.project import Platform, Site
 from fabflow.tasks.reach import ReachModel
 
+FOOTPRINT_CHUNK = 20_000
+"""Footprints tested for collisions per batch."""
 PAIR_CHUNK = 2_000_000
 """Candidate-frame pairs evaluated per batch (bounds memory on large projects)."""
 
@@ -47,8 +49,12 @@ class Candidates:
         Height of the arm base above the ground at the lowest lift (metres).
     footprints
         (C,) shapely polygons: footprint grown by the safety margin.
-    blocked
-        Sparse (C, N) bool: robot-built elements under each footprint.
+    n_blocked
+        (C,) how many robot-built outlines lie under each footprint (0 = blocks nothing).
+    hits
+        (2, H) int32 pairs (candidate, outline) of robot-built outlines under footprints.
+    members
+        Sparse (U, N) bool: the robot-built elements sharing each outline.
     n_grid
         How many grid poses were generated before collision filtering.
     n_obstructed
@@ -60,9 +66,26 @@ class Candidates:
     base_xy: np.ndarray
     base_z0: float
     footprints: np.ndarray
-    blocked: sparse.csr_matrix
+    n_blocked: np.ndarray
+    hits: np.ndarray
+    members: sparse.csr_matrix
     n_grid: int
     n_obstructed: int
+
+    def blocked(self, rows: np.ndarray) -> sparse.csr_matrix:
+        """Sparse (len(rows), N) bool: robot-built elements under the footprints of ``rows``."""
+        rows = np.asarray(rows, dtype=np.intp)
+        slot = np.full(len(self.xy), -1)
+        slot[rows] = np.arange(len(rows))
+        r = slot[self.hits[0]]
+        sel = r >= 0
+        H = sparse.csr_matrix(
+            (np.ones(int(sel.sum()), dtype=np.int32), (r[sel], self.hits[1][sel])),
+            shape=(len(rows), self.members.shape[0]),
+        )
+        out = (H @ self.members.astype(np.int32)).tocsr()
+        out.data[:] = 1
+        return out.astype(bool)
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -298,48 +321,53 @@ def generate_candidates(
     robot_built = np.array([e.robot_built for e in elements], dtype=bool)
     outlines, outline_of = unique_outlines(elements)
     U = len(outlines)
+    has_prebuilt = np.bincount(outline_of[~robot_built], minlength=U) > 0
+    hit_c: list[np.ndarray] = []
+    hit_u: list[np.ndarray] = []
     if n:
         # Bounding-box candidates from the tree, then an exact test: the separating
-        # axis test for rectangles, shapely for the other outlines.
-        hit = shapely.STRtree(outlines).query(fp)
+        # axis test for rectangles, shapely for the other outlines. In batches of
+        # footprints to bound memory.
+        tree = shapely.STRtree(outlines)
         is_rect = np.array([len(shapely.get_coordinates(g)) == 5 for g in outlines], dtype=bool)
         rect_corners = np.zeros((U, 4, 2))
         if is_rect.any():
             rect_corners[is_rect] = shapely.get_coordinates(outlines[is_rect]).reshape(-1, 5, 2)[
                 :, :4
             ]
-        rect = is_rect[hit[1]]
-        exact = np.zeros(hit.shape[1], dtype=bool)
-        exact[rect] = rectangles_intersect(fp_corners[hit[0][rect]], rect_corners[hit[1][rect]])
-        other = ~rect
-        exact[other] = shapely.intersects(fp[hit[0][other]], outlines[hit[1][other]])
-        hit = hit[:, exact]
-    else:
-        hit = np.zeros((2, 0), dtype=np.intp)
-    # Outline -> elements with that outline (stacked blocks share one).
-    members = sparse.csr_matrix((np.ones(n, dtype=bool), (outline_of, np.arange(n))), shape=(U, n))
-    has_prebuilt = np.bincount(outline_of[~robot_built], minlength=U) > 0
-    bad[hit[0][has_prebuilt[hit[1]]]] = True
+        for a0 in range(0, len(fp), FOOTPRINT_CHUNK):
+            hit = tree.query(fp[a0 : a0 + FOOTPRINT_CHUNK])
+            hit[0] += a0
+            rect = is_rect[hit[1]]
+            exact = np.zeros(hit.shape[1], dtype=bool)
+            exact[rect] = rectangles_intersect(fp_corners[hit[0][rect]], rect_corners[hit[1][rect]])
+            other = ~rect
+            exact[other] = shapely.intersects(fp[hit[0][other]], outlines[hit[1][other]])
+            hit = hit[:, exact]
+            bad[hit[0][has_prebuilt[hit[1]]]] = True
+            hit_c.append(hit[0].astype(np.int32))
+            hit_u.append(hit[1].astype(np.int32))
+    hc = np.concatenate(hit_c) if hit_c else np.zeros(0, dtype=np.int32)
+    hu = np.concatenate(hit_u) if hit_u else np.zeros(0, dtype=np.int32)
 
     keep = np.flatnonzero(~bad)
     remap = np.full(len(xy), -1)
     remap[keep] = np.arange(len(keep))
-    rows = remap[hit[0]]
+    rows = remap[hc]
     sel = rows >= 0
-    H = sparse.csr_matrix(
-        (np.ones(int(sel.sum()), dtype=bool), (rows[sel], hit[1][sel])), shape=(len(keep), U)
-    )
-    blocked = (H.astype(np.int32) @ members.astype(np.int32)).tocsr()
-    blocked = blocked.multiply(robot_built[None, :].astype(np.int32)).tocsr()
-    blocked.eliminate_zeros()
-    blocked = blocked.astype(bool)
+    hits = np.stack([rows[sel], hu[sel]]).astype(np.int32)
+    n_blocked = np.bincount(hits[0], minlength=len(keep))
+    rb = np.flatnonzero(robot_built)
+    members = sparse.csr_matrix((np.ones(len(rb), dtype=bool), (outline_of[rb], rb)), shape=(U, n))
     return Candidates(
         xy=xy[keep],
         heading=heading[keep],
         base_xy=base_xy[keep],
         base_z0=float(T_pb[2, 3]),
         footprints=fp[keep],
-        blocked=blocked,
+        n_blocked=n_blocked,
+        hits=hits,
+        members=members,
         n_grid=n_grid,
         n_obstructed=int(near.sum()) - len(keep),
     )
@@ -361,6 +389,7 @@ def coverage(
     n_elements: int,
     reach: ReachModel,
     lifts: np.ndarray,
+    rows: np.ndarray | None = None,
 ) -> sparse.csr_matrix:
     """Which candidate builds which element, and at which lift levels.
 
@@ -379,12 +408,15 @@ def coverage(
         Reach model of the arm.
     lifts
         (L,) lift heights (metres), L <= 32.
+    rows
+        Only these candidates (default all); the other rows stay empty.
 
     Returns
     -------
     sparse.csr_matrix
         (C, N) int64 matrix; bit l of entry (c, e) is set when every frame of element
-        e is reachable from candidate c at lift ``lifts[l]`` and e is not blocked by c.
+        e is reachable from candidate c at lift ``lifts[l]``. Elements under the
+        candidate's footprint are not removed here (see :meth:`Candidates.blocked`).
     """
     C = len(cands)
     if C == 0 or len(T_world_tool) == 0:
@@ -395,12 +427,15 @@ def coverage(
     weights = (1 << np.arange(len(lifts), dtype=np.int64))[None, :]
     z_rel0 = p[:, 2] - cands.base_z0
 
-    tree_c = cKDTree(cands.base_xy)
+    rows = np.arange(C) if rows is None else np.asarray(rows, dtype=np.intp)
+    if len(rows) == 0:
+        return sparse.csr_matrix((C, n_elements), dtype=np.int64)
+    tree_c = cKDTree(cands.base_xy[rows])
     rows_all: list[np.ndarray] = []
     cols_all: list[np.ndarray] = []
     vals_all: list[np.ndarray] = []
     # Batches of frames keep the pair arrays bounded; frames of one element stay together.
-    per_frame = max(1.0, tree_c.n * math.pi * reach.r_max**2 / max(_area(cands.base_xy), 1.0))
+    per_frame = max(1.0, tree_c.n * math.pi * reach.r_max**2 / max(_area(cands.base_xy[rows]), 1.0))
     step = max(1, int(PAIR_CHUNK / per_frame))
     start = 0
     K = len(p)
@@ -411,7 +446,7 @@ def coverage(
         sub = cKDTree(p[start:stop, :2])
         pairs = sub.sparse_distance_matrix(tree_c, reach.r_max, output_type="ndarray")
         f = pairs["i"].astype(np.intp) + start
-        cand = pairs["j"].astype(np.intp)
+        cand = rows[pairs["j"].astype(np.intp)]
         r = pairs["v"]
         zr = z_rel0[f][:, None] - lifts[None, :]
         ok = reach.reachable(r[:, None], zr)
@@ -435,13 +470,11 @@ def coverage(
         cols_all.append(e)
         vals_all.append(mask)
         start = stop
-    rows = np.concatenate(rows_all)
-    cols = np.concatenate(cols_all)
-    vals = np.concatenate(vals_all)
-    M = sparse.csr_matrix((vals, (rows, cols)), shape=(C, n_elements), dtype=np.int64)
-    if cands.blocked.nnz:
-        M = M - M.multiply(cands.blocked.astype(np.int64))
-        M.eliminate_zeros()
+    M = sparse.csr_matrix(
+        (np.concatenate(vals_all), (np.concatenate(rows_all), np.concatenate(cols_all))),
+        shape=(C, n_elements),
+        dtype=np.int64,
+    )
     M.sum_duplicates()
     return M
 
