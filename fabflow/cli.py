@@ -142,6 +142,35 @@ def plan(
     console.print(f"[green]wrote[/] {Path(out).resolve() / 'plan.json'}")
 
 
+@app.command()
+@user_errors
+def program(
+    project: ProjectArg,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+    fmt: Annotated[
+        str | None,
+        typer.Option(
+            "--format", "-f", help="krl, rapid, urscript or json (default: the project's format)."
+        ),
+    ] = None,
+) -> None:
+    """Write one robot program per work package under OUT/programs (plans and localizes first)."""
+    from fabflow.pipeline import run_build
+    from fabflow.project import load_project
+    from fabflow.tasks.programs import check_format
+
+    p = load_project(project)
+    if fmt is not None:
+        check_format(fmt, p.robot.model)
+        p = p.model_copy(update={"program": p.program.model_copy(update={"format": fmt})})
+    with console.status("writing programs") as status:
+        ctx = run_build(
+            p, out, on_stage=lambda name: status.update(f"stage: {name}"), until="program"
+        )
+    print_summary(ctx.summary, title=f"fabflow program: {p.name}")
+    console.print(f"[green]wrote[/] {Path(out).resolve() / 'programs'}")
+
+
 @localize_app.command("total-station")
 @user_errors
 def localize_total_station(
@@ -357,6 +386,89 @@ def preview(
         sim=sim,
         say=lambda text: console.print(escape(text), highlight=False),
     )
+
+
+@app.command()
+@user_errors
+def simulate(
+    project: ProjectArg,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+    runs: Annotated[
+        int | None,
+        typer.Option("--runs", "-n", min=1, help="Runs per method (default: simulation.runs)."),
+    ] = None,
+    methods: Annotated[
+        str | None,
+        typer.Option(help="Comma-separated methods to compare: uwb,total_station,icp."),
+    ] = None,
+    seed: Annotated[
+        int | None, typer.Option(help="Study seed (default: simulation.seed).")
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="Address of a running Dask scheduler (default: a local cluster)."),
+    ] = None,
+    workers: Annotated[
+        int,
+        typer.Option(min=0, help="Worker processes of the local cluster; 0 runs in-process."),
+    ] = 2,
+) -> None:
+    """Monte Carlo tolerance study: N simulated construction runs per localization method."""
+    from contextlib import nullcontext
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
+
+    from fabflow.output import atomic_output_dir
+    from fabflow.project import load_project
+    from fabflow.sim.monte_carlo import dask_client
+    from fabflow.sim.report import parse_methods, simulate_project
+
+    p = load_project(project)
+    chosen = parse_methods(methods) if methods else [p.localization.method]
+    n_runs = runs or p.simulation.runs
+    columns = ("{task.description}", BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    context = nullcontext() if scheduler is None and workers == 0 else None
+    with (
+        context or dask_client(scheduler, n_workers=workers) as client,
+        atomic_output_dir(out) as staging,
+        Progress(*columns, console=console) as bar,
+    ):
+        tasks: dict[str, Any] = {}
+
+        def start(method: str) -> None:
+            tasks["current"] = bar.add_task(f"{method} runs", total=n_runs)
+
+        rows = simulate_project(
+            p,
+            staging,
+            n_runs,
+            p.simulation.seed if seed is None else seed,
+            chosen,
+            client=client,
+            on_method=start,
+            progress=lambda n: bar.advance(tasks["current"], n),
+        )
+    table = Table(title=f"fabflow simulate: {p.name}, {n_runs} runs")
+    for name in ("method", "runs ok/failed", "RMSE mm", "p95 mm", "max mm", "within tol"):
+        table.add_column(name, justify="left" if name == "method" else "right")
+    table.add_column("loc. xy RMSE mm", justify="right")
+    table.add_column("sigma ratio xy", justify="right")
+    for r in rows:
+        table.add_row(
+            r["method"],
+            f"{r['runs_completed']}/{r['runs_failed']}",
+            f"{1e3 * r['rmse_m']:.2f}",
+            f"{1e3 * r['p95_m']:.2f}",
+            f"{1e3 * r['max_m']:.2f}",
+            f"{100 * r['within_tolerance']:.1f} %",
+            f"{1e3 * r['localization_xy_rmse_m']:.2f}",
+            f"{r['sigma_ratio_xy']:.2f}",
+        )
+    console.print(table)
+    failed = sum(r["runs_failed"] for r in rows)
+    if failed:
+        console.print(f"[yellow]{failed} run(s) failed: see runs.csv and summary.json[/]")
+    console.print(f"[green]wrote[/] {Path(out).resolve()}")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -78,9 +78,12 @@ def stages() -> list[tuple[str, Stage]]:
 
 
 def run_build(
-    project: Project, out: str | Path, on_stage: Callable[[str], None] | None = None
+    project: Project,
+    out: str | Path,
+    on_stage: Callable[[str], None] | None = None,
+    until: str | None = None,
 ) -> BuildContext:
-    """Run every stage for ``project`` and move the results into ``out`` atomically.
+    """Run the stages for ``project`` and move the results into ``out`` atomically.
 
     Parameters
     ----------
@@ -90,10 +93,16 @@ def run_build(
         Destination folder; replaced as a whole only if every stage succeeds.
     on_stage
         Called with each stage's name before it runs (progress reporting).
+    until
+        Name of the last stage to run (default: all stages).
     """
+    selected = stages()
+    if until is not None:
+        names = [name for name, _ in selected]
+        selected = selected[: names.index(until) + 1]
     with atomic_output_dir(out) as staging:
         ctx = BuildContext(project=project, out=staging)
-        for name, stage in stages():
+        for name, stage in selected:
             if on_stage is not None:
                 on_stage(name)
             stage(ctx)

@@ -61,7 +61,7 @@ def check_format(fmt: str, robot: str) -> None:
     if vendor is not None and not robot.startswith(vendor):
         raise UnsupportedError(
             f"'{fmt}' programs run on {vendor.upper()} controllers, but the project's robot "
-            f"is '{robot}'; use format 'json' or a {vendor.upper()} robot"
+            f"is '{robot}'; use format 'json', or a robot by {vendor.upper()}"
         )
 
 
