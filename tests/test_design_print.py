@@ -199,3 +199,15 @@ def test_open_path_allowed_when_not_closed(tmp_path) -> None:
         print_path_elements(PrintPathSpec(dxf=path))
     (e,) = print_path_elements(PrintPathSpec(dxf=path, closed=False, n_layers=1))
     assert not e.attributes["closed"] and e.attributes["length"] == pytest.approx(1.5)
+
+
+def test_tool_frames_survive_repeated_waypoints() -> None:
+    from fabflow.design import Element
+
+    poly = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 0], [1, 1, 0]], dtype=float)
+    e = Element(id="P", type="print_path", T_world_element=np.eye(4), polyline=poly)
+    T = element_tool_frames(e)
+    assert np.isfinite(T).all()
+    assert np.allclose(T[0, :3, 0], [1, 0, 0]) and np.allclose(T[-1, :3, 0], [0, 1, 0])
+    sampled, _ = sample_print_path(e)
+    assert _distance_to(poly, sampled.points).max() < MAX_DEVIATION

@@ -137,10 +137,18 @@ def polyline_tangents(points: np.ndarray) -> np.ndarray:
 
     At a reversal (the two segments point in opposite directions) the tangent is
     perpendicular to the segment in the xy plane (or any perpendicular when vertical).
+    Zero-length segments take the direction of their neighbour.
     """
     d = np.diff(points, axis=0)
-    d /= np.linalg.norm(d, axis=1)[:, None]
-    m = np.empty_like(points)
+    norm = np.linalg.norm(d, axis=1)
+    ok = norm > 1e-12
+    if not ok.any():
+        raise ValueError("a path needs two distinct waypoints")
+    # a zero-length segment takes the direction of the nearest earlier (else later) one
+    idx = np.maximum.accumulate(np.where(ok, np.arange(len(d)), -1))
+    idx[idx < 0] = np.flatnonzero(ok)[0]
+    d = d[idx] / norm[idx][:, None]
+    m = np.empty_like(points, dtype=float)
     m[0], m[-1] = d[0], d[-1]
     s = d[:-1] + d[1:]
     norm = np.linalg.norm(s, axis=1)
