@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fabflow.errors import InputError, UnsupportedError
-from fabflow.project import Platform
+from fabflow.project import Platform, Tool
 from fabflow.robots import MobilePlatform, get_robot, reach_map
 from fabflow.robots import reach as reach_module
 from fabflow.tasks.plan import Station, T_world_base
@@ -111,6 +111,8 @@ def test_reach_map_bad_input() -> None:
     rm = reach_map("kuka_kr60_3", TOOL, step=0.1, n_yaw=2, disk_cache=False)
     with pytest.raises(InputError):
         rm.reachable(np.zeros((4, 2)))
+    # The project's tool pose (PoseSpec) is accepted and keys the same map.
+    assert reach_map("kuka_kr60_3", Tool().T_flange_tool, step=0.1, n_yaw=2, disk_cache=False) is rm
 
 
 def test_platform_from_project_and_lift() -> None:
