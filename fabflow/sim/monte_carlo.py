@@ -1,0 +1,397 @@
+"""Monte Carlo tolerance studies: many seeded simulated runs, serially or on Dask.
+
+Runs are grouped into chunks (one Dask task each, so scheduling overhead stays
+small next to the runs); the prepared :class:`~fabflow.sim.run.Study` is sent to
+every worker once. A run that raises is recorded as a :class:`RunFailure` with its
+seed and error and listed in ``summary.json``; it is never silently dropped.
+Results do not depend on how runs are chunked or where they execute: run ``i``
+always draws from ``SeedSequence(seed, spawn_key=(i,))``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from fabflow.errors import InputError
+from fabflow.positioning.result import BasePose
+from fabflow.sim.run import RunResult, Study, simulate_run
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+UNOBSERVED_SIGMA = 0.5
+"""Predicted sigmas at or above this (radians) mark an axis the method does not
+observe (e.g. roll and pitch for UWB); such axes are left out of the sigma ratio."""
+
+AXES = ("x", "y", "z", "rx", "ry", "rz")
+
+
+@dataclass(frozen=True)
+class RunFailure:
+    """A run that raised: its index, the study seed and the error message."""
+
+    run: int
+    seed: int
+    error: str
+
+
+def simulate_chunk(
+    study: Study, runs: Sequence[int], seed: int, keep_first: bool = False
+) -> list[RunResult | RunFailure]:
+    """Simulate several runs; a run that raises becomes a :class:`RunFailure`.
+
+    Parameters
+    ----------
+    study
+        The prepared study.
+    runs
+        Run indices.
+    seed
+        Study seed.
+    keep_first
+        Keep the base pose estimates of run 0 (written for the preview).
+    """
+    out: list[RunResult | RunFailure] = []
+    for run in runs:
+        try:
+            out.append(simulate_run(study, run, seed, keep_poses=keep_first and run == 0))
+        except Exception as exc:
+            out.append(RunFailure(run=run, seed=seed, error=f"{type(exc).__name__}: {exc}"))
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class StudyResult:
+    """All runs of one study (one localization method), stacked.
+
+    Attributes
+    ----------
+    method
+        Localization method.
+    seed
+        Study seed.
+    n_runs
+        Runs requested.
+    runs
+        (R,) indices of the runs that completed, ascending.
+    translation_m, rotation_rad
+        (R, N) per run and element deviation (metres, radians).
+    deviation_xyz
+        (R, N, 3) as-built minus planned element origin (metres, world frame).
+    localization_error
+        (R, V, 6) base pose error per run and visit (true minus estimate).
+    localization_covariance
+        (R, V, 6, 6) predicted covariance per run and visit.
+    failures
+        Runs that raised.
+    base_poses
+        The base pose estimates of run 0 (empty if it failed).
+    elapsed_s
+        Wall-clock time of the runs (seconds).
+    """
+
+    method: str
+    seed: int
+    n_runs: int
+    runs: np.ndarray
+    translation_m: np.ndarray
+    rotation_rad: np.ndarray
+    deviation_xyz: np.ndarray
+    localization_error: np.ndarray
+    localization_covariance: np.ndarray
+    failures: tuple[RunFailure, ...]
+    base_poses: tuple[BasePose, ...]
+    elapsed_s: float
+
+
+def collect(
+    study: Study, seed: int, n_runs: int, items: Sequence[RunResult | RunFailure], elapsed: float
+) -> StudyResult:
+    """Stack run results (any order) into a :class:`StudyResult`."""
+    ok = sorted((r for r in items if isinstance(r, RunResult)), key=lambda r: r.run)
+    failures = tuple(sorted((r for r in items if isinstance(r, RunFailure)), key=lambda r: r.run))
+    N, V = study.n_elements, study.n_visits
+
+    def stack(name: str, shape: tuple[int, ...]) -> np.ndarray:
+        if not ok:
+            return np.zeros((0, *shape))
+        return np.stack([getattr(r, name) for r in ok])
+
+    first = next((r for r in ok if r.run == 0), None)
+    return StudyResult(
+        method=study.method,
+        seed=seed,
+        n_runs=n_runs,
+        runs=np.array([r.run for r in ok], dtype=np.intp),
+        translation_m=stack("translation_m", (N,)),
+        rotation_rad=stack("rotation_rad", (N,)),
+        deviation_xyz=stack("deviation_xyz", (N, 3)),
+        localization_error=stack("localization_error", (V, 6)),
+        localization_covariance=stack("localization_covariance", (V, 6, 6)),
+        failures=failures,
+        base_poses=first.base_poses if first is not None else (),
+        elapsed_s=elapsed,
+    )
+
+
+def default_chunk_size(n_runs: int, n_workers: int) -> int:
+    """Runs per task: about eight tasks per worker (load balance, progress), at most 50."""
+    return max(1, min(50, math.ceil(n_runs / (8 * max(1, n_workers)))))
+
+
+def run_study(
+    study: Study,
+    n_runs: int,
+    seed: int,
+    client: Client | None = None,
+    chunk_size: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> StudyResult:
+    """Run ``n_runs`` seeded runs of a study, serially or on a Dask cluster.
+
+    Parameters
+    ----------
+    study
+        The prepared study.
+    n_runs
+        Number of runs (run indices ``0 .. n_runs - 1``).
+    seed
+        Study seed.
+    client
+        A ``dask.distributed`` client; ``None`` runs everything in this process.
+    chunk_size
+        Runs per task (default :func:`default_chunk_size`).
+    progress
+        Called with the number of runs just finished, as chunks complete.
+    """
+    t0 = time.perf_counter()
+    if client is None:
+        size = chunk_size or default_chunk_size(n_runs, 1)
+    else:
+        size = chunk_size or default_chunk_size(n_runs, len(client.scheduler_info()["workers"]))
+    chunks = [list(range(i, min(i + size, n_runs))) for i in range(0, n_runs, size)]
+    items: list[RunResult | RunFailure] = []
+    if client is None:
+        for chunk in chunks:
+            items += simulate_chunk(study, chunk, seed, keep_first=True)
+            if progress is not None:
+                progress(len(chunk))
+        return collect(study, seed, n_runs, items, time.perf_counter() - t0)
+
+    from distributed import as_completed
+
+    [study_future] = client.scatter([study], broadcast=True)
+    futures = {
+        client.submit(simulate_chunk, study_future, chunk, seed, True, pure=False): chunk
+        for chunk in chunks
+    }
+    for future in as_completed(futures):
+        chunk = futures[future]
+        if future.status == "error":
+            exc = future.exception()
+            error = f"task failed: {type(exc).__name__}: {exc}"
+            items += [RunFailure(run=r, seed=seed, error=error) for r in chunk]
+        else:
+            items += future.result()
+        if progress is not None:
+            progress(len(chunk))
+    return collect(study, seed, n_runs, items, time.perf_counter() - t0)
+
+
+@contextmanager
+def dask_client(scheduler: str | None = None, n_workers: int = 2) -> Iterator[Client]:
+    """A Dask client: connected to ``scheduler``, or on a new local cluster.
+
+    Parameters
+    ----------
+    scheduler
+        Address of a running scheduler (``tcp://host:8786``); its workers need fabflow
+        installed. ``None`` starts a :class:`~distributed.LocalCluster` of ``n_workers``
+        single-threaded worker processes, closed on exit.
+    n_workers
+        Worker processes of the local cluster.
+
+    Raises
+    ------
+    InputError
+        When the scheduler cannot be reached.
+    """
+    from distributed import Client, LocalCluster
+
+    if scheduler is not None:
+        try:
+            client = Client(scheduler, timeout="10s")
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(
+                f"cannot connect to the Dask scheduler at {scheduler!r}: {exc}",
+                location="--scheduler",
+            ) from None
+        with client:
+            yield client
+        return
+    with (
+        LocalCluster(
+            n_workers=n_workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=logging.ERROR,
+        ) as cluster,
+        Client(cluster) as client,
+    ):
+        yield client
+
+
+# ----------------------------------------------------------------------- statistics
+
+
+def _stats(values: np.ndarray) -> dict[str, float]:
+    v = np.asarray(values, dtype=float).ravel()
+    if v.size == 0:
+        return {"rmse": math.nan, "mean": math.nan, "p95": math.nan, "max": math.nan}
+    return {
+        "rmse": float(np.sqrt(np.mean(v**2))),
+        "mean": float(np.mean(v)),
+        "p95": float(np.percentile(v, 95)),
+        "max": float(np.max(v)),
+    }
+
+
+def within_tolerance(study: Study, result: StudyResult) -> np.ndarray:
+    """(R, N) whether each as-built element is within the project's tolerances."""
+    tol = study.project.tolerances
+    return (result.translation_m <= tol.position) & (
+        result.rotation_rad <= math.radians(tol.rotation_deg)
+    )
+
+
+def sigma_ratio(errors: np.ndarray, covariances: np.ndarray) -> dict[str, float]:
+    """Empirical RMS error over predicted RMS sigma, per observed axis.
+
+    1 means the predicted covariance is honest, above 1 over-confident, below 1
+    pessimistic. Axes with a predicted sigma of at least :data:`UNOBSERVED_SIGMA` are
+    not observed by the method and are left out.
+
+    Parameters
+    ----------
+    errors
+        (..., 6) pose errors.
+    covariances
+        (..., 6, 6) predicted covariances.
+    """
+    e = errors.reshape(-1, 6)
+    sigma = np.sqrt(np.clip(np.diagonal(covariances, axis1=-2, axis2=-1), 0.0, None))
+    sigma = sigma.reshape(-1, 6)
+    out: dict[str, float] = {}
+    for k, axis in enumerate(AXES):
+        if e.shape[0] == 0 or np.any(sigma[:, k] >= UNOBSERVED_SIGMA):
+            continue
+        predicted = float(np.sqrt(np.mean(sigma[:, k] ** 2)))
+        actual = float(np.sqrt(np.mean(e[:, k] ** 2)))
+        out[axis] = actual / predicted if predicted > 0 else (math.inf if actual > 0 else 1.0)
+    return out
+
+
+def _localization_stats(errors: np.ndarray, covariances: np.ndarray) -> dict[str, Any]:
+    e = errors.reshape(-1, 6)
+    sigma = np.sqrt(np.clip(np.diagonal(covariances, axis1=-2, axis2=-1), 0.0, None))
+    sigma = sigma.reshape(-1, 6)
+    xy = np.linalg.norm(e[:, :2], axis=1)
+    return {
+        "visits": int(e.shape[0]),
+        "xy_error_m": _stats(xy),
+        "rmse": {
+            a: float(np.sqrt(np.mean(e[:, k] ** 2))) if len(e) else math.nan
+            for k, a in enumerate(AXES)
+        },
+        "predicted_sigma": {
+            a: float(np.sqrt(np.mean(sigma[:, k] ** 2))) if len(e) else math.nan
+            for k, a in enumerate(AXES)
+        },
+        "sigma_ratio": sigma_ratio(errors, covariances),
+    }
+
+
+def summarize(study: Study, result: StudyResult) -> dict[str, Any]:
+    """The ``summary.json`` content of one study: overall, per station, localization.
+
+    Translation figures are metres, rotation figures radians; ``within_tolerance`` is
+    the share of element placements (over all runs) within both tolerances of the
+    project.
+    """
+    ok = within_tolerance(study, result)
+    tol = study.project.tolerances
+    stations = [s.id for s in study.stations]
+    per_station: dict[str, Any] = {}
+    for sid in dict.fromkeys(stations):
+        cols = np.flatnonzero(np.array(study.element_station) == sid)
+        visits = [v for v, s in enumerate(stations) if s == sid]
+        per_station[sid] = {
+            "elements": len(cols),
+            "visits": len(visits),
+            "translation_m": _stats(result.translation_m[:, cols]),
+            "rotation_rad": _stats(result.rotation_rad[:, cols]),
+            "within_tolerance": float(ok[:, cols].mean()) if ok[:, cols].size else math.nan,
+            "localization": _localization_stats(
+                result.localization_error[:, visits], result.localization_covariance[:, visits]
+            ),
+        }
+    run_rmse = (
+        np.sqrt(np.mean(result.translation_m**2, axis=1)) if result.runs.size else np.zeros(0)
+    )
+    return {
+        "method": result.method,
+        "seed": result.seed,
+        "runs": {
+            "requested": result.n_runs,
+            "completed": int(result.runs.size),
+            "failed": len(result.failures),
+            "elapsed_s": result.elapsed_s,
+        },
+        "failures": [{"run": f.run, "seed": f.seed, "error": f.error} for f in result.failures],
+        "elements": study.n_elements,
+        "visits": study.n_visits,
+        "tolerances": {"position_m": tol.position, "rotation_rad": math.radians(tol.rotation_deg)},
+        "translation_m": _stats(result.translation_m),
+        "rotation_rad": _stats(result.rotation_rad),
+        "within_tolerance": float(ok.mean()) if ok.size else math.nan,
+        "within_position_tolerance": float((result.translation_m <= tol.position).mean())
+        if ok.size
+        else math.nan,
+        "runs_all_within_tolerance": float(ok.all(axis=1).mean()) if ok.size else math.nan,
+        "run_rmse_m": _stats(run_rmse),
+        "localization": _localization_stats(
+            result.localization_error, result.localization_covariance
+        ),
+        "per_station": per_station,
+    }
+
+
+def comparison_row(summary: dict[str, Any]) -> dict[str, Any]:
+    """One row of the method comparison table from a study summary."""
+    loc = summary["localization"]
+    ratio = loc["sigma_ratio"]
+    return {
+        "method": summary["method"],
+        "runs_completed": summary["runs"]["completed"],
+        "runs_failed": summary["runs"]["failed"],
+        "rmse_m": summary["translation_m"]["rmse"],
+        "p95_m": summary["translation_m"]["p95"],
+        "max_m": summary["translation_m"]["max"],
+        "rotation_p95_rad": summary["rotation_rad"]["p95"],
+        "within_tolerance": summary["within_tolerance"],
+        "runs_all_within_tolerance": summary["runs_all_within_tolerance"],
+        "localization_xy_rmse_m": loc["xy_error_m"]["rmse"],
+        "sigma_ratio_xy": float(np.sqrt(np.mean([ratio[a] ** 2 for a in ("x", "y")])))
+        if {"x", "y"} <= ratio.keys()
+        else math.nan,
+        "seconds_per_run": summary["runs"]["elapsed_s"] / max(1, summary["runs"]["requested"]),
+    }

@@ -1,0 +1,325 @@
+"""One simulated construction run of a whole project.
+
+Physics of a run (all poses 4x4, metres, world frame):
+
+1. At every visit of the plan the platform parks with the project's driving error
+   (:func:`fabflow.localization.parked_pose`): the true base pose ``T_world_base_true``.
+2. The localization method simulates its sensors at that pose and estimates the
+   base: ``T_world_base_est`` with a 6x6 covariance (:class:`BasePose`).
+3. The robot program is computed in the estimated base frame, so a target
+   ``T_world_target`` is commanded as ``inv(T_world_base_est) @ T_world_target`` and
+   lands at ``T_world_base_true @ inv(T_world_base_est) @ T_world_target``. The same
+   rigid error moves the whole element: ``T_world_element_asbuilt = E @ T_world_element``
+   with ``E = T_world_base_true @ inv(T_world_base_est)``.
+4. Execution adds the robot's repeatability (isotropic Gaussian, ``robot_repeatability``
+   per axis) and the lift's error (vertical Gaussian, ``lift_error``) to every placement.
+
+The plan and the elements are computed once per study (:func:`prepare_study`); a
+run only draws random numbers. Run ``i`` of a study with seed ``s`` uses
+``numpy.random.default_rng(SeedSequence(s, spawn_key=(i,)))`` (the ``i``-th child
+of ``SeedSequence(s)``), so any run can be repeated alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fabflow.design.elements import Element
+from fabflow.errors import InputError
+from fabflow.localization import LocalizeStation, method_function, parked_pose
+from fabflow.positioning.result import BasePose
+from fabflow.project import LOCALIZATION_METHODS, Project
+from fabflow.tasks.plan import Plan, Station
+from fabflow.transforms.se3 import inv_T, pose_error
+from fabflow.transforms.so3 import log_so3
+
+
+@dataclass(frozen=True, eq=False)
+class Study:
+    """Everything a run needs that does not change between runs.
+
+    Attributes
+    ----------
+    project
+        The validated project.
+    method
+        Localization method simulated (``"uwb"``, ``"total_station"``, ``"icp"``).
+    element_ids
+        Ids of the N robot-built elements, in build order.
+    element_visit
+        (N,) index into the visits of the visit that builds each element.
+    T_world_element
+        (N, 4, 4) planned element poses in the world frame (metres).
+    stations
+        The station of each of the V visits, in execution order.
+    built_before
+        Per visit, the elements standing when the platform arrives (pre-built ones
+        plus those built on earlier visits); LiDAR scans and UWB lines of sight see them.
+    """
+
+    project: Project
+    method: str
+    element_ids: tuple[str, ...]
+    element_visit: np.ndarray
+    T_world_element: np.ndarray
+    stations: tuple[Station, ...]
+    built_before: tuple[tuple[Element, ...], ...]
+
+    @property
+    def n_elements(self) -> int:
+        """Number of robot-built elements N."""
+        return len(self.element_ids)
+
+    @property
+    def n_visits(self) -> int:
+        """Number of visits V."""
+        return len(self.stations)
+
+    @property
+    def element_station(self) -> list[str]:
+        """Station id of each element."""
+        return [self.stations[v].id for v in self.element_visit]
+
+
+def prepare_study(
+    project: Project,
+    method: str | None = None,
+    elements: Sequence[Element] | None = None,
+    plan: Plan | None = None,
+) -> Study:
+    """Generate the elements and plan the project once, for any number of runs.
+
+    Parameters
+    ----------
+    project
+        The validated project.
+    method
+        Localization method to simulate (default: ``project.localization.method``).
+    elements, plan
+        Already computed elements and plan (computed here when absent).
+
+    Raises
+    ------
+    InputError
+        For an unknown method, or a method whose setup the project lacks.
+    InfeasibleError
+        When the project cannot be planned.
+    """
+    method = method or project.localization.method
+    if method not in LOCALIZATION_METHODS:
+        raise InputError(
+            f"unknown localization method {method!r}: expected one of "
+            + ", ".join(LOCALIZATION_METHODS)
+        )
+    if method == "uwb" and project.localization.uwb is None:
+        raise InputError(
+            "method 'uwb' needs a 'localization.uwb' section with the anchor positions",
+            project.path,
+            "localization.uwb",
+        )
+    if elements is None:
+        from fabflow.design import generate_elements
+
+        elements = generate_elements(project)
+    if plan is None:
+        from fabflow.tasks.planner import plan_project
+
+        plan = plan_project(project, elements)
+    by_id = {e.id: e for e in elements}
+    standing: list[Element] = [e for e in elements if not e.robot_built]
+    ids: list[str] = []
+    visit_of: list[int] = []
+    built_before: list[tuple[Element, ...]] = []
+    for v, wp in enumerate(plan.work_packages):
+        built_before.append(tuple(standing))
+        ids += wp.elements
+        visit_of += [v] * len(wp.elements)
+        standing += [by_id[i] for i in wp.elements]
+    T = np.stack([np.asarray(by_id[i].T_world_element, dtype=float) for i in ids])
+    return Study(
+        project=project,
+        method=method,
+        element_ids=tuple(ids),
+        element_visit=np.asarray(visit_of, dtype=np.intp),
+        T_world_element=T if ids else np.zeros((0, 4, 4)),
+        stations=tuple(wp.station for wp in plan.work_packages),
+        built_before=tuple(built_before),
+    )
+
+
+def run_seed(seed: int, run: int) -> np.random.SeedSequence:
+    """Seed sequence of run ``run`` of a study seeded ``seed`` (child ``run`` of ``seed``)."""
+    return np.random.SeedSequence(seed, spawn_key=(run,))
+
+
+@dataclass(frozen=True, eq=False)
+class RunResult:
+    """The outcome of one simulated run.
+
+    Attributes
+    ----------
+    run
+        Run index within the study.
+    seed
+        Study seed; the run's generator is ``default_rng(run_seed(seed, run))``.
+    translation_m
+        (N,) distance between as-built and planned element origin (metres).
+    rotation_rad
+        (N,) rotation angle between as-built and planned element frame (radians).
+    deviation_xyz
+        (N, 3) as-built minus planned element origin in the world frame (metres).
+    localization_error
+        (V, 6) error ``[dx, dy, dz, rx, ry, rz]`` of each visit's base estimate
+        (true minus estimate, fabflow's convention; metres, radians).
+    localization_covariance
+        (V, 6, 6) covariance the method predicted for each visit.
+    T_world_element_asbuilt
+        (N, 4, 4) as-built element poses, when the run was asked to keep them.
+    base_poses
+        Each visit's :class:`BasePose` estimate, when the run was asked to keep them.
+    """
+
+    run: int
+    seed: int
+    translation_m: np.ndarray
+    rotation_rad: np.ndarray
+    deviation_xyz: np.ndarray
+    localization_error: np.ndarray
+    localization_covariance: np.ndarray
+    T_world_element_asbuilt: np.ndarray | None = None
+    base_poses: tuple[BasePose, ...] = field(default_factory=tuple)
+
+
+def exact_localizer(method: str) -> LocalizeStation:
+    """A localizer without sensor noise: the estimate is the true pose, covariance zero."""
+
+    def localize(
+        project: Project,
+        T_world_base: np.ndarray,
+        rng: np.random.Generator,
+        station_id: str,
+        built: Sequence[Element] = (),
+    ) -> BasePose:
+        return BasePose(
+            T_world_base=np.array(T_world_base, dtype=float),
+            covariance=np.zeros((6, 6)),
+            method=method,
+            station=station_id,
+            quality={"simulated": "exact (simulation.sensor_noise is false)"},
+        )
+
+    return localize
+
+
+def study_localizer(study: Study) -> LocalizeStation:
+    """The method's ``localize_station``, or :func:`exact_localizer` without sensor noise."""
+    if not study.project.simulation.sensor_noise:
+        return exact_localizer(study.method)
+    return method_function(study.method)
+
+
+def simulate_run(
+    study: Study,
+    run: int,
+    seed: int,
+    keep_poses: bool = False,
+    localize: LocalizeStation | None = None,
+) -> RunResult:
+    """Simulate one construction run (see the module docstring for the physics).
+
+    Parameters
+    ----------
+    study
+        The prepared study (:func:`prepare_study`).
+    run, seed
+        Run index and study seed; they fix every random number of the run.
+    keep_poses
+        Keep the as-built element poses and the base pose estimates in the result.
+    localize
+        Localizer to use instead of :func:`study_localizer` (tests).
+
+    Raises
+    ------
+    LocalizationError
+        When the method fails at a visit (the Monte Carlo driver records the run as failed).
+    """
+    rng = np.random.default_rng(run_seed(seed, run))
+    sim = study.project.simulation
+    localize = localize or study_localizer(study)
+    V = study.n_visits
+    T_true = np.empty((V, 4, 4))
+    T_est = np.empty((V, 4, 4))
+    cov = np.empty((V, 6, 6))
+    estimates: list[BasePose] = []
+    for v, station in enumerate(study.stations):
+        _, T_true[v] = parked_pose(study.project, station, rng)
+        estimate = localize(study.project, T_true[v], rng, station.id, built=study.built_before[v])
+        T_est[v] = estimate.T_world_base
+        cov[v] = estimate.covariance
+        if keep_poses:
+            estimates.append(estimate)
+    E = T_true @ inv_T(T_est)
+    T_asbuilt = E[study.element_visit] @ study.T_world_element
+    N = study.n_elements
+    noise = rng.normal(0.0, 1.0, (N, 3)) * sim.robot_repeatability
+    noise[:, 2] += rng.normal(0.0, 1.0, N) * sim.lift_error
+    T_asbuilt[:, :3, 3] += noise
+    d = T_asbuilt[:, :3, 3] - study.T_world_element[:, :3, 3]
+    dR = T_asbuilt[:, :3, :3] @ np.swapaxes(study.T_world_element[:, :3, :3], -1, -2)
+    return RunResult(
+        run=run,
+        seed=seed,
+        translation_m=np.linalg.norm(d, axis=1),
+        rotation_rad=np.linalg.norm(log_so3(dR), axis=1),
+        deviation_xyz=d,
+        localization_error=pose_error(T_est, T_true),
+        localization_covariance=cov,
+        T_world_element_asbuilt=T_asbuilt if keep_poses else None,
+        base_poses=tuple(estimates),
+    )
+
+
+def run_to_dict(study: Study, result: RunResult) -> dict[str, Any]:
+    """Plain JSON-compatible data of one run: per element and per visit."""
+    return {
+        "run": result.run,
+        "seed": result.seed,
+        "method": study.method,
+        "elements": [
+            {
+                "element": eid,
+                "station": study.stations[v].id,
+                "translation_m": float(t),
+                "rotation_rad": float(r),
+                "deviation_xyz_m": d.tolist(),
+            }
+            for eid, v, t, r, d in zip(
+                study.element_ids,
+                study.element_visit,
+                result.translation_m,
+                result.rotation_rad,
+                result.deviation_xyz,
+                strict=True,
+            )
+        ],
+        "visits": [
+            {
+                "visit": v + 1,
+                "station": s.id,
+                "error": e.tolist(),
+                "sigma": np.sqrt(np.clip(np.diag(c), 0.0, None)).tolist(),
+            }
+            for v, (s, e, c) in enumerate(
+                zip(
+                    study.stations,
+                    result.localization_error,
+                    result.localization_covariance,
+                    strict=True,
+                )
+            )
+        ],
+    }
