@@ -356,7 +356,9 @@ def localize_from_files(
         else:
             fixes = locate(A, rej.ranges[:, 0, :], method="wls-t", sigma=sigma)
             yaw0 = heading_from_motion(fixes.positions[:, :2], 0.3)
-            p0 = np.nanmedian(fixes.positions[: max(5, int(setup.rate_hz))], axis=0) - L[0]
+            c, s = math.cos(yaw0), math.sin(yaw0)
+            lever_w = np.array([c * L[0, 0] - s * L[0, 1], s * L[0, 0] + c * L[0, 1], L[0, 2]])
+            p0 = np.nanmedian(fixes.positions[: max(5, int(setup.rate_hz))], axis=0) - lever_w
             s_yaw = math.radians(15.0)
         rest = t_imu < t0 + 0.5
         q0 = initial_attitude(acc[rest] if rest.sum() >= 2 else acc[:2], yaw0)
