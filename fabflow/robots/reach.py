@@ -139,8 +139,8 @@ def _cache_key(
     h = hashlib.sha256()
     h.update(f"v{_MAP_VERSION}|{robot.name}|{tool_axis}|{step:.6f}|{n_yaw}".encode())
     for arr in (robot.dh, robot.joint_sign, robot.joint_limits, robot.T_n_flange):
-        h.update(np.round(np.asarray(arr, dtype=float), 12).tobytes())
-    h.update(np.round(T_flange_tool, 9).tobytes())
+        h.update((np.round(np.asarray(arr, dtype=float), 12) + 0.0).tobytes())
+    h.update((np.round(T_flange_tool, 9) + 0.0).tobytes())  # + 0.0 turns -0.0 into 0.0
     return h.hexdigest()[:32]
 
 
