@@ -22,7 +22,7 @@ from fabflow.tasks.order import assign_passes, lift_bands, schedule, visit_patte
 from fabflow.tasks.planner import plan_project
 from fabflow.tasks.reach import reach_model
 from fabflow.tasks.stage import make_plan
-from fabflow.tasks.stations import element_polygons, footprint_polygons, rectangles_intersect
+from fabflow.tasks.stations import element_polygons, footprint_polygons
 from fabflow.tasks.targets import element_targets
 from fabflow.tasks.verify import unreachable_targets
 
@@ -394,16 +394,3 @@ def test_tour_is_a_short_permutation():
     length = np.hypot(*np.diff(xy[order], axis=0).T).sum()
     ident = np.hypot(*np.diff(xy, axis=0).T).sum()
     assert length <= ident + 1e-9
-
-
-@settings(deadline=None, max_examples=40)
-@given(st.integers(0, 2**32 - 1))
-def test_rectangles_intersect_matches_shapely(seed):
-    from fabflow.tasks.stations import footprint_corners
-
-    rng = np.random.default_rng(seed)
-    m = 200
-    a = footprint_corners(rng.uniform(-2, 2, (m, 2)), rng.uniform(0, 7, m), (1.0, 0.5), 0.1)
-    b = footprint_corners(rng.uniform(-2, 2, (m, 2)), rng.uniform(0, 7, m), (0.6, 0.1), 0.0)
-    ref = shapely.intersects(shapely.polygons(a), shapely.polygons(b))
-    assert (rectangles_intersect(a, b) == ref).all()

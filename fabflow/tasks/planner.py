@@ -296,8 +296,8 @@ def plan_project(
     # anything resting on them; such candidates are used only when the others
     # do not reach everything, and only near what the others miss.
     owner_all = np.asarray(idx_work, dtype=np.intp)[owner]
-    n_blocked = cands.n_blocked
-    free_rows = np.flatnonzero(n_blocked == 0)
+    n_blocked = cands.blocks.astype(np.int64)
+    free_rows = np.flatnonzero(~cands.blocks)
     A = coverage(cands, T_frames, owner_all, len(elements), reach, lifts, free_rows)
     A = A[:, idx_work].tocsr()
     reachable = np.diff(A.tocsc().indptr) > 0

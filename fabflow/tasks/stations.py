@@ -27,8 +27,6 @@ from fabflow.design.elements import Element
 from fabflow.project import Platform, Site
 from fabflow.tasks.reach import ReachModel
 
-FOOTPRINT_CHUNK = 20_000
-"""Footprints tested for collisions per batch."""
 PAIR_CHUNK = 2_000_000
 """Candidate-frame pairs evaluated per batch (bounds memory on large projects)."""
 
@@ -49,10 +47,10 @@ class Candidates:
         Height of the arm base above the ground at the lowest lift (metres).
     footprints
         (C,) shapely polygons: footprint grown by the safety margin.
-    n_blocked
-        (C,) how many robot-built outlines lie under each footprint (0 = blocks nothing).
-    hits
-        (2, H) int32 pairs (candidate, outline) of robot-built outlines under footprints.
+    blocks
+        (C,) bool: some robot-built element lies under the footprint.
+    outlines
+        (U,) plan outlines of the robot-built elements (stacked blocks share one).
     members
         Sparse (U, N) bool: the robot-built elements sharing each outline.
     n_grid
@@ -66,8 +64,8 @@ class Candidates:
     base_xy: np.ndarray
     base_z0: float
     footprints: np.ndarray
-    n_blocked: np.ndarray
-    hits: np.ndarray
+    blocks: np.ndarray
+    outlines: np.ndarray
     members: sparse.csr_matrix
     n_grid: int
     n_obstructed: int
@@ -75,13 +73,12 @@ class Candidates:
     def blocked(self, rows: np.ndarray) -> sparse.csr_matrix:
         """Sparse (len(rows), N) bool: robot-built elements under the footprints of ``rows``."""
         rows = np.asarray(rows, dtype=np.intp)
-        slot = np.full(len(self.xy), -1)
-        slot[rows] = np.arange(len(rows))
-        r = slot[self.hits[0]]
-        sel = r >= 0
+        U = len(self.outlines)
+        if U == 0 or len(rows) == 0:
+            return sparse.csr_matrix((len(rows), self.members.shape[1]), dtype=bool)
+        hit = shapely.STRtree(self.outlines).query(self.footprints[rows], predicate="intersects")
         H = sparse.csr_matrix(
-            (np.ones(int(sel.sum()), dtype=np.int32), (r[sel], self.hits[1][sel])),
-            shape=(len(rows), self.members.shape[0]),
+            (np.ones(hit.shape[1], dtype=np.int32), (hit[0], hit[1])), shape=(len(rows), U)
         )
         out = (H @ self.members.astype(np.int32)).tocsr()
         out.data[:] = 1
@@ -131,42 +128,6 @@ def footprint_polygons(
     See :func:`footprint_corners` for the parameters.
     """
     return shapely.polygons(footprint_corners(xy, heading, size, margin))
-
-
-def rectangles_intersect(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Pairwise overlap of rectangles by the separating axis test (touching counts).
-
-    Parameters
-    ----------
-    a, b
-        (P, 4, 2) corners of rectangles in order around each (any orientation).
-
-    Returns
-    -------
-    np.ndarray
-        (P,) bool.
-    """
-    out = np.zeros(len(a), dtype=bool)
-    # Cheap circle tests settle most pairs: circumcircles apart -> disjoint,
-    # incircles overlapping -> intersecting; the rest get the separating axis test.
-    ca, cb = a.mean(axis=1), b.mean(axis=1)
-    d = np.hypot(*(ca - cb).T)
-    Ra = np.hypot(*(a[:, 0] - ca).T)
-    Rb = np.hypot(*(b[:, 0] - cb).T)
-    ra = 0.5 * np.minimum(np.hypot(*(a[:, 1] - a[:, 0]).T), np.hypot(*(a[:, 2] - a[:, 1]).T))
-    rb = 0.5 * np.minimum(np.hypot(*(b[:, 1] - b[:, 0]).T), np.hypot(*(b[:, 2] - b[:, 1]).T))
-    out[d <= ra + rb] = True
-    todo = np.flatnonzero((d <= Ra + Rb) & (d > ra + rb))
-    for k in range(0, len(todo), 100_000):
-        idx = todo[k : k + 100_000]
-        aa, bb = a[idx], b[idx]
-        axes = np.concatenate([aa[:, 1:3] - aa[:, 0:2], bb[:, 1:3] - bb[:, 0:2]], axis=1)
-        nx, ny = -axes[..., 1:2], axes[..., 0:1]
-        pa = nx * aa[:, None, :, 0] + ny * aa[:, None, :, 1]
-        pb = nx * bb[:, None, :, 0] + ny * bb[:, None, :, 1]
-        separated = (pa.max(axis=2) < pb.min(axis=2)) | (pb.max(axis=2) < pa.min(axis=2))
-        out[idx] = ~separated.any(axis=1)
-    return out
 
 
 def block_corners(elements: Sequence[Element]) -> tuple[np.ndarray, np.ndarray]:
@@ -322,51 +283,35 @@ def generate_candidates(
     outlines, outline_of = unique_outlines(elements)
     U = len(outlines)
     has_prebuilt = np.bincount(outline_of[~robot_built], minlength=U) > 0
-    hit_c: list[np.ndarray] = []
-    hit_u: list[np.ndarray] = []
-    if n:
-        # Bounding-box candidates from the tree, then an exact test: the separating
-        # axis test for rectangles, shapely for the other outlines. In batches of
-        # footprints to bound memory.
-        tree = shapely.STRtree(outlines)
-        is_rect = np.array([len(shapely.get_coordinates(g)) == 5 for g in outlines], dtype=bool)
-        rect_corners = np.zeros((U, 4, 2))
-        if is_rect.any():
-            rect_corners[is_rect] = shapely.get_coordinates(outlines[is_rect]).reshape(-1, 5, 2)[
-                :, :4
-            ]
-        for a0 in range(0, len(fp), FOOTPRINT_CHUNK):
-            hit = tree.query(fp[a0 : a0 + FOOTPRINT_CHUNK])
-            hit[0] += a0
-            rect = is_rect[hit[1]]
-            exact = np.zeros(hit.shape[1], dtype=bool)
-            exact[rect] = rectangles_intersect(fp_corners[hit[0][rect]], rect_corners[hit[1][rect]])
-            other = ~rect
-            exact[other] = shapely.intersects(fp[hit[0][other]], outlines[hit[1][other]])
-            hit = hit[:, exact]
-            bad[hit[0][has_prebuilt[hit[1]]]] = True
-            hit_c.append(hit[0].astype(np.int32))
-            hit_u.append(hit[1].astype(np.int32))
-    hc = np.concatenate(hit_c) if hit_c else np.zeros(0, dtype=np.int32)
-    hu = np.concatenate(hit_u) if hit_u else np.zeros(0, dtype=np.int32)
+    has_robot = np.bincount(outline_of[robot_built], minlength=U) > 0
+    # One merged (prepared) outline per kind: GEOS then tests each footprint
+    # against an indexed geometry instead of pair by pair.
+    if has_prebuilt.any():
+        merged = shapely.union_all(outlines[has_prebuilt])
+        shapely.prepare(merged)
+        bad |= shapely.intersects(merged, fp)
+    blocks = np.zeros(len(fp), dtype=bool)
+    if has_robot.any():
+        merged = shapely.union_all(outlines[has_robot])
+        shapely.prepare(merged)
+        blocks = shapely.intersects(merged, fp)
 
     keep = np.flatnonzero(~bad)
-    remap = np.full(len(xy), -1)
-    remap[keep] = np.arange(len(keep))
-    rows = remap[hc]
-    sel = rows >= 0
-    hits = np.stack([rows[sel], hu[sel]]).astype(np.int32)
-    n_blocked = np.bincount(hits[0], minlength=len(keep))
+    rb_outlines = np.flatnonzero(has_robot)
+    slot = np.full(U, -1)
+    slot[rb_outlines] = np.arange(len(rb_outlines))
     rb = np.flatnonzero(robot_built)
-    members = sparse.csr_matrix((np.ones(len(rb), dtype=bool), (outline_of[rb], rb)), shape=(U, n))
+    members = sparse.csr_matrix(
+        (np.ones(len(rb), dtype=bool), (slot[outline_of[rb]], rb)), shape=(len(rb_outlines), n)
+    )
     return Candidates(
         xy=xy[keep],
         heading=heading[keep],
         base_xy=base_xy[keep],
         base_z0=float(T_pb[2, 3]),
         footprints=fp[keep],
-        n_blocked=n_blocked,
-        hits=hits,
+        blocks=blocks[keep],
+        outlines=outlines[rb_outlines],
         members=members,
         n_grid=n_grid,
         n_obstructed=int(near.sum()) - len(keep),
