@@ -333,7 +333,7 @@ def refine_registration(
     M: np.ndarray,
     W: np.ndarray,
     max_iter: int = 5,
-    tol: float = 1e-12,
+    tol: float = 1e-10,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Gauss-Newton on ``sum_i e_i^T W_i e_i``, ``e_i = R p_i + t - m_i``, from ``(R, t)``.
 
@@ -466,7 +466,7 @@ def _loo_test(
     # each leave-one-out fit starts from the full fit: a few Gauss-Newton steps
     # reach its own optimum (the weighted Kabsch one when W is isotropic)
     Rs, ts, _ = refine_registration(
-        np.broadcast_to(R, (n, 3, 3)), np.broadcast_to(t, (n, 3)), P[idx], M[idx], W[idx], 4
+        np.broadcast_to(R, (n, 3, 3)), np.broadcast_to(t, (n, 3)), P[idx], M[idx], W[idx], 3
     )
     d = M - (np.einsum("nij,nj->ni", Rs, P) + ts)
     J = _jacobians(R, P)
