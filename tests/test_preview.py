@@ -2,23 +2,17 @@
 
 from __future__ import annotations
 
-import base64
 import json
-import re
 from collections.abc import Iterator
-from pathlib import Path
 
-import msgspec
 import numpy as np
 import pytest
-import zstandard
 
 from fabflow.design.elements import Element
 from fabflow.errors import InputError
 from fabflow.positioning.result import BasePose
 from fabflow.preview.app import LivePreview, serve
 from fabflow.preview.arm import RobotArm
-from fabflow.preview.export import MAX_EXPORT_BYTES, export_html
 from fabflow.preview.gui import step_info, work_package_json
 from fabflow.preview.model import COLOUR_MODES, build_model
 from fabflow.preview.scene import PreviewScene
@@ -307,32 +301,3 @@ def test_kuka_arm_is_drawn_at_its_targets() -> None:
     # every link keeps its length from step to step (a rigid arm)
     lengths = np.linalg.norm(np.diff(m.arm_points, axis=1), axis=2)
     np.testing.assert_allclose(lengths, np.broadcast_to(lengths[0], lengths.shape), atol=1e-9)
-
-
-def decode_embedded(html: str) -> dict:
-    b64 = re.search(r'__VISER_EMBED_DATA__="([^"]+)"', html).group(1)
-    raw = base64.b64decode(b64)
-    inner = zstandard.ZstdDecompressor().decompress(raw[8:], max_output_size=1 << 30)
-    n = int.from_bytes(inner[:8], "little")
-    return msgspec.msgpack.decode(inner[8 : 8 + n])
-
-
-def test_export_is_one_small_offline_file_that_plays_every_step(model, tmp_path: Path) -> None:
-    out = tmp_path / "wall.html"
-    result = export_html(model, out, seconds_per_step=0.25)
-    html = out.read_text(encoding="utf-8")
-    assert result.size_bytes == out.stat().st_size < MAX_EXPORT_BYTES
-    urls = set(re.findall(r"(?:https?:)?//[a-zA-Z0-9.-]+\.[a-z]{2,}[^\s\"')]*", html))
-    assert urls <= {"//www.w3.org/2000/svg", "http://www.w3.org/2000/svg"}, urls
-    data = decode_embedded(html)
-    assert data["durationSeconds"] == pytest.approx(1.0 + 0.25 * model.n_steps + 2.0)
-    times = sorted({t for t, _ in data["messages"]})
-    assert len(times) == model.n_steps + 1
-    later = [msg for t, msg in data["messages"] if t > 0]
-    assert later and {m["type"] for m in later} <= UPDATE_KINDS
-    assert not list(tmp_path.glob(".*tmp"))
-
-
-def test_export_rejects_a_missing_folder(model, tmp_path: Path) -> None:
-    with pytest.raises(InputError, match="does not exist"):
-        export_html(model, tmp_path / "nope" / "x.html")
