@@ -25,7 +25,7 @@ from fabflow.design.cabin import cabin_layer_counts
 from fabflow.design.stage import stage_design
 from fabflow.errors import InputError
 from fabflow.pipeline import BuildContext
-from fabflow.project import CabinSpec, Opening, parse_project
+from fabflow.project import BlockSize, CabinSpec, Opening, parse_project
 
 DEFAULT = CabinSpec()
 
@@ -302,3 +302,38 @@ def test_element_meshes(mixed_elements) -> None:
     assert ribbon.volume == pytest.approx(a["length"] * a["bead_width"] * a["layer_height"])
     assert ribbon.bounds[1, 2] == pytest.approx(layer.T_world_element[2, 3])
     assert len(element_mesh(next(e for e in mixed_elements if e.type == "task_point")).faces) == 0
+
+
+@settings(deadline=None, max_examples=15)
+@given(
+    length=st.floats(2.0, 7.0),
+    width=st.floats(2.0, 7.0),
+    eave=st.floats(1.0, 3.5),
+    roof=st.floats(0.0, 2.0),
+    block_length=st.floats(0.4, 1.2),
+    door=st.booleans(),
+)
+def test_any_cabin_stands_without_overlaps(length, width, eave, roof, block_length, door) -> None:
+    openings = (
+        [
+            Opening(
+                wall="front", kind="door", center=width / 2, width=0.8, height=min(2.0, eave - 0.3)
+            )
+        ]
+        if door and eave > 1.0 and width > 1.4
+        else []
+    )
+    spec = CabinSpec(
+        length=length,
+        width=width,
+        eave_height=eave,
+        height=eave + roof,
+        block=BlockSize(length=block_length),
+        openings=openings,
+    )
+    b = cabin_blocks(spec)
+    sup = compute_supports(b.T_world_block, b.extents)
+    assert all(len(sup[i]) > 0 for i in np.flatnonzero(b.layer > 0))
+    assert max_overlap_volume(b.T_world_block, b.extents) <= 1e-6
+    plain = b.kind == "block"
+    assert np.all(b.extents[plain, 0] <= block_length + 1e-9)

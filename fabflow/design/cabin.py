@@ -151,7 +151,9 @@ def _rows(spec: CabinSpec) -> list[tuple[int, str, str, float, float, bool]]:
                 piece = wall
             elif wall in _Y_WALLS:
                 z_mid = (k + 0.5) * h
-                half = 0.5 * spec.width * (spec.height - z_mid) / (spec.height - spec.eave_height)
+                # the roof line runs from the top of the walls to the ridge
+                slope = (spec.height - z_mid) / (spec.height - n_wall * h)
+                half = 0.5 * spec.width * min(1.0, slope)
                 a, b = 0.5 * spec.width - half, 0.5 * spec.width + half
                 if b - a < spec.min_piece:
                     continue
