@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fabflow.errors import InputError, UnsupportedError
 from fabflow.robots import (
@@ -208,3 +210,18 @@ def test_contact_search_finds_surface_and_hole() -> None:
     hole = contact_search(c, q0, lambda xy: -np.inf, max_travel=0.3)
     assert not hole.contact
     assert hole.travel == pytest.approx(0.3, abs=0.01)
+
+
+@settings(deadline=None, max_examples=15)
+@given(st.lists(st.floats(-0.5, 0.5), min_size=6, max_size=6))
+def test_ptp_property_reaches_goals_near_nominal(dq: list[float]) -> None:
+    """Any pose within +-0.5 rad per joint of the nominal pose is reached, in bounded steps."""
+    r = get_robot("abb_irb4600_60_205")
+    c = Clik(r, "pose")
+    q_goal = np.clip(r.q_nominal + np.asarray(dq), r.joint_limits[:, 0], r.joint_limits[:, 1])
+    goal = r.fk(q_goal)
+    res = c.ptp(r.q_nominal, goal, tol_position=1e-7, tol_rotation=1e-7)
+    assert res.converged
+    assert np.isfinite(res.q).all() and r.within_limits(res.q).all()
+    steps = np.abs(np.diff(res.q, axis=0))
+    assert steps.size == 0 or steps.max() <= c.gains.max_joint_step + 1e-12
