@@ -13,6 +13,7 @@ import argparse
 import statistics
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -53,7 +54,7 @@ def rate_row(what: str, n: int, seconds: float, unit: str) -> tuple[str, str, st
     )
 
 
-def run(quick: bool) -> list[tuple[str, str, str]]:
+def run(quick: bool, plot: Path | None = None) -> list[tuple[str, str, str]]:
     rows: list[tuple[str, str, str]] = []
     rng = np.random.default_rng(0)
     n_batch = 2_000 if quick else 10_000
@@ -143,6 +144,8 @@ def run(quick: bool) -> list[tuple[str, str, str]]:
     for dead in (0.0, 1.3):
         hyd = HydraulicJoints.for_robot(b, dead_time=dead)
         t, q = hyd.simulate(t_ref, res.q, t_extra=0.0)
+        if plot is not None and dead > 0:
+            plot_tracking(plot, b, t, q, t_ref, res.q)
         err = tracking_rmse(b, t, q, t_ref, res.q)
         x, y, z = err.rmse_xyz * 1e2
         rows.append(
@@ -171,11 +174,43 @@ def run(quick: bool) -> list[tuple[str, str, str]]:
     return rows
 
 
+def plot_tracking(
+    path: Path, robot: Any, t: np.ndarray, q: np.ndarray, t_ref: np.ndarray, q_ref: np.ndarray
+) -> None:
+    """Reference (dashed) and hydraulic response (solid) in joint and Cartesian space."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_q, ax_p) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
+    for j in range(robot.dof):
+        (line,) = ax_q.plot(t, np.degrees(q[:, j]), label=f"q{j + 1}")
+        ax_q.plot(t_ref, np.degrees(q_ref[:, j]), "--", color=line.get_color())
+    ax_q.set_ylabel("joint angle (deg)")
+    ax_q.legend(ncol=5, fontsize=8)
+    p = robot.fk(q)[:, :3, 3]
+    p_ref = robot.fk(q_ref)[:, :3, 3]
+    for k, name in enumerate("xyz"):
+        (line,) = ax_p.plot(t, p[:, k], label=name)
+        ax_p.plot(t_ref, p_ref[:, k], "--", color=line.get_color())
+    ax_p.set_ylabel("TCP position (m)")
+    ax_p.set_xlabel("time (s)")
+    ax_p.legend(ncol=3, fontsize=8)
+    fig.suptitle("BROKK path divided at 4 cm: CLIK reference (dashed), hydraulic joints (solid)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small version (under ~20 s)")
+    parser.add_argument(
+        "--plot", type=Path, default=None, help="write the hydraulic tracking figure (PNG) here"
+    )
     args = parser.parse_args()
-    rows = run(args.quick)
+    rows = run(args.quick, args.plot)
     w0 = max(len(r[0]) for r in rows)
     w1 = max(len(r[1]) for r in rows)
     print(f"{'benchmark':<{w0}}  {'median':<{w1}}  detail")
