@@ -1,0 +1,169 @@
+"""Simulated construction runs: exactness without noise, covariance propagation, seeds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fabflow.errors import InputError
+from fabflow.project import Project, load_project
+from fabflow.sim.monte_carlo import run_study
+from fabflow.sim.run import Study, prepare_study, run_seed, simulate_run
+from fabflow.transforms import FrameGraph, Pose
+from fabflow.transforms.se3 import inv_T, perturb
+
+SMALL = Path(__file__).parent / "data" / "sim" / "project.yaml"
+CABIN = Path(__file__).resolve().parents[1] / "projects" / "cabin" / "project.yaml"
+
+
+def with_noise(project: Project, **fields: float | bool) -> Project:
+    """The project with some ``simulation`` fields replaced."""
+    return project.model_copy(update={"simulation": project.simulation.model_copy(update=fields)})
+
+
+NO_NOISE = dict(
+    driving_error=0.0,
+    driving_heading_error_deg=0.0,
+    robot_repeatability=0.0,
+    lift_error=0.0,
+    sensor_noise=False,
+)
+
+
+@pytest.fixture(scope="module")
+def small() -> Project:
+    return load_project(SMALL)
+
+
+@pytest.fixture(scope="module")
+def small_study(small: Project) -> Study:
+    return prepare_study(small)
+
+
+@pytest.fixture(scope="module")
+def cabin_study() -> Study:
+    return prepare_study(load_project(CABIN))
+
+
+def test_study_covers_every_robot_built_element_once(cabin_study: Study) -> None:
+    st = cabin_study
+    assert st.n_elements == len(set(st.element_ids)) > 500
+    assert st.T_world_element.shape == (st.n_elements, 4, 4)
+    assert st.element_visit.min() == 0 and st.element_visit.max() == st.n_visits - 1
+    # every visit sees what was built before it, and more as the build goes on
+    sizes = [len(b) for b in st.built_before]
+    assert sizes == sorted(sizes) and sizes[-1] > sizes[0]
+
+
+@pytest.mark.parametrize("method", ["uwb", "total_station", "icp"])
+def test_zero_noise_builds_the_plan_exactly(small: Project, method: str) -> None:
+    study = prepare_study(with_noise(small, **NO_NOISE), method)
+    result = simulate_run(study, 3, 11, keep_poses=True)
+    np.testing.assert_array_equal(result.localization_error, 0.0)
+    assert result.T_world_element_asbuilt is not None
+    np.testing.assert_allclose(result.T_world_element_asbuilt, study.T_world_element, atol=1e-12)
+    assert result.translation_m.max() < 1e-12
+    assert result.rotation_rad.max() < 1e-12
+
+
+def test_zero_noise_on_the_cabin(cabin_study: Study) -> None:
+    study = prepare_study(
+        with_noise(cabin_study.project, **NO_NOISE),
+        elements=None,
+        plan=None,
+    )
+    result = simulate_run(study, 0, 0)
+    assert result.translation_m.shape == (study.n_elements,)
+    assert result.translation_m.max() < 1e-12 and result.rotation_rad.max() < 1e-12
+
+
+def test_driving_error_alone_is_absorbed_by_exact_localization(small: Project) -> None:
+    """The platform parks off its station, but an exact localization compensates it."""
+    noisy_parking = with_noise(small, **{**NO_NOISE, "driving_error": 0.05})
+    result = simulate_run(prepare_study(noisy_parking), 0, 1)
+    assert result.translation_m.max() < 1e-12
+
+
+def test_execution_noise_has_the_configured_spread(small: Project) -> None:
+    rep, lift = 0.002, 0.003
+    project = with_noise(small, **{**NO_NOISE, "robot_repeatability": rep, "lift_error": lift})
+    study = prepare_study(project)
+    d = np.concatenate([simulate_run(study, i, 2).deviation_xyz for i in range(400)])
+    std = d.std(axis=0)
+    np.testing.assert_allclose(std, [rep, rep, np.hypot(rep, lift)], rtol=0.1)
+
+
+def test_localization_error_moves_elements_as_the_frame_graph_predicts(small: Project) -> None:
+    """Only localization noise: the as-built scatter of every element equals the base
+    pose scatter propagated through the frame graph world -> base -> element (both from
+    the same runs, so few runs suffice: the comparison tests the propagation, not sampling)."""
+    project = with_noise(
+        small,
+        driving_error=0.0,
+        driving_heading_error_deg=0.0,
+        robot_repeatability=0.0,
+        lift_error=0.0,
+    )
+    study = prepare_study(project)
+    result = run_study(study, 60, seed=5)
+    assert result.failures == ()
+    errors = result.localization_error[:, 0]
+    assert np.all(errors.std(axis=0)[[0, 1, 2, 5]] > 1e-4)
+    C_base = np.cov(errors.T)
+    T_world_base = (
+        simulate_run(prepare_study(with_noise(project, sensor_noise=False)), 0, 5, keep_poses=True)
+        .base_poses[0]
+        .T_world_base
+    )
+    for i in range(study.n_elements):
+        graph = FrameGraph()
+        graph.add("world", "base", Pose.from_matrix(T_world_base), C_base)
+        graph.add(
+            "base", "element", Pose.from_matrix(inv_T(T_world_base) @ study.T_world_element[i])
+        )
+        _, C = graph.get_with_covariance("world", "element")
+        C_sample = np.cov(result.deviation_xyz[:, i].T)
+        rel = np.linalg.norm(C_sample - C[:3, :3]) / np.linalg.norm(C[:3, :3])
+        assert rel < 0.10, (study.element_ids[i], rel)
+        # the rotation error of an element is the base heading error
+        np.testing.assert_allclose(
+            np.sqrt(np.mean(result.rotation_rad[:, i] ** 2)),
+            np.sqrt(C[3:, 3:].trace()),
+            rtol=0.10,
+        )
+
+
+def test_as_built_follows_the_base_error_exactly(small: Project) -> None:
+    """T_asbuilt = T_true @ inv(T_est) @ T_planned, checked against perturb()."""
+    project = with_noise(small, robot_repeatability=0.0, lift_error=0.0)
+    study = prepare_study(project)
+    result = simulate_run(study, 4, 9, keep_poses=True)
+    T_est = result.base_poses[0].T_world_base
+    T_true = perturb(T_est, result.localization_error[0])
+    expected = T_true @ inv_T(T_est) @ study.T_world_element
+    np.testing.assert_allclose(result.T_world_element_asbuilt, expected, atol=1e-12)
+
+
+def test_a_run_is_reproducible_alone(small_study: Study) -> None:
+    a = simulate_run(small_study, 7, 123)
+    b = simulate_run(small_study, 7, 123)
+    c = simulate_run(small_study, 8, 123)
+    np.testing.assert_array_equal(a.deviation_xyz, b.deviation_xyz)
+    np.testing.assert_array_equal(a.localization_error, b.localization_error)
+    assert not np.array_equal(a.deviation_xyz, c.deviation_xyz)
+    child = np.random.SeedSequence(123).spawn(8)[7]
+    assert run_seed(123, 7).generate_state(4).tolist() == child.generate_state(4).tolist()
+
+
+def test_unknown_method_and_missing_setup_are_input_errors(small: Project) -> None:
+    with pytest.raises(InputError, match="unknown localization method 'gps'"):
+        prepare_study(small, "gps")
+    no_uwb = small.model_copy(
+        update={
+            "localization": small.localization.model_copy(update={"method": "icp", "uwb": None})
+        }
+    )
+    with pytest.raises(InputError, match=r"localization\.uwb"):
+        prepare_study(no_uwb, "uwb")
