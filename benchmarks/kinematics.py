@@ -96,7 +96,7 @@ def run(quick: bool, plot: Path | None = None) -> list[tuple[str, str, str]]:
     qb = b.q_nominal
     Tb = b.fk(qb)
     t, _ = median_time(lambda: b.ik(Tb, q_ref=qb), reps)
-    rows.append(rate_row("brokk_170 DLS IK single (17 seeds)", 1, t, "calls"))
+    rows.append(rate_row("brokk_170 IK single (closed-form family + DLS)", 1, t, "calls"))
 
     for name, task in (("kuka_kr60_3", "pose"), ("brokk_170", "position_pitch")):
         m = get_robot(name)

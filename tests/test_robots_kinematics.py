@@ -287,7 +287,7 @@ def test_dls_batch_converges_from_nearby_seeds() -> None:
     np.testing.assert_allclose(r.fk(qn[ok])[:, :3, 3], T[ok, :3, 3], atol=1e-9)
 
 
-def test_brokk_numerical_ik_round_trip() -> None:
+def test_brokk_ik_round_trip_and_family() -> None:
     r = get_robot("brokk_170")
     rng = np.random.default_rng(13)
     for _ in range(3):
@@ -299,6 +299,12 @@ def test_brokk_numerical_ik_round_trip() -> None:
         for s in sols:
             assert np.linalg.norm(r.fk(s)[:3, 3] - T[:3, 3]) < 1e-9
             assert r.within_limits(s)
+        # Redundant machine: several members of the solution family, all exact.
+        family = r.ik(T)
+        assert len(family) >= 2
+        np.testing.assert_allclose(
+            r.fk(np.array(family)), np.broadcast_to(T, (len(family), 4, 4)), atol=1e-9
+        )
 
 
 # ------------------------------------------------------------------ KUKA S / T

@@ -253,8 +253,11 @@ class RobotModel:
         """All joint solutions for a flange pose, within the joint limits.
 
         Closed form where the model has one (every branch: shoulder, elbow,
-        wrist); otherwise damped least squares from ``q_ref`` and a fixed set of
-        seeds. Each branch is returned once, with every joint whose range exceeds
+        wrist). A redundant pitch chain (the BROKK) returns a sample of its
+        one-parameter solution family (closed form every 7.5 deg of the arm-3
+        angle) plus the damped-least-squares solution from ``q_ref``; any other
+        chain runs damped least squares from ``q_ref`` and 16 fixed seeds.
+        Each branch is returned once, with every joint whose range exceeds
         one turn put at the turn nearest ``q_ref`` (or nearest 0) that lies
         within limits; ``all_turns=True`` returns every turn variant instead.
 

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from fabflow.robots.planar_ik import is_pitch_chain, pitch_chain_ik
 from fabflow.transforms.so3 import log_so3
 
 if TYPE_CHECKING:
@@ -128,11 +129,17 @@ def dls_solve(
 
 
 N_SEEDS = 16
-"""Number of start configurations :func:`solve_seeds` tries besides the reference."""
+"""Number of random start configurations :func:`solve_seeds` tries besides the reference."""
 
 
 def solve_seeds(robot: RobotModel, T_goal: FloatArray, q_ref: FloatArray | None) -> FloatArray:
-    """IK solutions of one pose from the reference and a fixed set of seeds.
+    """IK solutions of one pose for a chain without a complete closed form.
+
+    Pitch chains (the BROKK) take the sampled closed-form family of
+    :func:`fabflow.robots.planar_ik.pitch_chain_ik` that matches the full pose,
+    plus a damped-least-squares solution from ``q_ref`` (the nearest member of the
+    family in the continuous sense). Other chains run damped least squares from
+    the reference and a fixed set of seeds.
 
     Parameters
     ----------
@@ -141,22 +148,36 @@ def solve_seeds(robot: RobotModel, T_goal: FloatArray, q_ref: FloatArray | None)
     T_goal
         4x4 goal flange pose in the base frame.
     q_ref
-        Reference configuration (radians) tried first; None uses mid-range.
+        Reference configuration (radians); None uses mid-range.
 
     Returns
     -------
     numpy.ndarray
-        ``(K, dof)`` distinct converged solutions within the limits (radians).
+        ``(K, dof)`` distinct solutions within the limits (radians), flange pose
+        within 1e-9 m / 1e-9 rad of the goal.
     """
     lo, hi = robot.joint_limits[:, 0], robot.joint_limits[:, 1]
     ref = 0.5 * (lo + hi) if q_ref is None else np.asarray(q_ref, dtype=float)
-    rng = np.random.default_rng(0)
-    seeds = np.vstack([ref[None], rng.uniform(lo, hi, size=(N_SEEDS, robot.dof))])
-    T = np.broadcast_to(np.asarray(T_goal, dtype=float), (seeds.shape[0], 4, 4))
-    q, ok = dls_solve(robot, T, seeds)
-    sols = q[ok & robot.within_limits(q)]
-    if sols.shape[0] == 0:
-        return sols
+    T = np.asarray(T_goal, dtype=float)
+    if is_pitch_chain(robot):
+        fam, valid = pitch_chain_ik(robot, T[None])
+        cand = fam[0][valid[0]]
+        q, ok = dls_solve(robot, T[None], ref[None])
+        cand = np.vstack([q[ok], cand])
+    else:
+        rng = np.random.default_rng(0)
+        seeds = np.vstack([ref[None], rng.uniform(lo, hi, size=(N_SEEDS, robot.dof))])
+        q, ok = dls_solve(robot, np.broadcast_to(T, (seeds.shape[0], 4, 4)), seeds)
+        cand = q[ok]
+    if cand.shape[0] == 0:
+        return cand
+    e = pose_error(robot.fk(cand), np.broadcast_to(T, (cand.shape[0], 4, 4)))
+    good = (
+        (np.linalg.norm(e[:, :3], axis=1) < 1e-9)
+        & (np.linalg.norm(e[:, 3:], axis=1) < 1e-9)
+        & robot.within_limits(cand)
+    )
+    sols = cand[good]
     keep: list[int] = []
     for i in range(sols.shape[0]):
         if not any(np.max(np.abs(sols[i] - sols[j])) < 1e-6 for j in keep):
