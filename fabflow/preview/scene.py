@@ -459,7 +459,8 @@ class PreviewScene:
         m = self.model
         self.blocks.batched_colors = colours[m.block_index]
         for handle, idx in zip(self.paths, m.path_index, strict=True):
-            handle.colors = np.broadcast_to(colours[idx], handle.colors.shape).copy()
+            if not np.array_equal(handle.colors, colours[idx]):
+                handle.colors = colours[idx].copy()
 
     def set_colour_mode(self, mode: str) -> None:
         """Recolour the elements (colours only; nothing else is sent)."""
