@@ -56,8 +56,8 @@ def test_sharp_corners_stay_within_tolerance() -> None:
     fine = sample_hermite(square, speed=0.2, rate_hz=20000.0)
     turn = np.arccos(np.clip(np.sum(fine.tangents[1:] * fine.tangents[:-1], axis=1), -1, 1))
     assert turn.max() < 0.1
-    heading = np.unwrap(np.arctan2(fine.tangents[:, 1], fine.tangents[:, 0]))
-    assert heading[-1] - heading[0] == pytest.approx(1.5 * np.pi, abs=1e-6)
+    # ... and monotonically (corner fillets, no S-bends): total turning = 3 x 90 degrees
+    assert np.sum(turn) == pytest.approx(1.5 * np.pi, rel=1e-3)
 
 
 @settings(deadline=None, max_examples=30)
@@ -77,7 +77,9 @@ def test_hermite_property_deviation_and_speed(xy, speed) -> None:
     steps = np.linalg.norm(np.diff(s.points, axis=0), axis=1)
     assert steps.max() <= speed / 100.0 * (1 + 1e-2)
     assert np.median(steps[:-1]) == pytest.approx(speed / 100.0, rel=1e-3)
-    assert s.length >= np.linalg.norm(np.diff(pts, axis=0), axis=1).sum() - 1e-9
+    # fillets cut the corners by well under a millimetre each
+    drawn = np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()
+    assert s.length == pytest.approx(drawn, abs=1e-3 * len(pts))
 
 
 def test_tool_frames_point_down_and_along_the_path() -> None:

@@ -36,6 +36,10 @@ if TYPE_CHECKING:
     import trimesh
 
 _BOUND = 4.0 / 27.0
+FILLET_MIN_DEG = 15.0
+"""Corners turning more than this are filleted (smaller bends: bisector tangents)."""
+FILLET_MAX_DEG = 150.0
+"""Corners turning more than this (near reversals) keep a waypoint at the vertex."""
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(4)
 _TABLE = 16
 
@@ -189,30 +193,89 @@ def _hermite_d(
     )
 
 
-def refine_waypoints(
-    points: np.ndarray, extrude: np.ndarray, tol: float = 2.5e-4
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Add waypoints next to bends so the Hermite curve stays within ``tol`` of the polyline.
+def _fillet_factor(theta: np.ndarray) -> np.ndarray:
+    """Distance of a corner fillet's midpoint from the polyline, per unit setback ``c``."""
+    return np.sin(theta) * (0.5 - 0.25 * np.cos(theta / 2))
+
+
+def _fillet_corners(
+    points: np.ndarray, extrude: np.ndarray, tol: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Replace every sharp corner by two waypoints set back along its legs.
+
+    A corner turning by ``FILLET_MIN_DEG`` to ``FILLET_MAX_DEG`` at vertex V is
+    replaced by A = V - c d_in and B = V + c d_out with tangents d_in and d_out:
+    the Hermite segment A-B turns monotonically and stays within
+    ``c * sin(t) * (0.5 - 0.25 cos(t / 2)) <= tol`` of the corner's legs.
 
     Returns
     -------
-    points, tangents, extrude
-        The refined waypoints (N', 3), their unit tangents and the per-segment
-        extruder flags.
+    points, tangents, extrude, corner
+        Waypoints, unit tangents, per-segment extruder flags, and per segment the
+        replaced corner vertex (NaN for segments that follow the polyline).
+    """
+    n = len(points)
+    tangents = polyline_tangents(points)
+    d = np.diff(points, axis=0)
+    length = np.linalg.norm(d, axis=1)
+    u = d / length[:, None]
+    sharp = np.zeros(n, dtype=bool)
+    c = np.zeros(n)
+    if n > 2:
+        theta = np.arccos(np.clip(np.sum(u[:-1] * u[1:], axis=1), -1.0, 1.0))
+        inner = (theta > np.radians(FILLET_MIN_DEG)) & (theta < np.radians(FILLET_MAX_DEG))
+        sharp[1:-1] = inner
+        setback = 0.9 * tol / np.maximum(_fillet_factor(theta), 1e-12)
+        c[1:-1] = np.minimum(setback, 0.45 * np.minimum(length[:-1], length[1:]))
+    counts = 1 + sharp
+    vid = np.repeat(np.arange(n), counts)
+    first = np.cumsum(counts) - counts
+    is_a = np.zeros(len(vid), dtype=bool)
+    is_a[first[sharp]] = True
+    is_b = np.zeros(len(vid), dtype=bool)
+    is_b[first[sharp] + 1] = True
+    out = points[vid].copy()
+    tan = tangents[vid].copy()
+    ka, kb = np.flatnonzero(is_a), np.flatnonzero(is_b)
+    out[ka] -= c[vid[ka], None] * u[vid[ka] - 1]
+    out[kb] += c[vid[kb], None] * u[vid[kb]]
+    tan[ka], tan[kb] = u[vid[ka] - 1], u[vid[kb]]
+    seg_v = vid[:-1]
+    ext = np.where(
+        is_a[:-1],
+        extrude[np.maximum(seg_v - 1, 0)] & extrude[np.minimum(seg_v, n - 2)],
+        extrude[np.minimum(seg_v, n - 2)],
+    )
+    corner = np.full((len(out) - 1, 3), np.nan)
+    corner[is_a[:-1]] = points[seg_v[is_a[:-1]]]
+    return out, tan, ext, corner
+
+
+def refine_waypoints(
+    points: np.ndarray, extrude: np.ndarray, tol: float = 2.5e-4
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fillet sharp corners and add waypoints next to bends so the curve stays within ``tol``.
+
+    Returns
+    -------
+    points, tangents, extrude, corner
+        The refined waypoints (N', 3), their unit tangents, the per-segment
+        extruder flags and, per segment, the polyline corner a fillet segment
+        replaces (NaN elsewhere).
     """
     keep = np.concatenate(([True], np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-9))
     points = np.asarray(points, dtype=float)[keep]
     extrude = np.asarray(extrude, dtype=bool)[keep[1:]]
-    tangents = polyline_tangents(points)
+    points, tangents, extrude, corner = _fillet_corners(points, extrude, tol)
     for _ in range(60):
         d = np.diff(points, axis=0)
         length = np.linalg.norm(d, axis=1)
         u = d / length[:, None]
         s0 = np.sqrt(np.clip(1 - np.sum(tangents[:-1] * u, axis=1) ** 2, 0, 1))
         s1 = np.sqrt(np.clip(1 - np.sum(tangents[1:] * u, axis=1) ** 2, 0, 1))
-        bad = _BOUND * length * (s0 + s1) > tol
+        bad = (_BOUND * length * (s0 + s1) > tol) & np.isnan(corner[:, 0])
         if not bad.any():
-            return points, tangents, extrude
+            return points, tangents, extrude, corner
         # distance from each end at which the chord-aligned new waypoint goes
         c0 = np.where(s0 > 0, 0.9 * tol / (_BOUND * np.maximum(s0, 1e-300)), np.inf)
         c1 = np.where(s1 > 0, 0.9 * tol / (_BOUND * np.maximum(s1, 1e-300)), np.inf)
@@ -235,7 +298,15 @@ def refine_waypoints(
         points = np.insert(points, new_pos[order], new_pts[order], axis=0)
         tangents = np.insert(tangents, new_pos[order], new_tan[order], axis=0)
         extrude = np.insert(extrude, new_pos[order] - 1, new_ext[order])
+        corner = np.insert(corner, new_pos[order] - 1, np.nan, axis=0)
     raise RuntimeError("waypoint refinement did not converge")
+
+
+def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise distance of points ``p`` from segments ``a``-``b``."""
+    ab = b - a
+    w = np.clip(np.sum((p - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-300), 0, 1)
+    return np.linalg.norm(p - (a + w[:, None] * ab), axis=1)
 
 
 def sample_hermite(
@@ -270,7 +341,7 @@ def sample_hermite(
         raise ValueError("a path needs at least two waypoints")
     if extrude is None:
         extrude = np.ones(len(points) - 1, dtype=bool)
-    P, M, ext = refine_waypoints(points, extrude, tol)
+    P, M, ext, corner = refine_waypoints(points, extrude, tol)
     chord = np.linalg.norm(np.diff(P, axis=0), axis=1)
     m0, m1 = M[:-1] * chord[:, None], M[1:] * chord[:, None]
     n_seg = len(chord)
@@ -299,11 +370,17 @@ def sample_hermite(
     pts = _hermite(*args, u)
     tan = _hermite_d(*args, u)
     tan /= np.maximum(np.linalg.norm(tan, axis=1), 1e-12)[:, None]
-    # distance of each sample from its own chord (bounds the distance to the polyline)
+    # distance of each sample from its own chord, or for a fillet from the corner's two
+    # legs: an upper bound of the distance to the polyline
     a, b = P[:-1][seg], P[1:][seg]
-    ab = b - a
-    w = np.clip(np.sum((pts - a) * ab, axis=1) / np.sum(ab * ab, axis=1), 0.0, 1.0)
-    dev = np.linalg.norm(pts - (a + w[:, None] * ab), axis=1)
+    dev = _point_segment_distance(pts, a, b)
+    fil = np.flatnonzero(~np.isnan(corner[seg, 0]))
+    if len(fil):
+        v = corner[seg[fil]]
+        dev[fil] = np.minimum(
+            _point_segment_distance(pts[fil], a[fil], v),
+            _point_segment_distance(pts[fil], v, b[fil]),
+        )
     return SampledPath(
         t=np.arange(len(s)) / rate_hz,
         points=pts,
