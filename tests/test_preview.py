@@ -301,3 +301,31 @@ def test_kuka_arm_is_drawn_at_its_targets() -> None:
     # every link keeps its length from step to step (a rigid arm)
     lengths = np.linalg.norm(np.diff(m.arm_points, axis=1), axis=2)
     np.testing.assert_allclose(lengths, np.broadcast_to(lengths[0], lengths.shape), atol=1e-9)
+
+
+def test_localization_result_is_shown_at_its_visit_only() -> None:
+    from fabflow.preview.export import quiet_server
+
+    elements, plan = wall_design()
+    T = translation(0.1, -1.5, 0.6)
+    prisms = T[:3, 3] + np.array([[0.3, 0.0, 0.2], [-0.3, 0.0, 0.2], [0.0, 0.3, 0.25]])
+    result = BasePose(
+        T_world_base=T,
+        covariance=np.eye(6) * 1e-6,
+        method="total_station",
+        rmse=0.001,
+        station="S2",
+        quality={"points_world": prisms.tolist()},
+    )
+    m = build_model(elements, plan, localization={1: result})
+    with quiet_server() as server:
+        scene = PreviewScene(server, m, step=0)
+        ((key, frame),) = scene._results
+        assert key == 1 and not frame.visible
+        scene.set_step(m.first_step_of_station("S2"))
+        assert frame.visible
+        np.testing.assert_allclose(frame.position, T[:3, 3])
+        cloud = server.scene._handle_from_node_name["/localization/results/visit_2/prisms"]
+        np.testing.assert_allclose(cloud.points + T[:3, 3], prisms, atol=1e-2)
+        scene.set_step(1)
+        assert not frame.visible

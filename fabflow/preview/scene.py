@@ -94,6 +94,7 @@ class PreviewScene:
             self._add_platform_and_arm()
             if project is not None:
                 self._add_localization(project)
+            self._add_results()
             self._set_camera(project)
         self.set_step(self.step, force=True)
 
@@ -347,17 +348,38 @@ class PreviewScene:
                     points=pts.astype(np.float32),
                     colors=(90, 140, 200),
                     point_size=0.02,
+                    precision="float32",
                 )
+
+    def _add_results(self) -> None:
+        """Localized base frames and measured points, shown for the current visit only."""
+        scene = self.server.scene
+        self._results: list[tuple[int | str, viser.FrameHandle]] = []
         for key, result in self.model.localization.items():
             T = np.asarray(result.T_world_base, dtype=float)
             name = f"visit_{key + 1}" if isinstance(key, int) else str(key)
-            scene.add_frame(
+            frame = scene.add_frame(
                 f"/localization/results/{name}",
-                axes_length=0.25,
-                axes_radius=0.01,
+                axes_length=0.35,
+                axes_radius=0.012,
+                origin_color=(200, 40, 160),
                 wxyz=tuple(_wxyz(T)),
                 position=tuple(T[:3, 3]),
+                visible=False,
             )
+            points = np.asarray(result.quality.get("points_world", ()), dtype=float)
+            if points.ndim == 2 and points.shape[1] == 3 and len(points):
+                # prism points measured by the total station, drawn in the world
+                T_frame_world = np.linalg.inv(T)
+                local = points @ T_frame_world[:3, :3].T + T_frame_world[:3, 3]
+                scene.add_point_cloud(
+                    f"/localization/results/{name}/prisms",
+                    points=local.astype(np.float32),
+                    colors=(240, 200, 0),
+                    point_size=0.05,
+                    point_shape="diamond",
+                )
+            self._results.append((key, frame))
 
     def _set_camera(self, project: Project | None) -> None:
         m = self.model
@@ -445,6 +467,9 @@ class PreviewScene:
                 float(self._lift_xy[1]),
                 self._body_h + column / 2,
             )
+            station = m.station_ids[int(m.package_station[p])]
+            for key, frame in self._results:
+                frame.visible = key == p or key == station
             self._package = p
         if self.arm_links is not None and self.arm_joints is not None:
             self.arm_links.batched_positions = self._link_positions[step]
