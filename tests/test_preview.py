@@ -329,3 +329,25 @@ def test_localization_result_is_shown_at_its_visit_only() -> None:
         np.testing.assert_allclose(cloud.points + T[:3, 3], prisms, atol=1e-2)
         scene.set_step(1)
         assert not frame.visible
+
+
+def test_play_runs_to_the_end_and_pause_stops_it(live: LivePreview, model) -> None:
+    import time
+
+    gui = live.gui
+    gui.speed.value = 60
+    gui.slider.value = model.n_steps - 4
+    gui.toggle_play()
+    assert gui.playing and gui.play.label == "Pause"
+    deadline = time.monotonic() + 10
+    while gui.playing and time.monotonic() < deadline:
+        time.sleep(0.02)
+    gui.stop()
+    assert live.scene.step == model.n_steps and gui.play.label == "Play"
+    gui.speed.value = 1
+    gui.toggle_play()  # at the end: starts again from step 0
+    assert live.scene.step <= 1
+    gui.toggle_play()
+    gui.stop()
+    assert not gui.playing
+    assert live.scene.step <= 2
