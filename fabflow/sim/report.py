@@ -158,8 +158,13 @@ def visit_rows(study: Study, result: StudyResult) -> tuple[list[str], list[list[
     return header, rows
 
 
-def write_study(folder: Path, study: Study, result: StudyResult) -> dict[str, Any]:
-    """Write every file of one method's study into ``folder`` (created); return the summary."""
+def write_study(
+    folder: Path, study: Study, result: StudyResult, plots: bool = True
+) -> dict[str, Any]:
+    """Write every file of one method's study into ``folder`` (created); return the summary.
+
+    ``plots=False`` leaves out the PNG plots.
+    """
     from fabflow.sim.plots import write_plots
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -169,7 +174,8 @@ def write_study(folder: Path, study: Study, result: StudyResult) -> dict[str, An
     summary = {"fabflow_version": __version__, "project": study.project.name}
     summary |= summarize(study, result)
     write_json(folder / "summary.json", summary)
-    write_plots(study, result, folder)
+    if plots:
+        write_plots(study, result, folder)
     if result.base_poses:
         loc = folder / "localization"
         loc.mkdir(exist_ok=True)
@@ -226,6 +232,7 @@ def simulate_project(
     chunk_size: int | None = None,
     on_method: Callable[[str], None] | None = None,
     progress: Callable[[int], None] | None = None,
+    plots: bool = True,
 ) -> list[dict[str, Any]]:
     """Run a Monte Carlo study per method and write every output into ``out``.
 
@@ -251,6 +258,8 @@ def simulate_project(
         Called with each method's name before its runs start.
     progress
         Called with the number of runs just finished.
+    plots
+        Write the PNG plots (matplotlib).
 
     Returns
     -------
@@ -271,7 +280,7 @@ def simulate_project(
             on_method(study.method)
         result = run_study(study, n_runs, seed, client, chunk_size, progress)
         folder = out if len(methods) == 1 else out / study.method
-        summary = write_study(folder, study, result)
+        summary = write_study(folder, study, result, plots)
         summaries[study.method] = summary
         rows.append(comparison_row(summary))
     _write_csv(
