@@ -115,10 +115,7 @@ def _kuka_T(values: list[float]) -> np.ndarray:
     return T
 
 
-def read_krl(files: dict[str, str]) -> tuple[np.ndarray, list[tuple[str, np.ndarray, tuple]]]:
-    """$BASE and the motions (kind, T in $BASE, (S, T) or ()) of a KRL module pair."""
-    dat = "".join(v for k, v in files.items() if k.endswith(".dat"))
-    src = "".join(v for k, v in files.items() if k.endswith(".src"))
+def _read_krl_module(src: str, dat: str) -> tuple[np.ndarray, list[tuple], list[str]]:
     num = r"(-?\d+\.\d+)"
     frame = rf"X {num},Y {num},Z {num},A {num},B {num},C {num}"
     base = re.search(rf"DECL FRAME BASE_WORLD={{{frame}}}", dat)
@@ -127,10 +124,32 @@ def read_krl(files: dict[str, str]) -> tuple[np.ndarray, list[tuple[str, np.ndar
         st = (int(m.group(8)), int(m.group(9))) if m.group(8) else ()
         points[m.group(1)] = (_kuka_T([float(g) for g in m.groups()[1:7]]), st)
     moves = [
-        (kind.lower(), *points[name])
-        for kind, name in re.findall(r"^(PTP|LIN) (\w+)", src, flags=re.M)
+        (kind.lower(), *points[name], comment.strip())
+        for kind, name, comment in re.findall(r"^(PTP|LIN) (\w+)[^;\n]*;?(.*)$", src, flags=re.M)
     ]
-    return _kuka_T([float(g) for g in base.groups()]), moves
+    calls = re.findall(r"^(\w+)\( \)$", src, flags=re.M)
+    return _kuka_T([float(g) for g in base.groups()]), moves, calls
+
+
+def read_krl(files: dict[str, str]) -> tuple[np.ndarray, list[tuple[str, np.ndarray, tuple, str]]]:
+    """$BASE and the motions (kind, T in $BASE, (S, T) or (), comment) of a KRL program.
+
+    ``files`` holds the main module and its sub-program modules; the motions are
+    returned in execution order (sub-programs expanded where they are called).
+    """
+    modules = {
+        name[:-4]: _read_krl_module(text, files[name[:-4] + ".dat"])
+        for name, text in files.items()
+        if name.endswith(".src")
+    }
+    called = {c for _, _, calls in modules.values() for c in calls}
+    (root,) = [m for m in modules if m not in called]
+
+    def expand(name: str) -> list[tuple]:
+        _, moves, calls = modules[name]
+        return moves + [m for c in calls for m in expand(c)]
+
+    return modules[root][0], expand(root)
 
 
 def _abb_T(p: list[float], q: list[float]) -> np.ndarray:
@@ -193,9 +212,9 @@ def test_krl_targets_parse_back(kuka_program: Program) -> None:
     robot = get_robot("kuka_kr60_3")
     base, moves = read_krl(write_krl(kuka_program))
     planned = kuka_program.moves
-    assert [kind for kind, _, _ in moves] == [m.kind for m in planned]
+    assert [kind for kind, _, _, _ in moves] == [m.kind for m in planned]
     T_flange_tool = kuka_program.T_flange_tool
-    for (_, T, st), move, T_base_ref in zip(
+    for (_, T, st, _), move, T_base_ref in zip(
         moves, planned, _base_targets(kuka_program), strict=True
     ):
         _assert_pose_close(base @ T, T_base_ref)
@@ -279,8 +298,11 @@ def test_krl_long_program_is_split(kuka_program: Program) -> None:
     for sub in subs:
         assert f"{sub}( )" in main
         assert len(sub) <= 24
-    _, moves = read_krl({k: v for k, v in files.items() if k != "writer_test_S1.src"})
-    assert len(moves) == len(kuka_program.moves)
+    _, moves = read_krl(files)
+    assert [m[0] for m in moves] == [m.kind for m in kuka_program.moves]
+    _, unsplit = read_krl(write_krl(kuka_program))
+    for a, b in zip(moves, unsplit, strict=True):
+        np.testing.assert_array_equal(a[1], b[1])
 
 
 def test_identifiers_are_sanitized() -> None:
