@@ -337,3 +337,15 @@ def test_any_cabin_stands_without_overlaps(length, width, eave, roof, block_leng
     assert max_overlap_volume(b.T_world_block, b.extents) <= 1e-6
     plain = b.kind == "block"
     assert np.all(b.extents[plain, 0] <= block_length + 1e-9)
+
+
+def test_site_sensors_in_world_frame() -> None:
+    from conftest import PROJECTS
+
+    from fabflow.design.stage import site_sensors
+    from fabflow.project import load_project
+
+    anchors, instrument = site_sensors(load_project(PROJECTS / "cabin"))
+    assert np.allclose(anchors["A1"], [-0.4, -1.0, 1.0]) and instrument is None
+    anchors, instrument = site_sensors(load_project(PROJECTS / "print_path"))
+    assert anchors is None and np.allclose(instrument[:3, 3], [-2.5, -2.5, 1.6])

@@ -11,7 +11,7 @@ from fabflow.design.elements import Element, elements_to_json
 from fabflow.design.generate import generate_elements
 from fabflow.design.site_plan import write_site_plan
 from fabflow.output import write_json
-from fabflow.project import Project
+from fabflow.project import Project, TotalStationSetup
 
 if TYPE_CHECKING:
     from fabflow.pipeline import BuildContext
@@ -27,12 +27,10 @@ def site_sensors(project: Project) -> tuple[dict[str, np.ndarray] | None, np.nda
             name: T_world_uwb[:3, :3] @ np.asarray(xyz) + T_world_uwb[:3, 3]
             for name, xyz in loc.uwb.anchors.items()
         }
-    instrument = None
-    if loc.total_station is not None or loc.method == "total_station":
-        setup = loc.total_station
-        if setup is None:
-            setup = loc.setup()
-        instrument = setup.T_world_instrument.matrix()  # type: ignore[union-attr]
+    station = loc.total_station
+    if station is None and loc.method == "total_station":
+        station = TotalStationSetup()
+    instrument = None if station is None else station.T_world_instrument.matrix()
     return anchors, instrument
 
 
