@@ -412,6 +412,7 @@ def simulate(
         int,
         typer.Option(min=0, help="Worker processes of the local cluster; 0 runs in-process."),
     ] = 2,
+    plots: Annotated[bool, typer.Option(help="Write the PNG plots.")] = True,
 ) -> None:
     """Monte Carlo tolerance study: N simulated construction runs per localization method."""
     from contextlib import nullcontext
@@ -447,6 +448,7 @@ def simulate(
             client=client,
             on_method=start,
             progress=lambda n: bar.advance(tasks["current"], n),
+            plots=plots,
         )
     table = Table(title=f"fabflow simulate: {p.name}, {n_runs} runs")
     for name in ("method", "runs ok/failed", "RMSE mm", "p95 mm", "max mm", "within tol"):
