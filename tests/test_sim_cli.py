@@ -1,0 +1,73 @@
+"""``fabflow simulate`` end to end on a small project."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+from distributed import LocalCluster
+from typer.testing import CliRunner, Result
+
+from fabflow.cli import app
+
+SMALL = Path(__file__).parent / "data" / "sim" / "project.yaml"
+
+
+def invoke(*args: str) -> Result:
+    return CliRunner().invoke(app, ["simulate", *args], env={"COLUMNS": "200", "NO_COLOR": "1"})
+
+
+def test_simulate_in_process(tmp_path: Path) -> None:
+    out = tmp_path / "sim"
+    result = invoke(str(SMALL), "-o", str(out), "--runs", "4", "--workers", "0", "--seed", "8")
+    assert result.exit_code == 0, result.output
+    assert "fabflow simulate: sim-small, 4 runs" in result.output
+    assert "uwb" in result.output and "4/0" in result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["runs"]["completed"] == 4 and summary["seed"] == 8
+    assert summary["method"] == "uwb"
+    with (out / "elements.csv").open() as f:
+        assert [r["element"] for r in csv.DictReader(f)] == ["P1", "P2", "P3", "P4"]
+    for png in ("deviation_histogram.png", "deviation_heat_map.png", "localization_error.png"):
+        assert (out / png).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_simulate_through_a_scheduler_compares_methods(tmp_path: Path) -> None:
+    out = tmp_path / "cmp"
+    with LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=None
+    ) as cluster:
+        result = invoke(
+            str(SMALL),
+            "-o",
+            str(out),
+            "-n",
+            "3",
+            "--methods",
+            "uwb,total_station",
+            "--scheduler",
+            cluster.scheduler_address,
+            "--no-plots",
+        )
+    assert result.exit_code == 0, result.output
+    assert "total_station" in result.output
+    with (out / "comparison.csv").open() as f:
+        assert [r["method"] for r in csv.DictReader(f)] == ["uwb", "total_station"]
+    assert (out / "uwb" / "elements.csv").exists()
+    assert not (out / "uwb" / "deviation_histogram.png").exists()
+
+
+def test_bad_methods_is_one_message_and_exit_2(tmp_path: Path) -> None:
+    out = tmp_path / "never"
+    result = invoke(str(SMALL), "-o", str(out), "--methods", "uwb,gps", "--workers", "0")
+    assert result.exit_code == 2
+    assert "unknown localization method(s) gps" in result.output
+    assert "Traceback" not in result.output
+    assert not out.exists()
+
+
+def test_missing_project_is_exit_2(tmp_path: Path) -> None:
+    result = invoke(str(tmp_path / "nope.yaml"), "-o", str(tmp_path / "o"), "--workers", "0")
+    assert result.exit_code == 2
+    assert "project file does not exist" in result.output
