@@ -249,13 +249,28 @@ def test_unreachable_pose_has_no_solution(name: str) -> None:
     assert r.ik(T) == []
 
 
-def test_wrist_singularity_still_round_trips() -> None:
-    r = get_robot("kuka_kr60_3")
-    q = deg(0, -90, 90, 30, 0, 40)  # A5 = 0: A4 and A6 aligned
+@pytest.mark.parametrize(
+    ("name", "q_deg"),
+    [
+        ("kuka_kr60_3", (10, -90, 90, 30, 0, -20)),  # A5 = 0: A4 and A6 aligned
+        ("abb_irb4600_60_205", (15, 10, -5, 30, 0, 40)),
+        ("ur10e", (20, -70, 60, -30, 0, 40)),  # joint 5 = 0: joints 4 and 6 aligned
+    ],
+)
+def test_wrist_singularity_round_trips_and_keeps_reference(name: str, q_deg: tuple) -> None:
+    r = get_robot(name)
+    q = deg(*q_deg)
     sols = r.ik(r.fk(q), q_ref=q)
     assert sols
     for s in sols:
-        np.testing.assert_allclose(r.fk(s), r.fk(q), atol=1e-9)
+        np.testing.assert_allclose(r.fk(s), r.fk(q), atol=1e-12)
+    # Only the sum of the aligned joints is determined; the reference settles the split.
+    np.testing.assert_allclose(sols[0], q, atol=1e-9)
+    # Close to (not at) the singularity the closed form stays exact.
+    q_near = q.copy()
+    q_near[4] = 1e-9
+    for s in r.ik(r.fk(q_near), q_ref=q_near):
+        np.testing.assert_allclose(r.fk(s), r.fk(q_near), atol=1e-9)
 
 
 @settings(deadline=None, max_examples=40)

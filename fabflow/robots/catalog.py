@@ -81,7 +81,7 @@ def _kuka_kr60_3() -> RobotModel:
         reach=2.033 + 0.170,
         description="KUKA KR 60-3; DH from DESIGN.md, limits and speeds from the KUKA data sheet",
         motion_groups=((0, 1, 2, 3, 4, 5),),
-        analytic_ik=lambda T: opw_ik(KR60_3_OPW, T),
+        analytic_ik=lambda T, q_ref=None: opw_ik(KR60_3_OPW, T, q_ref),
         q_nominal=np.array([0, -90, 90, 0, 45, 0], dtype=float) * _DEG,
     )
 
@@ -106,7 +106,7 @@ def _abb_irb4600_60_205() -> RobotModel:
         reach=2.050,
         description="ABB IRB 4600-60/2.05; ABB product specification geometry and limits",
         motion_groups=((0, 1, 2, 3, 4, 5),),
-        analytic_ik=lambda T: opw_ik(IRB4600_60_205_OPW, T),
+        analytic_ik=lambda T, q_ref=None: opw_ik(IRB4600_60_205_OPW, T, q_ref),
         q_nominal=np.array([0, 0, 0, 0, 45, 0], dtype=float) * _DEG,
     )
 
@@ -141,7 +141,7 @@ def _ur10e() -> RobotModel:
         reach=1.300,
         description="Universal Robots UR10e; published DH parameters, +-360 deg on every joint",
         motion_groups=((0, 1, 2, 3, 4, 5),),
-        analytic_ik=lambda T: ur_ik(p, T),
+        analytic_ik=lambda T, q_ref=None: ur_ik(p, T, q_ref),
         q_nominal=np.array([0, -90, 90, -90, -90, 0], dtype=float) * _DEG,
     )
 

@@ -24,8 +24,9 @@ from fabflow.robots.numeric_ik import solve_seeds
 
 FloatArray = NDArray[np.float64]
 
-AnalyticIK = Callable[[FloatArray], tuple[FloatArray, NDArray[np.bool_]]]
-"""``T_base_flange (N,4,4) -> (q (N,K,dof), valid (N,K))``: all closed-form branches."""
+AnalyticIK = Callable[..., tuple[FloatArray, NDArray[np.bool_]]]
+"""``(T_base_flange (N,4,4), q_ref=None) -> (q (N,K,dof), exists (N,K))``: all closed-form
+branches; ``q_ref`` ((dof,) or (N, dof)) only settles joints a singularity leaves free."""
 
 TWO_PI = 2.0 * np.pi
 
@@ -319,7 +320,7 @@ class RobotModel:
         if self.analytic_ik is None:
             raise UnsupportedError(f"{self.name} has no closed-form IK; use ik()")
         T = np.asarray(T_base_flange, dtype=float)
-        q, exists = self.analytic_ik(T)
+        q, exists = self.analytic_ik(T, q_ref)
         ref = np.zeros(self.dof) if q_ref is None else np.asarray(q_ref, dtype=float)
         if ref.ndim == 2:
             ref = ref[:, None, :]

@@ -108,7 +108,9 @@ def _ry(t: FloatArray) -> FloatArray:
     return R
 
 
-def opw_ik(p: OPWParameters, T_base_flange: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+def opw_ik(
+    p: OPWParameters, T_base_flange: FloatArray, q_ref: FloatArray | None = None
+) -> tuple[FloatArray, NDArray[np.bool_]]:
     """All eight closed-form solutions for many flange poses.
 
     Parameters
@@ -117,6 +119,9 @@ def opw_ik(p: OPWParameters, T_base_flange: FloatArray) -> tuple[FloatArray, NDA
         OPW geometry.
     T_base_flange
         ``(N, 4, 4)`` flange poses in the base frame (metres).
+    q_ref
+        ``(6,)`` or ``(N, 6)`` reference (controller joints, radians); only used at
+        a wrist singularity.
 
     Returns
     -------
@@ -130,7 +135,7 @@ def opw_ik(p: OPWParameters, T_base_flange: FloatArray) -> tuple[FloatArray, NDA
     Notes
     -----
     At a wrist singularity (axis 5 at 0) only the sum of axes 4 and 6 is
-    determined; axis 4 is then set to 0.
+    determined; axis 4 then keeps its reference value (0 without a reference).
     """
     T = np.asarray(T_base_flange, dtype=float)
     R = T[:, :3, :3]
@@ -174,27 +179,26 @@ def opw_ik(p: OPWParameters, T_base_flange: FloatArray) -> tuple[FloatArray, NDA
     th3 = np.stack([tmp11 - tmp10, -tmp11 - tmp10, tmp12 - tmp10, -tmp12 - tmp10], axis=1)
     exists4 = np.stack([ok_front, ok_front, ok_back, ok_back], axis=1)
 
-    s1, c1 = np.sin(th1), np.cos(th1)
-    s23, c23 = np.sin(th2 + th3), np.cos(th2 + th3)
-    r = R[:, None]  # (N, 1, 3, 3)
-    m = r[..., 0, 2] * s23 * c1 + r[..., 1, 2] * s23 * s1 + r[..., 2, 2] * c23
-    th4 = np.arctan2(
-        r[..., 1, 2] * c1 - r[..., 0, 2] * s1,
-        r[..., 0, 2] * c23 * c1 + r[..., 1, 2] * c23 * s1 - r[..., 2, 2] * s23,
-    )
-    th5 = np.arctan2(np.sqrt(np.maximum(1.0 - m**2, 0.0)), m)
-    th6 = np.arctan2(
-        r[..., 0, 1] * s23 * c1 + r[..., 1, 1] * s23 * s1 + r[..., 2, 1] * c23,
-        -r[..., 0, 0] * s23 * c1 - r[..., 1, 0] * s23 * s1 - r[..., 2, 0] * c23,
-    )
-    singular = np.abs(np.sin(th5)) < 1e-12
+    # Wrist: R_c_e = Rz(q4) Ry(q5) Rz(q6). q5 from the norm of the third column
+    # (no cancellation near q5 = 0), q4 from its direction, and q6 from the rest of
+    # the rotation given q4 and q5, so the three always reproduce R_c_e exactly
+    # even where q4 alone is ill-conditioned.
+    R0c = _rz(th1) @ _ry(th2 + th3)
+    Rce = np.swapaxes(R0c, -1, -2) @ R[:, None]
+    s5 = np.hypot(Rce[..., 0, 2], Rce[..., 1, 2])
+    th5 = np.arctan2(s5, Rce[..., 2, 2])
+    th4 = np.arctan2(Rce[..., 1, 2], Rce[..., 0, 2])
+    singular = s5 < 1e-12
     if np.any(singular):
-        # Axis 4 and 6 coincide: put everything on axis 6 (R_c_e = Rz(q4 + q6) or Rz(q4 - q6)).
-        R0c = _rz(th1) @ _ry(th2 + th3)
-        Rce = np.swapaxes(R0c, -1, -2) @ r
-        phi = np.arctan2(Rce[..., 1, 0], Rce[..., 0, 0])
-        th6 = np.where(singular, np.where(m > 0, phi, np.pi - phi), th6)
-        th4 = np.where(singular, 0.0, th4)
+        # Axes 4 and 6 coincide: axis 4 keeps its reference, axis 6 takes the rest.
+        if q_ref is None:
+            q4_ref = np.zeros((T.shape[0], 1))
+        else:
+            ref = np.broadcast_to(np.asarray(q_ref, dtype=float), (T.shape[0], 6))
+            q4_ref = (ref[:, 3] * p.signs[3] - p.offsets[3])[:, None]
+        th4 = np.where(singular, q4_ref, th4)
+    M = np.swapaxes(_rz(th4) @ _ry(th5), -1, -2) @ Rce
+    th6 = np.arctan2(M[..., 1, 0], M[..., 0, 0])
 
     q = np.empty((T.shape[0], 8, 6))
     q[:, :4, 0], q[:, :4, 1], q[:, :4, 2] = th1, th2, th3

@@ -37,7 +37,7 @@ def _inv(T: FloatArray) -> FloatArray:
 
 
 def ur_ik(
-    p: Mapping[str, float], T_base_flange: FloatArray
+    p: Mapping[str, float], T_base_flange: FloatArray, q_ref: FloatArray | None = None
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """All eight closed-form solutions for many UR flange poses.
 
@@ -47,6 +47,9 @@ def ur_ik(
         DH lengths ``d1, a2, a3, d4, d5, d6`` (metres).
     T_base_flange
         ``(N, 4, 4)`` flange poses in the DH base frame (metres).
+    q_ref
+        ``(6,)`` or ``(N, 6)`` reference joints (radians); only used when joint 5
+        is at 0.
 
     Returns
     -------
@@ -59,11 +62,16 @@ def ur_ik(
     Notes
     -----
     When joint 5 is at 0 (joints 4 and 6 aligned) only their sum matters;
-    joint 6 is then set to 0.
+    joint 6 then keeps its reference value (0 without a reference).
     """
     d1, a2, a3, d4, d5, d6 = (p[k] for k in ("d1", "a2", "a3", "d4", "d5", "d6"))
     T06 = np.asarray(T_base_flange, dtype=float)
     n = T06.shape[0]
+    ref6 = (
+        np.zeros(n)
+        if q_ref is None
+        else np.broadcast_to(np.asarray(q_ref, dtype=float), (n, 6))[:, 5]
+    )
     p05 = T06[:, :3, 3] - d6 * T06[:, :3, 2]
     rxy = np.hypot(p05[:, 0], p05[:, 1])
     psi = np.arctan2(p05[:, 1], p05[:, 0])
@@ -85,13 +93,15 @@ def ur_ik(
         for s_wr in (1.0, -1.0):
             th5 = s_wr * acos5
             s5 = np.sin(th5)
-            singular = np.abs(s5) < 1e-12
+            singular = np.abs(s5) < 1e-7
             s5_safe = np.where(singular, 1.0, s5)
             th6 = np.arctan2(
                 (-T60[:, 1, 0] * s1 + T60[:, 1, 1] * c1) / s5_safe,
                 (T60[:, 0, 0] * s1 - T60[:, 0, 1] * c1) / s5_safe,
             )
-            th6 = np.where(singular, 0.0, th6)
+            th6 = np.where(singular, ref6, th6)
+            # acos loses half the digits next to +-1: snap an aligned wrist to 0 / pi.
+            th5 = np.where(singular, np.round(th5 / np.pi) * np.pi, th5)
             T01 = _dh(th1, d1, 0.0, np.pi / 2)
             T45 = _dh(th5, d5, 0.0, -np.pi / 2)
             T56 = _dh(th6, d6, 0.0, 0.0)
