@@ -204,3 +204,14 @@ def test_instrument_setup_uncertainty_propagates() -> None:
     assert np.sqrt(bp.covariance[2, 2]) > 3e-3
     err = pose_error(bp.T_world_base, T_base)
     assert err @ np.linalg.solve(bp.covariance, err) < 30
+
+
+@pytest.mark.parametrize("model", ["ur10e", "brokk_170"])
+def test_localize_station_other_robots(model: str) -> None:
+    # the UR10e has closed-form IK; the 5-DOF BROKK reaches points by sampled FK
+    p = parse_project(PROJECT.replace("elements:", f"robot: {{model: {model}}}\nelements:"))
+    T = make_T(np.eye(3), [1.0, 2.0, 0.6])
+    bp = localize_station(p, T, np.random.default_rng(3), "S1")
+    P = np.asarray(bp.quality["points_base"])
+    assert len(P) == 5 and np.all(P[:, 0] > 0)
+    assert np.linalg.norm(pose_error(bp.T_world_base, T)[:3]) < 0.005

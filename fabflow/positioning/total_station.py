@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from scipy import optimize, special
+from scipy.spatial import cKDTree
 
 from fabflow.errors import InputError, LocalizationError
 from fabflow.positioning.point_selection import (
@@ -851,55 +852,83 @@ def localize_observations(
 # ------------------------------------------------------------------ simulator
 
 
+SAMPLE_TOLERANCE = 0.03
+"""Largest distance (m) to a sampled prism position that counts as reachable (no closed-form IK)."""
+
+
 @dataclass(frozen=True, eq=False)
 class _Kinematics:
-    """Reach test and forward kinematics of the prism for one robot and tool."""
+    """Reach test and forward kinematics of the prism for one robot and tool.
+
+    Arms with closed-form IK reach a point with the tool pointing down (as in
+    the reach maps). Machines without one (the 5-DOF BROKK) cannot choose the
+    tool orientation, and a 360-degree prism does not need it: their reachable
+    prism positions are a dense cloud of forward-kinematics samples of the
+    joint space, and a point is reached by the nearest sample.
+    """
 
     workspace: Workspace
     robot: Any
     T_flange_tool: np.ndarray
+    samples_q: np.ndarray | None = None
+    samples_tree: cKDTree | None = None
 
     def reachable(self, points: np.ndarray) -> np.ndarray:
+        if self.samples_tree is not None:
+            d, _ = self.samples_tree.query(points)
+            return d <= SAMPLE_TOLERANCE
         T = self._tool_poses(points)
         _, valid = self.robot.ik_batch(T @ inv_T(self.T_flange_tool))
         return valid.any(axis=1)
 
     def _tool_poses(self, points: np.ndarray) -> np.ndarray:
-        # the prism sits at the TCP; the tool points down (as in the reach maps)
         R_down = np.diag([1.0, -1.0, -1.0])
         return make_T(np.broadcast_to(R_down, (len(points), 3, 3)), points)
 
     def prism_points(self, points: np.ndarray) -> np.ndarray:
-        """Joint solutions for the desired points, then the prism positions by FK."""
-        T_base_flange = self._tool_poses(points) @ inv_T(self.T_flange_tool)
-        if self.robot.analytic_ik is not None:
+        """Joint values for the desired points, then the prism positions by FK."""
+        if self.samples_tree is not None and self.samples_q is not None:
+            d, k = self.samples_tree.query(points)
+            bad = d > SAMPLE_TOLERANCE
+            q = self.samples_q[k]
+        else:
+            T_base_flange = self._tool_poses(points) @ inv_T(self.T_flange_tool)
             q, valid = self.robot.ik_batch(T_base_flange)
             bad = ~valid.any(axis=1)
             q = q[np.arange(len(points)), np.argmax(valid, axis=1)]
-        else:
-            sols = [self.robot.ik(T) for T in T_base_flange]
-            bad = np.array([len(s) == 0 for s in sols])
-            q = np.stack([s[0] if s else np.zeros(self.robot.dof) for s in sols])
         if bad.any():
             p = points[int(np.argmax(bad))]
             raise LocalizationError(
                 f"{self.robot.name} cannot reach the localization point "
-                f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) with the tool pointing down"
+                f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})"
             )
         return (self.robot.fk(q) @ self.T_flange_tool)[:, :3, 3]
 
 
+@functools.lru_cache(maxsize=16)
+def _joint_samples(model: str, T_flange_tool: tuple[float, ...]) -> tuple[np.ndarray, cKDTree]:
+    from fabflow.robots import get_robot
+
+    robot = get_robot(model)
+    lo, hi = robot.joint_limits[:, 0], robot.joint_limits[:, 1]
+    q = np.random.default_rng(0).uniform(lo, hi, (40000, robot.dof))
+    p = (robot.fk(q) @ np.asarray(T_flange_tool).reshape(4, 4))[:, :3, 3]
+    return q, cKDTree(p)
+
+
 def _kinematics(model: str, T_flange_tool: np.ndarray, z_min: float) -> _Kinematics:
-    """Workspace (reach sphere about the shoulder, plus closed-form IK where there is one)."""
+    """Workspace (reach sphere about the shoulder) with the robot's exact reach test."""
     from fabflow.robots import get_robot
 
     robot = get_robot(model)
     shoulder = robot.frames(np.zeros(robot.dof))[1][:3, 3]
     ws = Workspace(center=(0.0, 0.0, float(shoulder[2])), reach=float(robot.reach), z_min=z_min)
-    kin = _Kinematics(ws, robot, T_flange_tool)
     if robot.analytic_ik is None:
-        return kin
-    return _Kinematics(replace(ws, reachable=kin.reachable), robot, T_flange_tool)
+        q, tree = _joint_samples(model, tuple(np.asarray(T_flange_tool, float).ravel()))
+        kin = _Kinematics(ws, robot, T_flange_tool, q, tree)
+    else:
+        kin = _Kinematics(ws, robot, T_flange_tool)
+    return replace(kin, workspace=replace(ws, reachable=kin.reachable))
 
 
 @functools.lru_cache(maxsize=64)
