@@ -137,6 +137,14 @@ def test_platform_from_project_and_lift() -> None:
     high = np.array([[6.0, 2.0, 2.6]])
     lift, n = plat.best_lift(rm, high, T_wp)
     assert n == 1 and lift > 0.0
+    # The vectorized lift sweep agrees with querying each lift separately.
+    pts = np.array([[6.0, 2.0, 2.6], [6.2, 2.5, 0.4], [5.5, 1.0, 1.5]])
+    T_rot = T_wp.copy()
+    T_rot[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    lifts, ok = plat.reachable_lifts(rm, pts, T_rot, n=7)
+    for j, h in enumerate(lifts):
+        np.testing.assert_array_equal(ok[:, j], plat.reachable(rm, pts, T_rot, h))
+    assert ok.any() and not ok.all()
 
 
 def test_yaw_invariance_only_for_axial_tools() -> None:

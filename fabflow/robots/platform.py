@@ -106,6 +106,30 @@ class MobilePlatform:
         p_base = p @ T_base_world[:3, :3].T + T_base_world[:3, 3]
         return reach.reachable(p_base)
 
+    def reachable_lifts(
+        self, reach: ReachMap, p_world: ArrayLike, T_world_platform: ArrayLike, n: int = 25
+    ) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """Reachability of world TCP positions at ``n`` evenly spaced lift heights.
+
+        Returns
+        -------
+        lifts : numpy.ndarray
+            ``(L,)`` lift heights (metres), ascending over the lift range.
+        ok : numpy.ndarray
+            ``(N, L)`` bool: point i is reachable at lift j.
+        """
+        lifts = np.linspace(self.lift_range[0], self.lift_range[1], max(n, 1))
+        p = np.atleast_2d(np.asarray(p_world, dtype=float))
+        T_world_base0 = self.T_world_base(T_world_platform, lifts[0])
+        T_base0_world = np.linalg.inv(T_world_base0)
+        p_base0 = p @ T_base0_world[:3, :3].T + T_base0_world[:3, 3]
+        # Lifting by h raises the base along the platform z axis, which is the base
+        # z axis direction expressed in the base frame at the lowest lift.
+        up = T_base0_world[:3, :3] @ np.asarray(T_world_platform, dtype=float)[:3, 2]
+        shifted = p_base0[:, None, :] - (lifts - lifts[0])[None, :, None] * up
+        ok = reach.reachable(shifted.reshape(-1, 3)).reshape(p.shape[0], lifts.size)
+        return lifts, ok
+
     def best_lift(
         self, reach: ReachMap, p_world: ArrayLike, T_world_platform: ArrayLike, n: int = 25
     ) -> tuple[float, int]:
@@ -116,7 +140,7 @@ class MobilePlatform:
         tuple
             ``(lift, number of reachable points)``; the lowest lift wins ties.
         """
-        lifts = np.linspace(self.lift_range[0], self.lift_range[1], max(n, 1))
-        counts = [int(self.reachable(reach, p_world, T_world_platform, h).sum()) for h in lifts]
+        lifts, ok = self.reachable_lifts(reach, p_world, T_world_platform, n)
+        counts = ok.sum(axis=0)
         k = int(np.argmax(counts))
-        return float(lifts[k]), counts[k]
+        return float(lifts[k]), int(counts[k])
