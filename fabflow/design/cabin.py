@@ -259,7 +259,11 @@ def cabin_elements(spec: CabinSpec, id_start: int = 0) -> list[Element]:
             part=str(blocks.part[i]),
             robot_built=bool(blocks.robot_built[i]),
             extents=blocks.extents[i],
-            attributes={"wall": str(blocks.wall[i]), "kind": str(blocks.kind[i])},
+            attributes={
+                "wall": str(blocks.wall[i]),
+                "piece": str(blocks.piece[i]),
+                "kind": str(blocks.kind[i]),
+            },
         )
         for i in range(len(blocks))
     ]
