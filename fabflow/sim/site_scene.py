@@ -2,7 +2,9 @@
 
 The scene (world frame, metres, z up, ground at z = 0) holds what paper 000's
 site map shows: flat ground, a site barrack with a pitched roof, a bridge deck on
-round columns, and a site container; plus the project's box obstacles and the
+round columns, and a site container; compact objects lying around (pallets,
+barrels, a generator, a cable drum: the segments global registration matches);
+plus the project's box obstacles and the
 blocks of the structure built so far (any :class:`~fabflow.design.elements.Element`
 with ``extents``). The landmarks sit around the default cabin footprint
 (x 0..4 m, y 0..3.3 m), within 20 m LiDAR range of every station.
@@ -101,6 +103,31 @@ def _bridge(x0: float, y0: float) -> list[trimesh.Trimesh]:
     return parts
 
 
+def _site_objects(ox: float, oy: float) -> list[trimesh.Trimesh]:
+    """Compact objects lying around: timber pallets, barrels, a generator, a cable drum."""
+    parts = []
+    for x, y, yaw, ext in (
+        (-3.5, -2.0, 0.3, (1.2, 0.8, 0.8)),
+        (7.5, -1.5, -0.5, (1.2, 0.8, 1.1)),
+        (-4.0, 3.5, 1.1, (1.0, 0.7, 0.8)),
+        (5.0, 7.5, 0.0, (2.4, 1.2, 0.5)),
+    ):
+        T = make_T(exp_so3(np.array([0.0, 0.0, yaw])), [ox + x, oy + y, ext[2] / 2])
+        parts.append(trimesh.creation.box(extents=ext, transform=T))
+    for x, y in ((8.0, 1.0), (8.7, 1.3), (-2.5, -4.5)):
+        barrel = trimesh.creation.cylinder(radius=0.3, height=0.9, sections=16)
+        barrel.apply_translation((ox + x, oy + y, 0.45))
+        parts.append(barrel)
+    drum = trimesh.creation.cylinder(
+        radius=0.6,
+        height=0.5,
+        sections=20,
+        transform=make_T(exp_so3(np.array([np.pi / 2, 0.0, 0.0])), [ox - 1.0, oy + 6.5, 0.6]),
+    )
+    parts.append(drum)
+    return parts
+
+
 def site_scene(
     built: Sequence[Element] = (),
     obstacles: Sequence[tuple[Sequence[float], Sequence[float]]] = (),
@@ -151,6 +178,7 @@ def site_scene(
             ),
         )
         parts.append(container)
+        parts += _site_objects(ox, oy)
     for lower, upper in obstacles:
         parts.append(box_mesh(lower, upper))
     blocks = [e for e in built if e.extents is not None]
