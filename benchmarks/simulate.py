@@ -1,0 +1,117 @@
+"""Monte Carlo simulation benchmark: simulated construction runs of the cabin per second.
+
+Prints, for each localization method, the CPU time of one run (median), runs per
+second serially (in this process) and on a local Dask cluster of 2 single-threaded
+worker processes, and the projected time of 1,000 runs; then (full mode) times
+1,000 UWB runs of the cabin on the cluster against the 60 s target. The elements
+and the plan are computed once (not timed), as ``fabflow simulate`` does.
+
+Run: ``.venv/bin/python benchmarks/simulate.py [--quick] [--methods uwb,total_station,icp]``.
+``--quick`` (CI smoke run) simulates a few UWB runs of the small test project
+(``tests/data/sim``: four task points, one station) serially and on 2 workers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+from fabflow.project import load_project
+from fabflow.sim.monte_carlo import dask_client, run_study
+from fabflow.sim.run import Study, prepare_study, simulate_run
+
+ROOT = Path(__file__).resolve().parents[1]
+CABIN = ROOT / "projects" / "cabin" / "project.yaml"
+SMALL = ROOT / "tests" / "data" / "sim" / "project.yaml"
+TARGET_RUNS, TARGET_S = 1000, 60.0
+
+
+def serial_rate(study: Study, n: int) -> tuple[float, float, int]:
+    """Median CPU seconds per run, serial runs per second (wall) and failed runs."""
+    cpu: list[float] = []
+    failed = 0
+    t0 = time.perf_counter()
+    for run in range(n):
+        c0 = time.process_time()
+        try:
+            simulate_run(study, run, 0)
+        except Exception:
+            failed += 1
+        cpu.append(time.process_time() - c0)
+    return statistics.median(cpu), n / (time.perf_counter() - t0), failed
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="small CI smoke run")
+    parser.add_argument(
+        "--methods", default=None, help="comma-separated (default: all; quick: uwb)"
+    )
+    parser.add_argument("--serial-runs", type=int, default=None)
+    parser.add_argument("--dask-runs", type=int, default=None)
+    args = parser.parse_args()
+    methods = (args.methods or ("uwb" if args.quick else "uwb,total_station,icp")).split(",")
+    n_serial = args.serial_runs or (3 if args.quick else 10)
+    n_dask = args.dask_runs or (4 if args.quick else 100)
+
+    console = Console(width=160)
+    project = load_project(SMALL if args.quick else CABIN)
+    t0 = time.perf_counter()
+    base = prepare_study(project)
+    prep_s = time.perf_counter() - t0
+    studies = {m: base if m == base.method else prepare_study(project, m) for m in methods}
+    console.print(
+        f"{project.name}: {base.n_elements} robot-built elements, {base.n_visits} visits; "
+        f"elements + plan once: {prep_s:.1f} s"
+    )
+    for study in studies.values():  # warm caches (site scene, imports) outside the timing
+        try:
+            simulate_run(study, 0, 0)
+        except Exception:
+            continue
+
+    table = Table(title=f"simulated runs of {project.name} (every visit localized, all placed)")
+    for col in (
+        "method",
+        "CPU s / run (median)",
+        "serial runs/s",
+        "Dask 2 workers runs/s",
+        "speed-up",
+        "1000 runs on Dask (projected s)",
+        "failed",
+    ):
+        table.add_column(col, justify="left" if col == "method" else "right")
+    with dask_client(None, n_workers=2) as client:
+        # start-up (worker imports, sending the study) is not part of the rate
+        for study in studies.values():
+            run_study(study, 2, seed=99, client=client, chunk_size=1)
+        for method, study in studies.items():
+            cpu, rate, failed = serial_rate(study, n_serial)
+            result = run_study(study, n_dask, seed=1, client=client)
+            dask_rate = n_dask / result.elapsed_s
+            table.add_row(
+                method,
+                f"{cpu:.3f}",
+                f"{rate:.2f}",
+                f"{dask_rate:.2f}",
+                f"{dask_rate / rate:.2f}x",
+                f"{TARGET_RUNS / dask_rate:.0f}",
+                f"{failed}/{n_serial} serial, {len(result.failures)}/{n_dask} Dask",
+            )
+        console.print(table)
+        if not args.quick and "uwb" in studies:
+            result = run_study(studies["uwb"], TARGET_RUNS, seed=2, client=client)
+            verdict = "met" if result.elapsed_s < TARGET_S else "NOT met"
+            console.print(
+                f"{TARGET_RUNS} UWB runs of the cabin on 2 workers: {result.elapsed_s:.1f} s "
+                f"({len(result.failures)} failed); target < {TARGET_S:.0f} s: {verdict}"
+            )
+
+
+if __name__ == "__main__":
+    main()
