@@ -8,6 +8,9 @@ import warnings
 import ezdxf
 import numpy as np
 import pytest
+import shapely
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from fabflow.design import (
     DxfWarning,
@@ -252,3 +255,35 @@ def test_cli_build_reports_a_missing_layer(cli, tmp_path) -> None:
     assert "wall.dxf" in result.stderr and "layer WALL" in result.stderr
     assert "Traceback" not in result.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_implausible_size_warns_about_units(tmp_path) -> None:
+    doc, msp = _doc(units=6)  # a drawing in millimetres marked as metres
+    _square_lines(msp, 4000.0)
+    with pytest.warns(DxfWarning, match="check the drawing units"):
+        _read(doc, tmp_path)
+
+
+@settings(deadline=None, max_examples=25)
+@given(
+    st.lists(
+        st.tuples(st.integers(-5000, 5000), st.integers(-5000, 5000)),
+        min_size=2,
+        max_size=12,
+        unique=True,
+    )
+)
+def test_lwpolyline_round_trip(tmp_path_factory, xy) -> None:
+    """Any open LWPOLYLINE (mm) comes back as its vertices in metres."""
+    pts = np.array(xy, dtype=float)
+    segs = shapely.linestrings(np.stack([pts[:-1], pts[1:]], axis=1))
+    # only simple paths are valid input
+    i, j = shapely.STRtree(segs).query(segs, predicate="intersects")
+    assume(not np.any(j > i + 1))
+    doc, msp = _doc()
+    msp.add_lwpolyline(pts.tolist(), dxfattribs=A)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DxfWarning)  # tiny drawings warn about units
+        (c,) = _read(doc, tmp_path_factory.mktemp("rt"), require_closed=False)
+    assert np.allclose(c.points[:, :2], pts / 1000.0)
+    assert not c.closed

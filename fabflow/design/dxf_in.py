@@ -31,6 +31,8 @@ from fabflow.errors import InputError
 SUPPORTED = ("LINE", "LWPOLYLINE", "POLYLINE", "ARC", "CIRCLE", "SPLINE")
 ZERO_LENGTH = 1e-6
 """Segments shorter than this (metres) count as zero-length."""
+PLAUSIBLE_SPAN = (0.005, 200.0)
+"""Contours spanning less or more than this (metres) get a units warning."""
 UNIT_CODES = {"in": 1, "ft": 2, "mm": 4, "cm": 5, "m": 6}
 
 
@@ -334,4 +336,12 @@ def read_dxf_contours(
                     f"entity {handles[a]}",
                 )
             contours.append(c)
+    span = np.ptp(np.vstack([c.points for c in contours])[:, :2], axis=0).max()
+    if not PLAUSIBLE_SPAN[0] <= span <= PLAUSIBLE_SPAN[1]:
+        warnings.warn(
+            f"{path}: the contours span {span:.4g} m, which is unusual for a print path; "
+            f"check the drawing units ($INSUNITS or the project's 'units')",
+            DxfWarning,
+            stacklevel=2,
+        )
     return contours
