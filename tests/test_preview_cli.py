@@ -114,10 +114,15 @@ def test_sim_folder_gives_deviation_colours_and_base_poses(planned, tmp_path: Pa
     )
     (tmp_path / "stations").mkdir()
     pose.write(tmp_path / "stations" / "base_pose.json")
+    (tmp_path / "localization").mkdir()
+    visit_pose = BasePose(T_world_base=np.eye(4), covariance=np.eye(6), method="uwb", station="S9")
+    visit_pose.write(tmp_path / "localization" / "visit_02_S9.json")
 
     dev = read_deviations(tmp_path)
     assert dev[blocks[1].id] == pytest.approx((0.002 + 0.004) / 2)
-    assert read_base_poses(tmp_path)[wp.station.id].rmse == pytest.approx(0.0017)
+    poses = read_base_poses(tmp_path)
+    assert poses[wp.station.id].rmse == pytest.approx(0.0017)
+    assert poses[1].method == "uwb" and set(poses) == {wp.station.id, 1}
 
     model = model_for_project(project, elements, plan, sim_dir=tmp_path)
     assert "deviation" in model.colour_modes()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -143,13 +144,16 @@ def read_deviations(sim_dir: str | Path) -> dict[str, float]:
     return {eid: float(np.mean(v)) for eid, v in values.items()}
 
 
-def read_base_poses(folder: str | Path) -> dict[str, BasePose]:
-    """Localization results by station id: every base-pose JSON file in a folder tree.
+def read_base_poses(folder: str | Path) -> dict[int | str, BasePose]:
+    """Localization results in a folder tree, by visit index or station id.
 
     A file counts when it is a JSON object with ``T_world_base``, ``method`` and
-    ``station``; other JSON files are ignored.
+    ``station`` (the base pose JSON of ``fabflow localize``); other JSON files
+    are ignored. A file named ``visit_NN_...json`` (as ``fabflow simulate``
+    writes them, NN counted from 1) is the result of work package ``NN - 1``;
+    any other is its station's result.
     """
-    out: dict[str, BasePose] = {}
+    out: dict[int | str, BasePose] = {}
     for path in sorted(Path(folder).rglob("*.json")):
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
@@ -163,5 +167,6 @@ def read_base_poses(folder: str | Path) -> dict[str, BasePose]:
             result = BasePose.from_dict(data)
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"malformed base pose: {exc}", source=path) from None
-        out[str(result.station)] = result
+        visit = re.match(r"visit_(\d+)_", path.name)
+        out[int(visit.group(1)) - 1 if visit else str(result.station)] = result
     return out
