@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 from pathlib import Path
 
@@ -19,8 +20,9 @@ from fabflow.project import Project, load_project
 from fabflow.tasks import Plan
 from fabflow.tasks.cover import tour
 from fabflow.tasks.order import assign_passes, lift_bands, schedule, visit_patterns
-from fabflow.tasks.planner import plan_project
+from fabflow.tasks.planner import plan_project, thin_frames
 from fabflow.tasks.reach import reach_model
+from fabflow.tasks.split import split_wide_paths, with_pieces
 from fabflow.tasks.stage import make_plan
 from fabflow.tasks.stations import element_polygons, footprint_polygons
 from fabflow.tasks.targets import element_targets
@@ -394,3 +396,73 @@ def test_tour_is_a_short_permutation():
     length = np.hypot(*np.diff(xy[order], axis=0).T).sum()
     ident = np.hypot(*np.diff(xy, axis=0).T).sum()
     assert length <= ident + 1e-9
+
+
+def print_layers(length: float, n_layers: int, y: float = 0.0) -> list[Element]:
+    """A straight printed wall along x: one print path element per 2 cm layer."""
+    out = []
+    x = np.linspace(-0.5 * length, 0.5 * length, 200)
+    for k in range(n_layers):
+        T = np.eye(4)
+        T[:3, 3] = (1.0, y, 0.02 * (k + 1))
+        out.append(
+            Element(
+                id=f"P{k:03d}",
+                type="print_path",
+                T_world_element=T,
+                layer=k,
+                supports=() if k == 0 else (f"P{k - 1:03d}",),
+                polyline=np.c_[x, np.zeros_like(x), np.zeros_like(x)],
+                attributes={"bead_width": 0.04, "extrude": [True] * 199},
+            )
+        )
+    return out
+
+
+def test_split_pieces_cover_the_path_and_stack():
+    layers = print_layers(5.0, 3)
+    out, pieces = split_wide_paths(layers, 0.7)
+    assert set(pieces) == {"P000", "P001", "P002"}
+    n = len(pieces["P000"])
+    assert n >= 3 and all(len(v) == n for v in pieces.values())
+    by_id = {e.id: e for e in out}
+    for k in range(n):
+        piece = by_id[f"P001.{k + 1}"]
+        assert piece.supports == (f"P000.{k + 1}",)
+        a, b = piece.attributes["waypoints"]
+        np.testing.assert_allclose(piece.polyline, layers[1].polyline[a : b + 1])
+        assert len(piece.attributes["extrude"]) == len(piece.polyline) - 1
+    ranges = [by_id[p].attributes["waypoints"] for p in pieces["P000"]]
+    assert ranges[0][0] == 0 and ranges[-1][1] == 199
+    assert all(r[1] == s[0] for r, s in itertools.pairwise(ranges))
+    assert with_pieces(layers, [by_id[p] for ids in pieces.values() for p in ids]) == out
+
+
+def test_wide_print_path_is_planned_in_pieces():
+    project = small_project()
+    layers = print_layers(5.0, 4)
+    plan = plan_project(project, layers)
+    planned = [e for wp in plan.work_packages for e in wp.elements]
+    pieces = {e.id for e in plan.split_elements}
+    assert sorted(planned) == sorted(pieces)
+    assert {e.attributes["parent"] for e in plan.split_elements} == {e.id for e in layers}
+    pos = {e: i for i, e in enumerate(planned)}
+    for e in plan.split_elements:
+        assert all(pos[s] < pos[e.id] for s in e.supports)
+    assert plan.summary["stations"] >= 2
+    assert any("split" in n for n in plan.notes)
+    assert unreachable_targets(plan, project) == []
+    back = Plan.from_dict(json.loads(json.dumps(plan.to_dict())))
+    assert [e.id for e in back.split_elements] == [e.id for e in plan.split_elements]
+
+
+def test_thin_frames_keeps_ends_and_spacing():
+    p = np.r_[np.c_[np.linspace(0, 1, 101), np.zeros((101, 2))]]
+    p = np.r_[p, p]
+    owner = np.r_[np.zeros(101, int), np.ones(101, int)]
+    keep = thin_frames(p, owner, 0.05)
+    assert keep[[0, 100, 101, 201]].all()
+    for o in (0, 1):
+        x = p[keep & (owner == o), 0]
+        assert np.diff(x).max() <= 0.05 + 0.011
+    assert keep.sum() < 60

@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from fabflow.design.elements import Element
+
 
 @dataclass(frozen=True, eq=False)
 class Station:
@@ -114,11 +116,18 @@ class WorkPackage:
 
 @dataclass(frozen=True, eq=False)
 class Plan:
-    """The whole plan: work packages in execution order, plus summary notes."""
+    """The whole plan: work packages in execution order, plus summary notes.
+
+    ``split_elements`` holds the pieces of print paths that no single station
+    can print (see :mod:`fabflow.tasks.split`): work packages name these pieces
+    instead of their parent; :func:`fabflow.tasks.split.with_pieces` gives the
+    element list to build from.
+    """
 
     work_packages: tuple[WorkPackage, ...]
     notes: tuple[str, ...] = ()
     summary: dict[str, Any] = field(default_factory=dict)
+    split_elements: tuple[Element, ...] = ()
 
     @property
     def stations(self) -> list[Station]:
@@ -130,11 +139,14 @@ class Plan:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-compatible data (the schema of ``plan.json``)."""
-        return {
+        d: dict[str, Any] = {
             "work_packages": [wp.to_dict() for wp in self.work_packages],
             "notes": list(self.notes),
             "summary": self.summary,
         }
+        if self.split_elements:
+            d["split_elements"] = [e.to_dict() for e in self.split_elements]
+        return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Plan:
@@ -143,4 +155,5 @@ class Plan:
             work_packages=tuple(WorkPackage.from_dict(w) for w in d["work_packages"]),
             notes=tuple(d.get("notes", ())),
             summary=dict(d.get("summary", {})),
+            split_elements=tuple(Element.from_dict(e) for e in d.get("split_elements", ())),
         )

@@ -43,6 +43,7 @@ from fabflow.tasks.order import (
 )
 from fabflow.tasks.plan import Plan, Station, WorkPackage
 from fabflow.tasks.reach import ReachModel, reach_model
+from fabflow.tasks.split import split_wide_paths
 from fabflow.tasks.stations import (
     Candidates,
     coverage,
@@ -54,6 +55,9 @@ from fabflow.tasks.stations import (
 )
 from fabflow.tasks.targets import element_tool_frames, tool_frames
 
+SPLIT_FRACTION = 0.35
+"""Print paths wider than this fraction of the arm's reach (bounding-box half-diagonal)
+are split into pieces."""
 MAX_LISTED = 12
 """How many element ids an error message lists."""
 
@@ -199,6 +203,42 @@ def _descendants(
     return reach
 
 
+def thin_frames(p: np.ndarray, owner: np.ndarray, step: float) -> np.ndarray:
+    """Which tool frames to test for reach: about one per ``step`` metres of path.
+
+    Every frame dropped lies within ``step`` (along the path) of a kept one of the
+    same element, so with a reach model shrunk by at least ``step`` the dropped
+    frames are inside the arm's unshrunk reach whenever the kept ones are. First
+    and last frames stay.
+
+    Parameters
+    ----------
+    p
+        (K, 3) frame positions (metres), grouped by element.
+    owner
+        (K,) element index of every frame (non-decreasing).
+    step
+        Spacing along the path (metres).
+
+    Returns
+    -------
+    np.ndarray
+        (K,) bool mask of the frames to keep.
+    """
+    K = len(p)
+    if K == 0:
+        return np.zeros(0, dtype=bool)
+    start = np.r_[True, owner[1:] != owner[:-1]]
+    end = np.r_[owner[1:] != owner[:-1], True]
+    seg = np.r_[0.0, np.linalg.norm(np.diff(p, axis=0), axis=1)]
+    seg[start] = 0.0
+    cum = np.cumsum(seg)
+    cum -= np.maximum.accumulate(np.where(start, cum, 0.0))
+    bucket = np.floor(cum / step).astype(np.int64)
+    change = np.r_[True, bucket[1:] != bucket[:-1]]
+    return start | end | change
+
+
 def _embed_rows(M: sparse.csr_matrix, rows: np.ndarray, n_rows: int) -> sparse.csr_matrix:
     """Place the rows of ``M`` at ``rows`` of an otherwise empty (n_rows, ...) matrix."""
     coo = M.tocoo()
@@ -247,10 +287,20 @@ def plan_project(
     if reach is None:
         reach = reach_model(project.robot.model, T_flange_tool).shrunk(planning.reach_margin)
 
+    elements, pieces = split_wide_paths(elements, SPLIT_FRACTION * reach.r_max)
+    piece_ids = {p for ids in pieces.values() for p in ids}
+    split_elements = tuple(e for e in elements if e.id in piece_ids)
     idx_work = [i for i, e in enumerate(elements) if e.robot_built]
     work = [elements[i] for i in idx_work]
     n = len(work)
     notes: list[str] = []
+    if pieces:
+        counts = sorted({len(v) for v in pieces.values()})
+        notes.append(
+            f"{len(pieces)} print path(s) are wider than one station reaches and were split "
+            f"into {'/'.join(map(str, counts))} pieces each ({_list(sorted(pieces))}); work "
+            "packages name the pieces (plan.split_elements)"
+        )
     if n == 0:
         return Plan(
             work_packages=(),
@@ -272,8 +322,9 @@ def plan_project(
     first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
     T_targets = T_frames[first]
     p_target = T_targets[:, :3, 3]
-    tool_z = T_frames[:, :3, 2]
-    tilted = np.unique(owner[tool_z[:, 2] > -math.cos(math.radians(5.0))])
+    tilted = np.unique(owner[T_frames[:, 2, 2] > -math.cos(math.radians(5.0))])
+    keep = thin_frames(T_frames[:, :3, 3], owner, max(planning.reach_margin, 0.01))
+    T_frames, owner = T_frames[keep], owner[keep]
     if len(tilted):
         notes.append(
             f"{len(tilted)} element(s) have tool frames more than 5 deg from pointing down "
@@ -437,4 +488,9 @@ def plan_project(
             "total": round(t_end - t0, 4),
         },
     }
-    return Plan(work_packages=tuple(packages), notes=tuple(notes), summary=summary)
+    return Plan(
+        work_packages=tuple(packages),
+        notes=tuple(notes),
+        summary=summary,
+        split_elements=split_elements,
+    )

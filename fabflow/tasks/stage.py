@@ -12,6 +12,7 @@ from fabflow.output import write_json
 from fabflow.project import Project
 from fabflow.tasks.plan import Plan
 from fabflow.tasks.planner import plan_project
+from fabflow.tasks.split import with_pieces
 from fabflow.tasks.verify import unreachable_targets
 
 if TYPE_CHECKING:
@@ -53,7 +54,7 @@ def write_plan_outputs(
     anchors, instrument = site_sensors(project)
     write_site_plan(
         out / "site_plan.dxf",
-        elements,
+        with_pieces(elements, plan.split_elements),
         stations=plan.stations,
         platform_footprint=tuple(project.robot.platform.footprint),
         anchors=anchors,
@@ -83,11 +84,14 @@ def make_plan(project: Project, elements: Sequence[Element]) -> Plan:
 def stage_plan(ctx: BuildContext) -> None:
     """Slice the elements into work packages; write ``plan.json``, redraw the site plan.
 
-    Reads ``ctx.results["elements"]``; sets ``ctx.results["plan"]`` (:class:`Plan`).
+    Reads ``ctx.results["elements"]``; sets ``ctx.results["plan"]`` (:class:`Plan`). When
+    print paths were split into per-station pieces, ``ctx.results["elements"]`` is
+    replaced by the list with the pieces (see :mod:`fabflow.tasks.split`).
     """
-    elements = ctx.results["elements"]
-    plan = make_plan(ctx.project, elements)
+    plan = make_plan(ctx.project, ctx.results["elements"])
     ctx.results["plan"] = plan
+    elements = with_pieces(ctx.results["elements"], plan.split_elements)
+    ctx.results["elements"] = elements
     write_plan_outputs(ctx.out, ctx.project, elements, plan)
     for item, value in plan_rows(plan):
         ctx.add("plan", item, value)
