@@ -154,6 +154,7 @@ def merge_pairs(
     chosen = list(chosen)
     n_cand = B.shape[0]
     cnt = _counts(B, chosen, B.shape[1])
+    tried: set[tuple[int, int]] = set()
     improved = True
     while improved and len(chosen) > 1:
         improved = False
@@ -161,6 +162,11 @@ def merge_pairs(
         pairs = cKDTree(pos).query_pairs(2.0 * r_max + 1e-9, output_type="ndarray")
         for i, j in pairs:
             ci, cj = chosen[i], chosen[j]
+            # A pair that could not merge is not tried again (keeps this linear in
+            # the number of nearby pairs; merges elsewhere rarely change its answer).
+            if (min(ci, cj), max(ci, cj)) in tried:
+                continue
+            tried.add((min(ci, cj), max(ci, cj)))
             both = np.union1d(_row(B, ci), _row(B, cj))
             cnt_ij = cnt[both] - np.isin(both, _row(B, ci)) - np.isin(both, _row(B, cj))
             need = both[(cnt_ij == 0) & required[both]]
