@@ -109,13 +109,19 @@ def site_plan_document(
         fp = box_footprints(box_corners(T, ext))
         _add_polygon(msp, shapely.unary_union(fp), "FOOTPRINT")
         parts = np.array([e.part or "none" for e in blocks])
+        placed: list[np.ndarray] = []
         for k, part in enumerate(sorted(set(parts.tolist()))):
             layer = f"PART_{part}".upper().replace(" ", "_")
             if layer not in doc.layers:
                 doc.layers.add(layer, color=_PART_COLOURS[k % len(_PART_COLOURS)])
             union = shapely.unary_union(fp[parts == part])
             _add_polygon(msp, union, layer)
-            _label(msp, part, np.asarray(union.representative_point().coords[0]) * MM, layer)
+            at = np.asarray(union.representative_point().coords[0]) * MM
+            # parts stacked on the same footprint: move the label down until it is free
+            while any(np.linalg.norm(at - q) < 1.5 * TEXT_HEIGHT for q in placed):
+                at = at - [0.0, 1.5 * TEXT_HEIGHT]
+            placed.append(at)
+            _label(msp, part, at, layer)
 
     for e in elements:
         if e.type != "print_path" or e.polyline is None or e.layer != 0:
