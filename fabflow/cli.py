@@ -401,9 +401,7 @@ def simulate(
         str | None,
         typer.Option(help="Comma-separated methods to compare: uwb,total_station,icp."),
     ] = None,
-    seed: Annotated[
-        int | None, typer.Option(help="Study seed (default: simulation.seed).")
-    ] = None,
+    seed: Annotated[int | None, typer.Option(help="Study seed (default: simulation.seed).")] = None,
     scheduler: Annotated[
         str | None,
         typer.Option(help="Address of a running Dask scheduler (default: a local cluster)."),
@@ -428,9 +426,9 @@ def simulate(
     chosen = parse_methods(methods) if methods else [p.localization.method]
     n_runs = runs or p.simulation.runs
     columns = ("{task.description}", BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    context = nullcontext() if scheduler is None and workers == 0 else None
+    in_process = scheduler is None and workers == 0
     with (
-        context or dask_client(scheduler, n_workers=workers) as client,
+        nullcontext(None) if in_process else dask_client(scheduler, n_workers=workers) as client,
         atomic_output_dir(out) as staging,
         Progress(*columns, console=console) as bar,
     ):
