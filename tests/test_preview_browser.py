@@ -35,6 +35,8 @@ CHROMIUM_ARGS = [
 ]
 ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts" / "preview"
 VIEWPORT = {"width": 1100, "height": 720}
+TIMEOUT_MS = 180_000
+"""Software rendering on a loaded machine is slow; be patient before failing."""
 PANEL_WIDTH = 420
 """Pixels at the right of the live page covered by viser's control panel."""
 
@@ -108,6 +110,7 @@ def test_live_page_moves_through_the_steps(browser, model: PreviewModel) -> None
     preview = serve(model, port=0)
     try:
         page = browser.new_page(viewport=VIEWPORT)
+        page.set_default_timeout(TIMEOUT_MS)
         page.goto(preview.url)
         page.wait_for_selector("canvas", timeout=60_000)
         page.get_by_text("Build sequence").first.wait_for(timeout=60_000)
@@ -150,6 +153,7 @@ def test_exported_file_plays_offline(browser, model: PreviewModel, tmp_path: Pat
 
     context.route("**/*", block)
     page = context.new_page()
+    page.set_default_timeout(TIMEOUT_MS)
     loaded: list[str] = []
     page.on(
         "console", lambda m: loaded.append(m.text) if "Embedded data loaded" in m.text else None

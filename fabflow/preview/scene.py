@@ -395,7 +395,7 @@ class PreviewScene:
         cam = self.server.initial_camera
         cam.up = (0.0, 0.0, 1.0)
         cam.look_at = tuple(centre)
-        cam.position = tuple(centre + direction * radius * 2.4)
+        cam.position = tuple(centre + direction * radius * 1.9)
 
     # ------------------------------------------------------------------ updates
 
