@@ -91,7 +91,9 @@ def test_avoid_obstacles_moves_blocked_points_only() -> None:
     desired = np.array([[1.8, 0.0, 1.0], [0.5, 1.8, 1.2], [0.6, -1.8, 0.8]])
     boxes = wall((1.8, 0.0, 1.0), (0.3, 0.8, 0.8))  # the structure sits on the first point
     rules = ClearanceRules(tool_half_extents=(0.1, 0.1, 0.1))
-    out, moved = avoid_obstacles(desired, ws, boxes, rules)
+    clear = avoid_obstacles(desired, ws, boxes, rules)
+    out, moved = clear.points, clear.moved
+    np.testing.assert_array_equal(clear.index, [0, 1, 2])
     assert moved[0] > 0 and np.all(moved[1:] == 0)
     np.testing.assert_allclose(moved[0] / 0.1, np.round(moved[0] / 0.1))
     np.testing.assert_allclose(np.linalg.norm(out[0] - desired[0]), moved[0])
@@ -104,11 +106,25 @@ def test_avoid_obstacles_respects_line_of_sight_and_gives_up() -> None:
     desired = np.array([[1.5, 0.0, 1.0]])
     screen = wall((3.0, 0.0, 1.0), (0.1, 1.0, 1.0))
     rules = ClearanceRules(sight_from=(8.0, 0.0, 1.0))
-    out, moved = avoid_obstacles(desired, ws, screen, rules)
-    assert moved[0] > 0 and not segments_hit(np.array([8.0, 0.0, 1.0]), out, screen)[0]
+    clear = avoid_obstacles(desired, ws, screen, rules)
+    assert clear.moved[0] > 0
+    assert not segments_hit(np.array([8.0, 0.0, 1.0]), clear.points, screen)[0]
     everything = wall((1.0, 0.0, 1.0), (8.0, 8.0, 8.0))
-    with pytest.raises(LocalizationError, match="no clear localization point"):
+    with pytest.raises(LocalizationError, match=r"found only 0 of the 1 .* structure \d+"):
         avoid_obstacles(desired, ws, everything, rules, max_radius=0.3)
+
+
+def test_avoid_obstacles_drops_hopeless_points_when_enough_remain() -> None:
+    ws = Workspace(center=(0.0, 0.0, 1.0), reach=2.55, margin=0.1)
+    desired = np.array([[1.5, 0.0, 1.0], [0.5, 1.8, 1.2], [0.6, -1.8, 0.8], [0.3, 0.0, 2.9]])
+    # a screen hides the first point from the instrument with no way around within 0.3 m
+    screen = wall((3.0, 0.0, 1.0), (0.1, 1.0, 1.0))
+    rules = ClearanceRules(sight_from=(8.0, 0.0, 1.0))
+    clear = avoid_obstacles(desired, ws, screen, rules, max_radius=0.3, min_points=3)
+    np.testing.assert_array_equal(clear.index, [1, 2, 3])
+    assert len(clear.dropped) == 1 and "line of sight" in clear.dropped[0][1]
+    with pytest.raises(LocalizationError, match="found only 3 of the 4"):
+        avoid_obstacles(desired, ws, screen, rules, max_radius=0.3)
 
 
 def test_boxes_from_elements_in_base_frame() -> None:

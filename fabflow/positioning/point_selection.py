@@ -311,6 +311,31 @@ class ClearanceRules:
     min_separation: float = 0.25
 
 
+CRITERIA = ("workspace", "structure", "arm path", "line of sight", "separation")
+"""Names of the criteria of :func:`criteria_masks`, in order."""
+
+
+def criteria_masks(
+    candidates: np.ndarray,
+    workspace: Workspace,
+    boxes: Boxes,
+    rules: ClearanceRules,
+    chosen: np.ndarray | None = None,
+) -> np.ndarray:
+    """``(5, m)`` pass masks of the candidate points, one row per name in :data:`CRITERIA`."""
+    m = candidates.shape[0]
+    out = np.ones((len(CRITERIA), m), dtype=bool)
+    out[0] = workspace.contains(candidates)
+    out[1] = ~boxes_overlap(candidates, np.asarray(rules.tool_half_extents), boxes)
+    out[2] = ~segments_hit(np.asarray(workspace.center, float), candidates, boxes)
+    if rules.sight_from is not None:
+        out[3] = ~segments_hit(np.asarray(rules.sight_from, float), candidates, boxes)
+    if chosen is not None and len(chosen):
+        gap = np.linalg.norm(candidates[:, None, :] - chosen[None], axis=-1).min(axis=1)
+        out[4] = gap >= rules.min_separation
+    return out
+
+
 def clear_mask(
     candidates: np.ndarray,
     workspace: Workspace,
@@ -319,15 +344,29 @@ def clear_mask(
     chosen: np.ndarray | None = None,
 ) -> np.ndarray:
     """``(m,)`` mask of candidate points meeting every criterion of :class:`ClearanceRules`."""
-    ok = workspace.contains(candidates)
-    ok &= ~boxes_overlap(candidates, np.asarray(rules.tool_half_extents), boxes)
-    ok &= ~segments_hit(np.asarray(workspace.center, float), candidates, boxes)
-    if rules.sight_from is not None:
-        ok &= ~segments_hit(np.asarray(rules.sight_from, float), candidates, boxes)
-    if chosen is not None and len(chosen):
-        gap = np.linalg.norm(candidates[:, None, :] - chosen[None], axis=-1).min(axis=1)
-        ok &= gap >= rules.min_separation
-    return ok
+    return criteria_masks(candidates, workspace, boxes, rules, chosen).all(axis=0)
+
+
+@dataclass(frozen=True, eq=False)
+class ClearPoints:
+    """Result of :func:`avoid_obstacles`.
+
+    Attributes
+    ----------
+    points
+        ``(k, 3)`` clear points (base frame, metres).
+    moved
+        ``(k,)`` how far each was moved from its desired point (metres).
+    index
+        ``(k,)`` which desired point each one replaces.
+    dropped
+        Desired points for which no clear point was found, with the reason.
+    """
+
+    points: np.ndarray
+    moved: np.ndarray
+    index: np.ndarray
+    dropped: tuple[tuple[int, str], ...] = ()
 
 
 def avoid_obstacles(
@@ -338,56 +377,78 @@ def avoid_obstacles(
     step: float = 0.10,
     max_radius: float = 1.5,
     spacing: float = 0.10,
-) -> tuple[np.ndarray, np.ndarray]:
+    min_points: int | None = None,
+) -> ClearPoints:
     """Move each desired point to the nearest clear one (the paper's growing-sphere search).
 
     For a point that fails a criterion, spheres of radius ``step``,
     ``2 step``, ... around it are tried; each carries an equally spaced grid
     of about one candidate per ``spacing^2`` of area (at least 12). The first
-    clear candidate of the smallest sphere is taken.
+    clear candidate of the smallest sphere is taken. A desired point with no
+    clear candidate within ``max_radius`` is dropped, as long as at least
+    ``min_points`` remain.
 
     Parameters
     ----------
     points
         ``(n, 3)`` desired points (base frame, metres).
     workspace, boxes, rules
-        The criteria (see :func:`clear_mask`).
+        The criteria (see :func:`criteria_masks`).
     step, max_radius, spacing
         Search sphere growth, largest radius, grid spacing (metres).
-
-    Returns
-    -------
-    points, moved
-        ``(n, 3)`` clear points and ``(n,)`` how far each was moved (metres).
+    min_points
+        Fewest points that must be found (default: all of them).
 
     Raises
     ------
     LocalizationError
-        When no clear point lies within ``max_radius`` of a desired point.
+        When fewer than ``min_points`` clear points are found; the message
+        names the blocked point and how many candidates each criterion rejected.
     """
     rules = rules or ClearanceRules()
     P = np.asarray(points, dtype=float)
-    out = np.zeros_like(P)
-    moved = np.zeros(P.shape[0])
+    need = P.shape[0] if min_points is None else min_points
+    found: list[np.ndarray] = []
+    moved: list[float] = []
+    index: list[int] = []
+    dropped: list[tuple[int, str]] = []
     for i, p in enumerate(P):
-        chosen = out[:i]
+        chosen = np.asarray(found).reshape(-1, 3)
         if clear_mask(p[None], workspace, boxes, rules, chosen)[0]:
-            out[i] = p
+            found.append(p)
+            moved.append(0.0)
+            index.append(i)
             continue
         r = step
+        fails = np.zeros(len(CRITERIA), dtype=int)
         while r <= max_radius + 1e-9:
             k = max(12, int(np.ceil(4 * np.pi * r * r / spacing**2)))
             cand = p + r * sphere_grid(k)
-            ok = clear_mask(cand, workspace, boxes, rules, chosen)
+            masks = criteria_masks(cand, workspace, boxes, rules, chosen)
+            ok = masks.all(axis=0)
             if ok.any():
-                out[i] = cand[int(np.argmax(ok))]
-                moved[i] = r
+                found.append(cand[int(np.argmax(ok))])
+                moved.append(r)
+                index.append(i)
                 break
+            fails += (~masks).sum(axis=1)
             r += step
         else:
-            raise LocalizationError(
-                f"no clear localization point within {max_radius} m of "
-                f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) in the base frame: the structure, "
-                "the workspace or the line of sight blocks every candidate"
+            reason = ", ".join(
+                f"{name} {count}" for name, count in zip(CRITERIA, fails, strict=True) if count
             )
-    return out, moved
+            dropped.append((i, f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}): rejected by {reason}"))
+    if len(found) < need:
+        i, why = dropped[0]
+        raise LocalizationError(
+            f"found only {len(found)} of the {need} localization points needed: no clear "
+            f"point within {max_radius} m of desired point {i + 1} {why} (candidate counts "
+            "per criterion; the line of sight to the instrument may need a higher or "
+            "different instrument position)"
+        )
+    return ClearPoints(
+        points=np.asarray(found).reshape(-1, 3),
+        moved=np.asarray(moved),
+        index=np.asarray(index, dtype=int),
+        dropped=tuple(dropped),
+    )

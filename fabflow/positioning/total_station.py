@@ -1034,6 +1034,7 @@ def localize_station(
         sight_from=tuple(float(v) for v in apply_T(T_base_world, T_world_instrument[:3, 3])),
     )
     moved = np.zeros(0)
+    dropped: tuple[tuple[int, str], ...] = ()
     if setup.procedure == "three_point":
         d = setup.three_point_step
         c = np.asarray(ws.center)
@@ -1046,7 +1047,10 @@ def localize_station(
                 "is blocked or out of reach; use procedure 'arbitrary'"
             )
     else:
-        P_des, moved = avoid_obstacles(_cached_optimal_points(setup.n_points, ws), ws, boxes, rules)
+        clear = avoid_obstacles(
+            _cached_optimal_points(setup.n_points, ws), ws, boxes, rules, min_points=3
+        )
+        P_des, moved, dropped = clear.points, clear.moved, clear.dropped
     P_base = kin.prism_points(P_des)
     sigma_robot = project.simulation.robot_repeatability
     P_true = P_base + rng.normal(0.0, 1.0, P_base.shape) * sigma_robot
@@ -1065,7 +1069,7 @@ def localize_station(
         reg = localize_three_point(M, P_base[0], setup.three_point_step, C, sigma_robot)
     else:
         reg = register_points(
-            P_base, M, point_cov=C, base_sigma=sigma_robot, reject_outlier=setup.n_points >= 5
+            P_base, M, point_cov=C, base_sigma=sigma_robot, reject_outlier=len(P_base) >= 5
         )
     reg = add_instrument_uncertainty(reg, T_world_instrument, C_setup)
     quality = {
@@ -1075,6 +1079,7 @@ def localize_station(
         "points_world": M.tolist(),
         "slope_distances": sd.tolist(),
         "moved_for_obstacles": moved.tolist(),
+        "dropped_points": [why for _, why in dropped],
     }
     return reg.to_base_pose(station=station_id, quality=quality)
 
