@@ -28,19 +28,6 @@ def _r(v: Any, digits: int = 9) -> Any:
     return (np.round(np.asarray(v, dtype=float), digits) + 0.0).tolist()
 
 
-def _setpoint(t: float, q: np.ndarray, T_base_tool: np.ndarray, move: Move) -> dict[str, Any]:
-    return {
-        "t": round(float(t), 6),
-        "type": "setpoint",
-        "kind": move.kind,
-        "q": _r(q),
-        "position": _r(T_base_tool[:3, 3]),
-        "quaternion": _r(quat_from_matrix(T_base_tool[:3, :3])),
-        "element": move.element,
-        "label": move.label,
-    }
-
-
 def write_json_stream(program: Program) -> dict[str, str]:
     """JSON command stream for a program.
 
@@ -52,6 +39,8 @@ def write_json_stream(program: Program) -> dict[str, str]:
     name = _sanitize(program.name, 64).lower()
     T_base_world = np.asarray(program.T_base_world, dtype=float)
     commands: list[dict[str, Any]] = []
+    # Setpoints are collected first and converted in one batch.
+    setpoints: list[tuple[int, float, np.ndarray, np.ndarray, Move]] = []
     t_prev = 0.0
     for ins in program.instructions:
         start, t_prev = t_prev, ins.time
@@ -59,9 +48,10 @@ def write_json_stream(program: Program) -> dict[str, str]:
             vias = 0 if ins.via_q is None else len(ins.via_q)
             for k in range(vias):
                 t = start + (ins.time - start) * (k + 1) / (vias + 1)
-                T = T_base_world @ ins.via_T_world_tool[k]
-                commands.append(_setpoint(t, ins.via_q[k], T, ins))
-            commands.append(_setpoint(ins.time, ins.q, T_base_world @ ins.T_world_tool, ins))
+                setpoints.append((len(commands), t, ins.via_q[k], ins.via_T_world_tool[k], ins))
+                commands.append({})
+            setpoints.append((len(commands), ins.time, ins.q, ins.T_world_tool, ins))
+            commands.append({})
         elif isinstance(ins, SetOutput):
             commands.append(
                 {"t": round(ins.time, 6), "type": "io", "name": ins.name, "value": ins.value}
@@ -70,6 +60,22 @@ def write_json_stream(program: Program) -> dict[str, str]:
             commands.append({"t": round(ins.time, 6), "type": "wait", "seconds": ins.seconds})
         elif isinstance(ins, Comment):
             commands.append({"t": round(ins.time, 6), "type": "comment", "text": ins.text})
+    if setpoints:
+        T_base_tool = T_base_world @ np.stack([sp[3] for sp in setpoints])
+        q = _r(np.stack([sp[2] for sp in setpoints]))
+        position = _r(T_base_tool[:, :3, 3])
+        quaternion = _r(quat_from_matrix(T_base_tool[:, :3, :3]))
+        for k, (index, t, _, _, move) in enumerate(setpoints):
+            commands[index] = {
+                "t": round(float(t), 6),
+                "type": "setpoint",
+                "kind": move.kind,
+                "q": q[k],
+                "position": position[k],
+                "quaternion": quaternion[k],
+                "element": move.element,
+                "label": move.label,
+            }
     doc = {
         "format": FORMAT,
         "version": VERSION,

@@ -48,21 +48,16 @@ def _module_text(
     header = [f"; {k}: {v}" for k, v in program.header.items()]
     src = ["&ACCESS RVP", "&REL 1", f"DEF {name}( )", *header]
     dat = ["&ACCESS RVP", "&REL 1", f"DEFDAT {name}", *header]
+    base = _frame(kuka_frame_values(program.T_base_world))
+    tool = _frame(kuka_frame_values(program.T_flange_tool))
+    dat += [f"DECL FRAME BASE_WORLD={{{base}}}", f"DECL FRAME TOOL_TCP={{{tool}}}"]
     if is_main:
-        base = _frame(kuka_frame_values(program.T_base_world))
-        tool = _frame(kuka_frame_values(program.T_flange_tool))
-        dat += [f"DECL FRAME BASE_WORLD={{{base}}}", f"DECL FRAME TOOL_TCP={{{tool}}}"]
-        src += [
-            "BAS (#INITMOV,0)",
-            "$BASE = BASE_WORLD",
-            "$TOOL = TOOL_TCP",
-        ]
-    else:
-        dat += [
-            "DECL FRAME BASE_WORLD=" + f"{{{_frame(kuka_frame_values(program.T_base_world))}}}",
-            f"DECL FRAME TOOL_TCP={{{_frame(kuka_frame_values(program.T_flange_tool))}}}",
-        ]
-        src += ["$BASE = BASE_WORLD", "$TOOL = TOOL_TCP"]
+        src.append("BAS (#INITMOV,0)")
+    src += ["$BASE = BASE_WORLD", "$TOOL = TOOL_TCP"]
+    moves = [i for i in instructions if isinstance(i, Move)]
+    if moves:
+        values = kuka_frame_values(np.stack([m.T_world_tool for m in moves]))
+        status, turn = kuka_status_turn(np.stack([m.q for m in moves]))
     current_speed: float | None = None
     current_axis_speed: float | None = None
     current_blend: float | None = None
@@ -77,9 +72,7 @@ def _module_text(
             src.append(f"WAIT SEC {_num(ins.seconds, 3)}")
         else:
             assert isinstance(ins, Move)
-            n += 1
-            point = f"XP{n}"
-            values = kuka_frame_values(ins.T_world_tool)
+            point = f"XP{n + 1}"
             if ins.kind == "ptp" and ins.speed != current_axis_speed:
                 percent = _num(min(max(ins.speed, 0.01), 1.0) * 100.0, 1)
                 src += [f"$VEL_AXIS[{i}] = {percent}" for i in range(1, 7)]
@@ -92,12 +85,13 @@ def _module_text(
                 current_blend = ins.blend
             approx = " C_DIS" if ins.blend > 0 else ""
             if ins.kind == "ptp":
-                s, t = kuka_status_turn(ins.q)
-                dat.append(f"DECL E6POS {point}={{{_frame(values)},S {s},T {t}}}")
+                st = f",S {status[n]},T {turn[n]}"
+                dat.append(f"DECL E6POS {point}={{{_frame(values[n])}{st}}}")
                 src.append(f"PTP {point}{approx}")
             else:
-                dat.append(f"DECL E6POS {point}={{{_frame(values)}}}")
+                dat.append(f"DECL E6POS {point}={{{_frame(values[n])}}}")
                 src.append(f"LIN {point}{approx}")
+            n += 1
             if ins.element:
                 src[-1] += f" ; {ins.element} {ins.label}".rstrip()
     src += [f"{c}( )" for c in calls]

@@ -81,7 +81,7 @@ def T_base_pick_tool(project: Project) -> np.ndarray:
     return T_pick
 
 
-def element_motion(element: Element, project: Project, T_world_base: np.ndarray) -> list[Step]:
+def element_motion(element: Element, project: Project, T_world_pick: np.ndarray) -> list[Step]:
     """The motion steps that build one element.
 
     Parameters
@@ -90,15 +90,16 @@ def element_motion(element: Element, project: Project, T_world_base: np.ndarray)
         The element to build.
     project
         Speeds, approach distance and blending come from ``project.program``.
-    T_world_base
-        Localized robot base pose of the station (places the pick frame).
+    T_world_pick
+        Tool pose gripping a block in the platform magazine, in the world
+        (``T_world_base @ T_base_pick_tool(project)`` with the localized base).
     """
     settings = project.program
     approach, blend, speed = settings.approach, settings.blend, settings.speed
     eid = element.id
     if element.type == "block":
         T_place = element_tool_frames(element)[0]
-        T_pick = T_world_base @ T_base_pick_tool(project)
+        T_pick = T_world_pick
         pick_up, place_up = _lift(T_pick, approach), _lift(T_place, approach)
         steps: list[Step] = [
             Waypoint("ptp", pick_up, PTP_SPEED, blend, "pick approach", eid),
@@ -154,7 +155,8 @@ def work_package_motion(
     elements: Sequence[Element], project: Project, T_world_base: np.ndarray
 ) -> list[Step]:
     """The motion steps of a whole work package, elements in the given order."""
+    T_world_pick = np.asarray(T_world_base, dtype=float) @ T_base_pick_tool(project)
     steps: list[Step] = []
     for element in elements:
-        steps += element_motion(element, project, T_world_base)
+        steps += element_motion(element, project, T_world_pick)
     return steps

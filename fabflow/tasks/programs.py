@@ -10,7 +10,6 @@ configuration change inside the line is found. Any failure is an
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
@@ -21,7 +20,7 @@ from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError, UnsupportedError
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project
-from fabflow.robots import get_robot
+from fabflow.robots import RobotModel, get_robot
 from fabflow.robots.json_stream import write_json_stream
 from fabflow.robots.krl import write_krl
 from fabflow.robots.program import Comment, Instruction, Move, Program, SetOutput, Wait
@@ -65,14 +64,54 @@ def check_format(fmt: str, robot: str) -> None:
         )
 
 
-def _interpolate(T0: np.ndarray, T1: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Poses at fractions ``s`` (k,) between ``T0`` and ``T1`` (linear + geodesic rotation)."""
-    R0 = T0[:3, :3]
-    w = log_so3(R0.T @ T1[:3, :3])
-    out = np.repeat(np.eye(4)[None], len(s), axis=0)
-    out[:, :3, :3] = R0 @ exp_so3(s[:, None] * w)
-    out[:, :3, 3] = T0[:3, 3] + s[:, None] * (T1[:3, 3] - T0[:3, 3])
-    return out
+def move_lengths(T_world_tool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tool translation (m) and rotation (rad) from each pose to the next, (n-1,) each."""
+    R = T_world_tool[:, :3, :3]
+    dist = np.linalg.norm(np.diff(T_world_tool[:, :3, 3], axis=0), axis=1)
+    angle = np.linalg.norm(log_so3(R[:-1].transpose(0, 2, 1) @ R[1:]), axis=1)
+    return dist, angle
+
+
+def sample_linear_moves(
+    T_world_tool: np.ndarray, linear: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every target, preceded for linear moves by samples one controller step apart.
+
+    Parameters
+    ----------
+    T_world_tool
+        (n, 4, 4) targets in execution order.
+    linear
+        (n,) whether each target is reached by a linear move from the previous one.
+
+    Returns
+    -------
+    samples
+        (m, 4, 4) poses: for each target its intermediate samples (positions on the
+        line, rotations on the geodesic), then the target itself, exactly.
+    stops
+        (n,) end index (exclusive) of each target's rows in ``samples``.
+    """
+    n = len(T_world_tool)
+    linear = np.asarray(linear, dtype=bool).copy()
+    linear[0] = False
+    dist, angle = move_lengths(T_world_tool)
+    counts = np.ones(n, dtype=np.intp)
+    steps = np.maximum(np.ceil(dist / STEP_TRANSLATION), np.ceil(angle / STEP_ROTATION))
+    counts[1:] = np.where(linear[1:], np.maximum(steps, 1), 1).astype(np.intp)
+    stops = np.cumsum(counts)
+    owner = np.repeat(np.arange(n), counts)
+    within = np.arange(stops[-1]) - np.repeat(stops - counts, counts) + 1
+    frac = within / counts[owner]
+    prev = np.maximum(owner - 1, 0)
+    R0 = T_world_tool[prev, :3, :3]
+    w = log_so3(R0.transpose(0, 2, 1) @ T_world_tool[owner, :3, :3])
+    out = np.repeat(np.eye(4)[None], len(owner), axis=0)
+    out[:, :3, :3] = R0 @ exp_so3(frac[:, None] * w)
+    p0, p1 = T_world_tool[prev, :3, 3], T_world_tool[owner, :3, 3]
+    out[:, :3, 3] = p0 + frac[:, None] * (p1 - p0)
+    out[stops - 1] = T_world_tool  # targets exactly as given, not re-interpolated
+    return out, stops
 
 
 def _fail(wp: Waypoint, why: str, T_base_tool: np.ndarray) -> InfeasibleError:
@@ -124,61 +163,128 @@ def solve_moves(
         return np.zeros((0, robot.dof)), [], []
     T_tool_flange = np.linalg.inv(np.asarray(T_flange_tool, dtype=float))
     T_world_tool = np.stack([w.T_world_tool for w in waypoints])
-    # Every target, preceded for linear moves by samples one controller step apart.
-    blocks: list[np.ndarray] = []
-    for i, wp in enumerate(waypoints):
-        if wp.kind == "lin" and i > 0:
-            T0, T1 = T_world_tool[i - 1], T_world_tool[i]
-            dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
-            angle = float(np.linalg.norm(log_so3(T0[:3, :3].T @ T1[:3, :3])))
-            k = max(math.ceil(dist / STEP_TRANSLATION), math.ceil(angle / STEP_ROTATION), 1)
-            blocks.append(_interpolate(T0, T1, np.arange(1, k + 1) / k))
-        else:
-            blocks.append(T_world_tool[i][None])
-    stops = np.cumsum([len(b) for b in blocks])
-    flat = np.concatenate(blocks)
-    flat[stops - 1] = T_world_tool  # targets exactly as given, not re-interpolated
+    flat, stops = sample_linear_moves(T_world_tool, np.array([w.kind == "lin" for w in waypoints]))
     T_base_tool = T_base_world @ flat
     q_all, valid = robot.ik_batch(T_base_tool @ T_tool_flange)
 
     q_prev = (
         robot.joint_limits.mean(axis=1) if q_start is None else np.asarray(q_start, dtype=float)
     )
+    multi_turn = np.diff(robot.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
     q_out = np.zeros((n, robot.dof))
     via_q: list[np.ndarray | None] = [None] * n
     via_T: list[np.ndarray | None] = [None] * n
+    branch = -1
     start = 0
     for i, wp in enumerate(waypoints):
-        linear = wp.kind == "lin" and i > 0
-        path = np.zeros((stops[i] - start, robot.dof))
-        for j in range(start, stops[i]):
-            at_target = j == stops[i] - 1
-            candidates = q_all[j][valid[j]]
-            if len(candidates) == 0:
-                why = (
-                    "no inverse kinematics solution within the joint limits"
-                    if at_target
-                    else "the linear move to it crosses a joint limit or leaves the workspace"
-                )
-                raise _fail(wp, why, T_base_tool[j])
-            turned = robot.nearest_turn(candidates, q_prev)
-            jump = np.abs(turned - q_prev).max(axis=1)
-            best = int(np.argmin(jump))
-            if linear and jump[best] > MAX_JOINT_JUMP:
-                raise _fail(
-                    wp,
-                    "the linear move to it changes configuration (a joint would jump "
-                    f"{np.degrees(jump[best]):.0f} deg)",
-                    T_base_tool[j],
-                )
-            q_prev = turned[best]
-            path[j - start] = q_prev
+        rows = slice(start, stops[i])
+        path = None
+        if wp.kind == "lin" and i > 0:
+            path = _follow_branch(
+                robot, q_all[rows, branch], valid[rows, branch], q_prev, multi_turn
+            )
+        if path is None:
+            path, branch = _step_through(
+                robot,
+                wp,
+                q_all[rows],
+                valid[rows],
+                q_prev,
+                T_base_tool[rows],
+                linear=wp.kind == "lin" and i > 0,
+            )
+        q_prev = path[-1]
         q_out[i] = q_prev
         if len(path) > 1:
             via_q[i] = path[:-1]
             via_T[i] = flat[start : stops[i] - 1]
         start = stops[i]
     return q_out, via_q, via_T
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    """Angles wrapped into [-pi, pi)."""
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _nearest_turn(robot: RobotModel, q: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
+    """Candidates (k, dof) with multi-turn joints put at the turn nearest ``q_ref``.
+
+    The shortest-angle turn is tried first; candidates it puts outside the
+    limits are left to the robot model's general rule.
+    """
+    multi_turn = np.diff(robot.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
+    turned = q.copy()
+    turned[:, multi_turn] = q_ref[multi_turn] + _wrap(q[:, multi_turn] - q_ref[multi_turn])
+    outside = ~robot.within_limits(turned)
+    if outside.any():
+        turned[outside] = robot.nearest_turn(q[outside], q_ref)
+    return turned
+
+
+def _follow_branch(
+    robot: RobotModel,
+    q_branch: np.ndarray,
+    ok: np.ndarray,
+    q_prev: np.ndarray,
+    multi_turn: np.ndarray,
+) -> np.ndarray | None:
+    """The joint path along one IK branch, or None when it leaves limits or jumps.
+
+    The fast path for linear moves: consecutive samples are one controller step
+    apart, so joints with more than one turn of range are unwrapped by the
+    shortest angle between neighbours.
+    """
+    if not ok.all():
+        return None
+    steps = np.diff(np.vstack([q_prev, q_branch]), axis=0)
+    steps[:, multi_turn] = _wrap(steps[:, multi_turn])
+    if np.abs(steps).max() > MAX_JOINT_JUMP:
+        return None
+    path = q_prev + np.cumsum(steps, axis=0)
+    return path if robot.within_limits(path).all() else None
+
+
+def _step_through(
+    robot: RobotModel,
+    wp: Waypoint,
+    q_rows: np.ndarray,
+    valid_rows: np.ndarray,
+    q_prev: np.ndarray,
+    T_base_tool: np.ndarray,
+    linear: bool,
+) -> tuple[np.ndarray, int]:
+    """Choose, sample by sample, the valid configuration nearest the previous one.
+
+    Handles the places where the branch numbering of the closed-form solver
+    swaps (a wrist passing its singularity); raises naming the element and
+    target when no configuration continues the motion.
+    """
+    path = np.zeros((len(q_rows), robot.dof))
+    branch = -1
+    for j in range(len(q_rows)):
+        candidates = np.flatnonzero(valid_rows[j])
+        if len(candidates) == 0:
+            why = (
+                "no inverse kinematics solution within the joint limits"
+                if j == len(q_rows) - 1
+                else "the linear move to it crosses a joint limit or leaves the workspace"
+            )
+            raise _fail(wp, why, T_base_tool[j])
+        turned = _nearest_turn(robot, q_rows[j, candidates], q_prev)
+        jump = np.abs(turned - q_prev).max(axis=1)
+        best = int(np.argmin(jump))
+        if linear and jump[best] > MAX_JOINT_JUMP:
+            raise _fail(
+                wp,
+                "the linear move to it changes configuration (a joint would jump "
+                f"{np.degrees(jump[best]):.0f} deg)",
+                T_base_tool[j],
+            )
+        q_prev = turned[best]
+        path[j] = q_prev
+        branch = int(candidates[best])
+    return path, branch
 
 
 def compile_program(
@@ -208,6 +314,8 @@ def compile_program(
     T_flange_tool = project.robot.tool.T_flange_tool.matrix()
     waypoints = [s for s in steps if isinstance(s, Waypoint)]
     q, via_q, via_T = solve_moves(waypoints, robot.name, T_base_world, T_flange_tool)
+    if waypoints:
+        dist, angle = move_lengths(np.stack([w.T_world_tool for w in waypoints]))
     instructions: list[Instruction] = []
     t = 0.0
     k = 0
@@ -227,10 +335,7 @@ def compile_program(
         elif step.kind == "ptp":
             duration = float(np.max(np.abs(q[k] - q[k - 1]) / (robot.velocity_limits * step.speed)))
         else:
-            T0, T1 = waypoints[k - 1].T_world_tool, step.T_world_tool
-            dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
-            angle = float(np.linalg.norm(log_so3(T0[:3, :3].T @ T1[:3, :3])))
-            duration = max(dist / step.speed, angle / TOOL_ROTATION_SPEED)
+            duration = max(dist[k - 1] / step.speed, angle[k - 1] / TOOL_ROTATION_SPEED)
         t += duration
         instructions.append(
             Move(
@@ -241,7 +346,7 @@ def compile_program(
                 blend=step.blend,
                 label=step.label,
                 element=step.element,
-                time=round(t, 6),
+                time=round(float(t), 6),
                 via_q=via_q[k],
                 via_T_world_tool=via_T[k],
             )

@@ -1,0 +1,71 @@
+"""Time to write every robot program of a project, inverse kinematics checks included.
+
+Plans and localizes once (not timed), then times ``write_programs`` (motions,
+IK of every target and every 2 cm step of every linear move, the writer) for
+the cabin and for a 10x larger project (ten cabins), in each format that fits
+the KUKA. Prints medians over repeats. Target: the cabin in under 1 s.
+
+    python benchmarks/programs.py [--quick] [--repeats N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fabflow.design.generate import generate_elements
+from fabflow.localization import localize_plan
+from fabflow.project import load_project
+from fabflow.tasks.programs import write_programs
+from fabflow.tasks.stage import make_plan
+from fabflow.tasks.synthetic import cabin_rows
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _case(project, elements):
+    plan = make_plan(project, elements)
+    located = localize_plan(project, plan, elements, np.random.default_rng(0))
+    return plan, {i: pose for i, (pose, _) in located.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="cabin only, one repeat")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    repeats = 1 if args.quick else args.repeats
+
+    cabin = load_project(ROOT / "projects" / "cabin")
+    cases = [("cabin", cabin, generate_elements(cabin))]
+    if not args.quick:
+        big, big_elements = cabin_rows(cabin, 10)
+        cases.append(("10 cabins", big, big_elements))
+
+    print(
+        f"{'project':<10} {'format':<9} {'programs':>8} {'motions':>8} {'IK solves':>10} "
+        f"{'median s':>9} {'per motion us':>14}"
+    )
+    for label, project, elements in cases:
+        plan, poses = _case(project, elements)
+        for fmt in ("krl", "json"):
+            times = []
+            for _ in range(repeats):
+                start = time.perf_counter()
+                programs, _ = write_programs(plan, elements, project, poses, fmt)
+                times.append(time.perf_counter() - start)
+            moves = [m for p in programs for m in p.moves]
+            solves = len(moves) + sum(0 if m.via_q is None else len(m.via_q) for m in moves)
+            median = statistics.median(times)
+            print(
+                f"{label:<10} {fmt:<9} {len(programs):>8} {len(moves):>8} {solves:>10} "
+                f"{median:>9.3f} {1e6 * median / len(moves):>14.1f}"
+            )
+
+
+if __name__ == "__main__":
+    main()
