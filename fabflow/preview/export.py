@@ -115,6 +115,13 @@ def record_html(
     # woken for every message.
     with server.atomic():
         scene = PreviewScene(server, model, project, colour_mode=colour_mode, ghost=ghost, step=0)
+        top = float(model.block_positions[:, 2].max(initial=0.0)) + 0.8
+        centre = model.block_positions[:, :2].mean(axis=0) if len(model.block_positions) else (0, 0)
+        server.scene.add_label(
+            "/legend",
+            text=f"{model.name}\n{model.legend_text(colour_mode)}",
+            position=(float(centre[0]), float(centre[1]), top),
+        )
         serializer = server.get_scene_serializer()
         serializer.insert_sleep(1.0)
         for k in range(1, model.n_steps + 1):

@@ -47,6 +47,19 @@ STATION_PALETTE = np.array(
     ],
     dtype=np.uint8,
 )
+STATION_COLOUR_NAMES = (
+    "blue",
+    "orange",
+    "green",
+    "red",
+    "teal",
+    "yellow",
+    "purple",
+    "pink",
+    "brown",
+    "grey",
+)
+"""Names of the :data:`STATION_PALETTE` colours, for text legends."""
 PREBUILT_COLOUR = np.array([150, 150, 150], dtype=np.uint8)
 """Elements not placed by the robot (not in the plan)."""
 STATE_COLOURS: dict[str, np.ndarray] = {
@@ -272,6 +285,29 @@ class PreviewModel:
         else:
             raise InputError(f"unknown colour mode '{mode}'; expected one of {COLOUR_MODES}")
         return out
+
+    def legend_text(self, mode: str) -> str:
+        """A one-line legend naming the colours, for the exported file (no control panel)."""
+        if mode == "station":
+            names = ", ".join(
+                f"{sid} {STATION_COLOUR_NAMES[i % len(STATION_COLOUR_NAMES)]}"
+                for i, sid in enumerate(self.station_ids)
+            )
+            return f"colour by station: {names}; pre-built grey"
+        if mode == "state":
+            return (
+                "colour by build state: red being placed, light wood built at this visit, "
+                "dark wood built earlier, grey pre-built"
+            )
+        if mode == "layer":
+            return "colour by layer: purple lowest to yellow highest"
+        if mode == "deviation":
+            tol = 1000 * self.tolerance
+            return (
+                f"colour by simulated deviation: green 0 mm, yellow {tol:.0f} mm (tolerance), "
+                f"red {2 * tol:.0f} mm and more; light grey not simulated"
+            )
+        raise InputError(f"unknown colour mode '{mode}'; expected one of {COLOUR_MODES}")
 
     def legend(self, mode: str) -> list[tuple[str, tuple[int, int, int]]]:
         """Legend entries ``(label, rgb)`` for a colour mode."""
