@@ -155,7 +155,7 @@ def fpfh(
         ``(N, 33)`` descriptors.
     """
     p = as_points(points)
-    n = np.asarray(normals, dtype=float)
+    n = np.ascontiguousarray(normals, dtype=float)
     tree = tree if tree is not None else cKDTree(p)
     kk = int(min(k + 1, len(p)))
     dist, idx = tree.query(p, k=kk, distance_upper_bound=radius, workers=-1)
@@ -169,7 +169,9 @@ def fpfh(
     n2 = n[idx]
     a1 = np.einsum("nki,nki->nk", n1, dn)
     a2 = np.einsum("nki,nki->nk", n2, dn)
-    swap = np.arccos(np.clip(np.abs(a1), 0, 1)) > np.arccos(np.clip(np.abs(a2), 0, 1))
+    # which point is the pair's source (PCL's rule); near-ties (equal normals) keep the
+    # order, so that rounding cannot decide
+    swap = np.arccos(np.clip(np.abs(a1), 0, 1)) > np.arccos(np.clip(np.abs(a2), 0, 1)) + 1e-9
     s1 = np.where(swap[..., None], n2, n1)
     s2 = np.where(swap[..., None], n1, n2)
     dn = np.where(swap[..., None], -dn, dn)
