@@ -82,7 +82,7 @@ def test_atomic_output_keeps_previous_result_on_failure(tmp_path, monkeypatch) -
     project = load_project(PROJECTS / "cabin")
     out = tmp_path / "out"
     run_build(project, out)
-    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
     (out / "marker.txt").write_text("from the previous run")
 
     written: list[Path] = []
