@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -351,3 +352,67 @@ def test_play_runs_to_the_end_and_pause_stops_it(live: LivePreview, model) -> No
     gui.stop()
     assert not gui.playing
     assert live.scene.step <= 2
+
+
+SITE_PROJECT = """\
+name: site
+site:
+  extent_min: [-4.0, -4.0]
+  extent_max: [6.0, 5.0]
+  obstacles:
+    - box: {name: store, min: [4.0, 3.0, 0.0], max: [5.0, 4.0, 2.0]}
+    - polygon: {name: tree, points: [[-3, -3], [-2, -3], [-2.5, -2]], z_max: 4.0}
+localization:
+  method: icp
+  icp: {map: map.xyz}
+  uwb:
+    anchors: {A1: [0, 0, 1], A2: [4, 0, 1], A3: [4, 4, 1]}
+elements:
+  - task_points:
+      - {id: M1, pose: {xyz: [1, 0, 0]}}
+"""
+
+
+def test_site_obstacles_anchors_and_icp_map_are_drawn(tmp_path: Path) -> None:
+    from fabflow.preview.export import quiet_server
+    from fabflow.project import parse_project
+
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(-3.0, 5.0, size=(500, 3))
+    np.savetxt(tmp_path / "map.xyz", pts)
+    project = parse_project(SITE_PROJECT, base_dir=tmp_path)
+    elements, plan = wall_design()
+    m = build_model(elements, plan)
+    with quiet_server() as server:
+        PreviewScene(server, m, project)
+        nodes = server.scene._handle_from_node_name
+        assert "/site/obstacles/0_store" in nodes and "/site/obstacles/1_tree" in nodes
+        np.testing.assert_allclose(nodes["/site/obstacles/0_store"].position, (4.5, 3.5, 1.0))
+        np.testing.assert_allclose(nodes["/localization/icp_map"].points, pts, atol=1e-5)
+        anchors = nodes["/localization/uwb_anchors"].batched_positions
+        np.testing.assert_allclose(anchors, [[0, 0, 1], [4, 0, 1], [4, 4, 1]])
+        assert "/localization/total_station" not in nodes
+        grid = nodes["/site/grid"]
+        assert (grid.width, grid.height) == (10.0, 9.0)
+
+
+def test_legend_text_names_every_colour(model) -> None:
+    assert "S1 blue" in model.legend_text("station") and "S2 orange" in model.legend_text("station")
+    assert "red being placed" in model.legend_text("state")
+    assert "10 mm (tolerance)" in model.legend_text("deviation")
+    with pytest.raises(InputError):
+        model.legend_text("rainbow")
+
+
+def test_prism_of_a_concave_outline_has_the_right_volume() -> None:
+    import trimesh
+
+    from fabflow.preview.scene import _prism
+
+    outline = np.array([[0, 0], [3, 0], [3, 1], [1, 1], [1, 2], [0, 2]], dtype=float)
+    vertices, faces = _prism(outline, 2.0)
+    mesh = trimesh.Trimesh(vertices, faces, process=True)
+    mesh.merge_vertices()
+    mesh.fix_normals()
+    assert mesh.is_watertight
+    assert mesh.volume == pytest.approx(4.0 * 2.0)

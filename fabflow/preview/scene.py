@@ -130,19 +130,18 @@ class PreviewScene:
                     opacity=0.6,
                 )
             elif obstacle.polygon is not None:
-                import shapely
-
                 poly = obstacle.polygon
-                mesh = trimesh.creation.extrude_polygon(
-                    shapely.Polygon(poly.points), poly.z_max - poly.z_min
+                vertices, faces = _prism(
+                    np.asarray(poly.points, dtype=float), poly.z_max - poly.z_min
                 )
                 scene.add_mesh_simple(
                     f"/site/obstacles/{i}_{poly.name}",
-                    vertices=mesh.vertices,
-                    faces=mesh.faces,
+                    vertices=vertices,
+                    faces=faces,
                     color=(120, 120, 128),
                     opacity=0.6,
                     flat_shading=True,
+                    side="double",
                     position=(0.0, 0.0, poly.z_min),
                 )
 
@@ -507,6 +506,37 @@ class PreviewScene:
         """The colour a station has in the ``station`` colour mode."""
         s = self.model.station_ids.index(station_id)
         return tuple(int(c) for c in STATION_PALETTE[s % len(STATION_PALETTE)])  # type: ignore[return-value]
+
+
+def _prism(points: np.ndarray, height: float) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of a plan polygon (K, 2) extruded from z = 0 to ``height``.
+
+    The caps are a constrained Delaunay triangulation, so concave outlines work.
+    """
+    import shapely
+
+    polygon = shapely.Polygon(points)
+    if not polygon.is_valid:
+        polygon = shapely.make_valid(polygon)
+    triangles = shapely.get_parts(shapely.constrained_delaunay_triangles(polygon))
+    tri_xy = np.array([np.asarray(t.exterior.coords)[:3] for t in triangles]).reshape(-1, 2)
+    n_tri = len(tri_xy) // 3
+    ring = np.asarray(points, dtype=float)
+    K = len(ring)
+    vertices = np.concatenate(
+        [
+            np.c_[tri_xy, np.zeros(len(tri_xy))],
+            np.c_[tri_xy, np.full(len(tri_xy), height)],
+            np.c_[ring, np.zeros(K)],
+            np.c_[ring, np.full(K, height)],
+        ]
+    )
+    caps = np.arange(6 * n_tri).reshape(-1, 3)
+    b = 6 * n_tri
+    i = np.arange(K)
+    j = (i + 1) % K
+    sides = np.concatenate([np.c_[b + i, b + j, b + K + j], np.c_[b + i, b + K + j, b + K + i]])
+    return vertices, np.concatenate([caps, sides]).astype(np.int32)
 
 
 def _load_points(path: Any) -> np.ndarray:
