@@ -466,3 +466,19 @@ def test_thin_frames_keeps_ends_and_spacing():
         x = p[keep & (owner == o), 0]
         assert np.diff(x).max() <= 0.05 + 0.011
     assert keep.sum() < 60
+
+
+def test_plan_stage_hands_the_pieces_to_later_stages(tmp_path):
+    from fabflow.pipeline import BuildContext
+    from fabflow.tasks.stage import stage_plan
+
+    ctx = BuildContext(project=small_project(), out=tmp_path)
+    ctx.results["elements"] = print_layers(5.0, 2)
+    stage_plan(ctx)
+    plan = ctx.results["plan"]
+    assert plan.split_elements
+    ids = {e.id for e in ctx.results["elements"]}
+    assert ids == {e.id for e in plan.split_elements}
+    assert all(e in ids for wp in plan.work_packages for e in wp.elements)
+    data = json.loads((tmp_path / "plan.json").read_text())
+    assert len(data["split_elements"]) == len(plan.split_elements)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -74,11 +75,7 @@ def make_plan(project: Project, elements: Sequence[Element]) -> Plan:
             *notes,
             f"{len(bad)} target(s) fail the inverse-kinematics check: {', '.join(bad[:12])}",
         )
-    return Plan(
-        work_packages=plan.work_packages,
-        notes=notes,
-        summary={**plan.summary, "ik_unreachable": bad},
-    )
+    return dataclasses.replace(plan, notes=notes, summary={**plan.summary, "ik_unreachable": bad})
 
 
 def stage_plan(ctx: BuildContext) -> None:
