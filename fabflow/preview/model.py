@@ -76,7 +76,8 @@ class ArmModel(Protocol):
 
     ``joint_origins`` returns the points the arm is drawn through (foot of axis
     1, each joint origin, the flange) in the robot base frame, shape
-    ``(..., n_points, 3)`` for joint vectors of shape ``(..., dof)``.
+    ``(..., n_points, 3)`` for joint vectors of shape ``(..., dof)``; ``fk``
+    the flange pose in the base frame (4x4).
     ``ik`` returns the joint solutions (radians) that put the flange at a 4x4
     pose given in the base frame, empty when unreachable. An arm may also offer
     ``ik_many(T (N, 4, 4)) -> (q (N, K, dof), valid (N, K)) | None`` to solve
@@ -87,6 +88,8 @@ class ArmModel(Protocol):
     home: np.ndarray
 
     def joint_origins(self, q: np.ndarray) -> np.ndarray: ...
+
+    def fk(self, q: np.ndarray) -> np.ndarray: ...
 
     def ik(self, T_base_flange: np.ndarray) -> list[np.ndarray]: ...
 
@@ -515,12 +518,7 @@ def build_model(
         arm_points = np.einsum("sij,snj->sni", T[:, :3, :3], pts_base) + T[:, None, :3, 3]
         T_world_tool = np.array([T_wb[0]] * (S + 1))
         T_world_tool[1:] = T_world_targets
-        if hasattr(arm, "fk"):
-            T_base_flange0 = np.asarray(arm.fk(arm_q[0]), dtype=float)  # type: ignore[attr-defined]
-            T_world_tool[0] = T_wb[0] @ T_base_flange0 @ T_flange_tool
-        else:
-            T_world_tool[0] = T_wb[0]
-            T_world_tool[0, :3, 3] = arm_points[0, -1]
+        T_world_tool[0] = T_wb[0] @ np.asarray(arm.fk(arm_q[0]), dtype=float) @ T_flange_tool
     else:
         arm_q = np.zeros((S + 1, 0))
         reached = np.ones(S + 1, dtype=bool)
