@@ -250,6 +250,8 @@ def simulate_run(
     rng = np.random.default_rng(run_seed(seed, run))
     sim = study.project.simulation
     localize = localize or study_localizer(study)
+    # the LiDAR sits on the platform, below the lifted base: ICP needs the lift height
+    pass_lift = study.method == "icp" and study.project.simulation.sensor_noise
     V = study.n_visits
     T_true = np.empty((V, 4, 4))
     T_est = np.empty((V, 4, 4))
@@ -257,7 +259,10 @@ def simulate_run(
     estimates: list[BasePose] = []
     for v, station in enumerate(study.stations):
         _, T_true[v] = parked_pose(study.project, station, rng)
-        estimate = localize(study.project, T_true[v], rng, station.id, built=study.built_before[v])
+        extra = {"lift": station.lift} if pass_lift else {}
+        estimate = localize(
+            study.project, T_true[v], rng, station.id, built=study.built_before[v], **extra
+        )
         T_est[v] = estimate.T_world_base
         cov[v] = estimate.covariance
         if keep_poses:
