@@ -8,6 +8,7 @@ one batched mesh, and a block is hidden by giving its instance a zero scale.
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import numpy as np
@@ -82,6 +83,8 @@ class PreviewScene:
         self.ghost_enabled = ghost
         self.step = model.n_steps if step is None else model.check_step(step)
         self._colour_cache: dict[str, np.ndarray] = {}
+        # The play thread and browser callbacks may update the scene concurrently.
+        self._lock = threading.RLock()
         self._visible = model.visible(self.step)
         self._draw_extents = np.maximum(model.block_extents - BLOCK_GAP, 1e-4).astype(np.float32)
         self._precompute_poses()
@@ -433,8 +436,8 @@ class PreviewScene:
         m = self.model
         step = m.check_step(step)
         visible = m.visible(step)
-        changed = force or not np.array_equal(visible, self._visible)
-        with self.server.atomic():
+        with self._lock, self.server.atomic():
+            changed = force or not np.array_equal(visible, self._visible)
             if changed:
                 vb = visible[m.block_index]
                 self.blocks.batched_scales = self._draw_extents * vb[:, None]
@@ -446,8 +449,8 @@ class PreviewScene:
             if force or self.colour_mode == "state":
                 self._apply_colours(self._colours(self.colour_mode, step))
             self._pose_platform_and_arm(step, force)
-        self._visible = visible
-        self.step = step
+            self._visible = visible
+            self.step = step
 
     def _pose_platform_and_arm(self, step: int, force: bool) -> None:
         m = self.model
@@ -493,8 +496,8 @@ class PreviewScene:
                 f"colour mode '{mode}' is not available; expected one of "
                 f"{self.model.colour_modes()}"
             )
-        self.colour_mode = mode
-        with self.server.atomic():
+        with self._lock, self.server.atomic():
+            self.colour_mode = mode
             self._apply_colours(self._colours(mode, self.step))
 
     def set_ghost(self, enabled: bool) -> None:
