@@ -482,3 +482,18 @@ def test_plan_stage_hands_the_pieces_to_later_stages(tmp_path):
     assert all(e in ids for wp in plan.work_packages for e in wp.elements)
     data = json.loads((tmp_path / "plan.json").read_text())
     assert len(data["split_elements"]) == len(plan.split_elements)
+
+
+def test_tilted_task_points_are_planned_with_ik():
+    project = small_project()
+    elements = []
+    for i, (x, y) in enumerate([(0.0, 0.0), (2.0, 1.0), (-1.0, 2.5)]):
+        T = np.eye(4)
+        # Tool z horizontal (along world +x), e.g. drilling into a wall face.
+        T[:3, :3] = [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]
+        T[:3, 3] = (x, y, 1.2)
+        elements.append(Element(id=f"D{i}", type="task_point", T_world_element=T))
+    plan = plan_project(project, elements)
+    assert sorted(e for wp in plan.work_packages for e in wp.elements) == ["D0", "D1", "D2"]
+    assert unreachable_targets(plan, project) == []
+    assert not any("position only" in n for n in plan.notes)

@@ -54,6 +54,7 @@ from fabflow.tasks.stations import (
     obstacle_polygons,
 )
 from fabflow.tasks.targets import element_tool_frames, tool_frames
+from fabflow.tasks.verify import ik_lift_masks
 
 SPLIT_FRACTION = 0.35
 """Print paths wider than this fraction of the arm's reach (bounding-box half-diagonal)
@@ -239,6 +240,59 @@ def thin_frames(p: np.ndarray, owner: np.ndarray, step: float) -> np.ndarray:
     return start | end | change
 
 
+def _tilted_coverage(
+    project: Project,
+    A: sparse.csr_matrix,
+    cands: Candidates,
+    rows: np.ndarray,
+    T_frames: np.ndarray,
+    owner: np.ndarray,
+    tilted: np.ndarray,
+    reach: ReachModel,
+    lifts: np.ndarray,
+) -> sparse.csr_matrix | None:
+    """Redo the coverage of elements with tilted tool frames by inverse kinematics.
+
+    Every frame of such an element must have an IK solution from the candidate at
+    the same lift. Returns ``None`` when no closed-form IK is available.
+    """
+    sel = np.isin(owner, tilted)
+    T_t, own_t = T_frames[sel], owner[sel]
+    tree = cKDTree(cands.base_xy[rows])
+    lists = tree.query_ball_point(T_t[:, :2, 3], reach.r_max + 0.5)
+    f_idx = np.repeat(np.arange(len(T_t)), [len(x) for x in lists])
+    c_idx = (
+        rows[np.concatenate([np.asarray(x, dtype=np.intp) for x in lists])] if len(f_idx) else f_idx
+    )
+    T_wp = np.stack([cands.T_world_platform(int(c)) for c in c_idx]) if len(c_idx) else None
+    masks = (
+        ik_lift_masks(project, T_wp, T_t[f_idx], lifts)
+        if T_wp is not None
+        else np.zeros(0, dtype=np.int64)
+    )
+    if masks is None:
+        return None
+    e_idx = own_t[f_idx]
+    # An element is reachable at a lift only if all its frames are.
+    n_frames = np.bincount(own_t, minlength=A.shape[1])
+    key = c_idx.astype(np.int64) * A.shape[1] + e_idx
+    order = np.argsort(key, kind="stable")
+    key, masks = key[order], masks[order]
+    if len(key):
+        first = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        counts = np.diff(np.r_[first, len(key)])
+        masks = np.bitwise_and.reduceat(masks, first)
+        key = key[first]
+    else:
+        counts = np.zeros(0, dtype=np.int64)
+    c_u, e_u = key // A.shape[1], key % A.shape[1]
+    ok = (counts == n_frames[e_u]) & (masks != 0)
+    new = sparse.csr_matrix((masks[ok], (c_u[ok], e_u[ok])), shape=A.shape, dtype=np.int64)
+    keep_cols = np.ones(A.shape[1], dtype=np.int64)
+    keep_cols[tilted] = 0
+    return (A.multiply(keep_cols[None, :]) + new).tocsr()
+
+
 def _embed_rows(M: sparse.csr_matrix, rows: np.ndarray, n_rows: int) -> sparse.csr_matrix:
     """Place the rows of ``M`` at ``rows`` of an otherwise empty (n_rows, ...) matrix."""
     coo = M.tocoo()
@@ -325,11 +379,6 @@ def plan_project(
     tilted = np.unique(owner[T_frames[:, 2, 2] > -math.cos(math.radians(5.0))])
     keep = thin_frames(T_frames[:, :3, 3], owner, max(planning.reach_margin, 0.01))
     T_frames, owner = T_frames[keep], owner[keep]
-    if len(tilted):
-        notes.append(
-            f"{len(tilted)} element(s) have tool frames more than 5 deg from pointing down "
-            f"({_list([ids[i] for i in tilted])}); their reach was judged by position only"
-        )
 
     lifts = lift_levels(platform.lift, planning.lift_step)
     cands = generate_candidates(
@@ -351,6 +400,16 @@ def plan_project(
     free_rows = np.flatnonzero(~cands.blocks)
     A = coverage(cands, T_frames, owner_all, len(elements), reach, lifts, free_rows)
     A = A[:, idx_work].tocsr()
+    if len(tilted):
+        A = _tilted_coverage(project, A, cands, free_rows, T_frames, owner, tilted, reach, lifts)
+        if A is None:
+            notes.append(
+                f"{len(tilted)} element(s) have tool frames more than 5 deg from pointing "
+                f"down ({_list([ids[i] for i in tilted])}); without closed-form inverse "
+                "kinematics their reach was judged by position only"
+            )
+            A = coverage(cands, T_frames, owner_all, len(elements), reach, lifts, free_rows)
+            A = A[:, idx_work].tocsr()
     reachable = np.diff(A.tocsc().indptr) > 0
     if not reachable.all() and n_blocked.any():
         missing_xy = T_frames[np.isin(owner, np.flatnonzero(~reachable)), :2, 3]

@@ -58,3 +58,50 @@ def unreachable_targets(plan: Plan, project: Project) -> list[str] | None:
             ok = np.array([len(robot.ik(T)) > 0 for T in T_base_flange])
         failed += [e for e, good in zip(wp.elements, ok, strict=True) if not good]
     return failed
+
+
+def ik_lift_masks(
+    project: Project,
+    T_world_platform: np.ndarray,
+    T_world_tool: np.ndarray,
+    lifts: np.ndarray,
+) -> np.ndarray | None:
+    """Lift levels at which full tool poses have an inverse-kinematics solution.
+
+    Used for targets whose tool does not point down (the reach table assumes it does).
+
+    Parameters
+    ----------
+    project
+        Robot, tool and platform mounting.
+    T_world_platform
+        (P, 4, 4) platform poses (metres).
+    T_world_tool
+        (P, 4, 4) tool poses to reach, paired with the platform poses.
+    lifts
+        (L,) lift heights (metres), L <= 32.
+
+    Returns
+    -------
+    np.ndarray or None
+        (P,) int64 bit masks (bit l: reachable at ``lifts[l]``), or ``None`` when
+        the robots module or a closed-form IK for the robot is not available.
+    """
+    try:
+        from fabflow.robots import get_robot
+    except ImportError:
+        return None
+    robot = get_robot(project.robot.model)
+    if robot.analytic_ik is None:
+        return None
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
+    T_tool_flange = np.linalg.inv(project.robot.tool.T_flange_tool.matrix())
+    masks = np.zeros(len(T_world_tool), dtype=np.int64)
+    for bit, h in enumerate(lifts):
+        lift = np.eye(4)
+        lift[2, 3] = h
+        T_world_base = T_world_platform @ (lift @ T_platform_base)
+        T_base_flange = np.linalg.inv(T_world_base) @ T_world_tool @ T_tool_flange
+        _, valid = robot.ik_batch(T_base_flange)
+        masks |= valid.any(axis=1).astype(np.int64) << bit
+    return masks
