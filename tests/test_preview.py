@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fabflow.design.elements import Element
 from fabflow.errors import InputError
@@ -416,3 +418,24 @@ def test_prism_of_a_concave_outline_has_the_right_volume() -> None:
     mesh.fix_normals()
     assert mesh.is_watertight
     assert mesh.volume == pytest.approx(4.0 * 2.0)
+
+
+@settings(deadline=None, max_examples=60)
+@given(
+    st.lists(
+        st.tuples(*[st.floats(-1.0, 1.0, allow_nan=False)] * 3).filter(
+            lambda v: np.linalg.norm(v) > 1e-3
+        ),
+        min_size=1,
+        max_size=8,
+    )
+)
+def test_link_quaternion_turns_z_onto_the_link(directions) -> None:
+    from fabflow.preview.scene import _quat_z_to
+    from fabflow.transforms.so3 import matrix_from_quat
+
+    d = np.array(directions, dtype=float)
+    d = np.vstack([d, [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    R = matrix_from_quat(_quat_z_to(d))
+    np.testing.assert_allclose(R[:, :, 2], d, atol=1e-9)
