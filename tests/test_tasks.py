@@ -497,3 +497,30 @@ def test_tilted_task_points_are_planned_with_ik():
     assert sorted(e for wp in plan.work_packages for e in wp.elements) == ["D0", "D1", "D2"]
     assert unreachable_targets(plan, project) == []
     assert not any("position only" in n for n in plan.notes)
+
+
+def test_narrow_site_parks_on_ground_built_later():
+    # The site is one platform wide, so the platform must stand where blocks go.
+    project = Project.model_validate(
+        {
+            **small_project().model_dump(exclude={"path"}),
+            "site": {"extent_min": [-4.0, -1.25], "extent_max": [7.0, 1.25], "obstacles": []},
+        }
+    )
+    wall = [block(f"W{i}", 0.3 + 0.6 * i, 0.0, 0) for i in range(5)]
+    plan = plan_project(project, wall)
+    assert any("stand where robot-built elements go" in n for n in plan.notes)
+    platform = project.robot.platform
+    outline = dict(zip([e.id for e in wall], element_polygons(wall), strict=True))
+    built: list[str] = []
+    for wp in plan.work_packages:
+        T = wp.station.T_world_platform
+        fp = footprint_polygons(
+            T[None, :2, 3],
+            np.array([np.arctan2(T[1, 0], T[0, 0])]),
+            platform.footprint,
+            platform.safety_margin,
+        )[0]
+        built += wp.elements
+        assert not any(fp.intersects(outline[e]) for e in built)
+    assert sorted(built) == sorted(e.id for e in wall)
