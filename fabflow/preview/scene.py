@@ -34,9 +34,11 @@ def _quat_z_to(directions: np.ndarray) -> np.ndarray:
     """(N, 4) quaternions (w, x, y, z) turning +z onto each unit direction (N, 3)."""
     d = directions
     q = np.stack([1.0 + d[:, 2], -d[:, 1], d[:, 0], np.zeros(len(d))], axis=1)
-    flipped = q[:, 0] < 1e-9
+    norm = np.linalg.norm(q, axis=1)
+    flipped = norm < 1e-12  # d = -z: half a turn about x
     q[flipped] = (0.0, 1.0, 0.0, 0.0)
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
+    norm[flipped] = 1.0
+    return q / norm[:, None]
 
 
 def _wxyz(T: np.ndarray) -> np.ndarray:
