@@ -371,7 +371,10 @@ def preview(
         ),
     ] = None,
     sim: Annotated[
-        Path | None, typer.Option(help="A fabflow simulate output folder: colour by deviation.")
+        Path | None,
+        typer.Option(
+            help="fabflow simulate output (deviations, localization) or build output folder."
+        ),
     ] = None,
 ) -> None:
     """Show the construction sequence in the browser (viser), or export it as one HTML file."""
