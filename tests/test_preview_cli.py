@@ -166,3 +166,31 @@ def test_build_stage_writes_preview_html(planned, tmp_path: Path) -> None:
     stage_preview(ctx)
     assert (tmp_path / "preview.html").stat().st_size == ctx.results["preview"].size_bytes
     assert any(stage == "preview" for stage, _, _ in ctx.summary)
+
+
+def test_build_folder_gives_localization_results(tiny: Path, planned, tmp_path: Path) -> None:
+    project, elements, plan = planned
+    loc = tmp_path / "localization"
+    loc.mkdir()
+    for wp in plan.work_packages:
+        BasePose(
+            T_world_base=np.eye(4),
+            covariance=np.eye(6) * 4e-6,
+            method="total_station",
+            residuals=np.full((3, 3), 0.002),
+            rmse=0.0035,
+            station=wp.station.id,
+        ).write(loc / f"visit_{wp.index + 1:02d}_{wp.station.id}.json")
+    model = model_for_project(project, elements, plan, sim_dir=tmp_path)
+    assert model.deviation is None
+    assert all(model.localization_at(p).rmse == 0.0035 for p in range(len(plan.work_packages)))
+    result = CliRunner().invoke(
+        app,
+        ["preview", str(tiny), "--sim", str(tmp_path), "--colour-by", "deviation",
+         "--export", str(tmp_path / "x.html")],
+    )  # fmt: skip
+    assert result.exit_code == 2 and "localization results only" in result.output
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="holds neither"):
+        model_for_project(project, elements, plan, sim_dir=empty)

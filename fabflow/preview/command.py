@@ -89,7 +89,8 @@ def run_preview(
     colour_by
         Colour mode; ``station`` live and ``state`` in an export if ``None``.
     sim
-        A ``fabflow simulate`` output folder (deviations, localization results).
+        A ``fabflow simulate`` output folder (deviations, localization results) or
+        a ``fabflow build`` output folder (localization results).
     say
         Prints progress and the address.
     wait
@@ -109,6 +110,12 @@ def run_preview(
     elements = generate_elements(project)
     plan = plan_project(project, elements)
     model = model_for_project(project, elements, plan, sim_dir=sim)
+    if colour_by == "deviation" and model.deviation is None:
+        raise InputError(
+            "--colour-by deviation needs a per-element deviation table (a fabflow simulate "
+            "output folder); this folder has localization results only",
+            source=sim,
+        )
     if export is not None:
         from fabflow.preview.export import export_html
 

@@ -50,8 +50,9 @@ def model_for_project(
     plan
         The plan; planned from the project if ``None``.
     sim_dir
-        A ``fabflow simulate`` output folder: per-element deviations (mean over
-        runs) and any base-pose JSON files (localization results by station).
+        A ``fabflow simulate`` output folder (per-element deviations, mean over
+        runs, and base poses) or a ``fabflow build`` output folder (its
+        ``localization/`` base poses).
     localization
         Localization results by work-package index or station id (e.g. from the
         build's ``localize`` stage); they take precedence over ``sim_dir``'s.
@@ -69,8 +70,15 @@ def model_for_project(
     deviation = None
     results: dict[int | str, BasePose] = {}
     if sim_dir is not None:
-        deviation = read_deviations(sim_dir)
+        deviation = read_deviations(sim_dir, required=False)
         results.update(read_base_poses(sim_dir))
+        if deviation is None and not results:
+            raise InputError(
+                "holds neither a per-element deviation table (CSV with columns "
+                f"{' or '.join(ID_COLUMNS)} and {' or '.join(DEVIATION_COLUMNS)}) "
+                "nor base pose JSON files",
+                source=sim_dir,
+            )
     results.update(localization or {})
     T_flange_tool = project.robot.tool.T_flange_tool.matrix()
     return build_model(
@@ -110,7 +118,7 @@ def _deviation_table(path: Path) -> dict[str, list[float]] | None:
     return values
 
 
-def read_deviations(sim_dir: str | Path) -> dict[str, float]:
+def read_deviations(sim_dir: str | Path, required: bool = True) -> dict[str, float] | None:
     """Mean simulated deviation (metres) per element id from a simulation output folder.
 
     Every CSV file in the folder (not its subfolders) with an element id column
@@ -118,14 +126,21 @@ def read_deviations(sim_dir: str | Path) -> dict[str, float]:
     :data:`DEVIATION_COLUMNS`) is read; rows of the same element (one per run)
     are averaged.
 
+    Parameters
+    ----------
+    sim_dir
+        The folder.
+    required
+        Raise if the folder holds no such table; otherwise return ``None``.
+
     Raises
     ------
     InputError
-        If the folder does not exist or holds no such table.
+        If the folder does not exist, or (``required``) holds no such table.
     """
     folder = Path(sim_dir)
     if not folder.is_dir():
-        raise InputError("simulation output folder does not exist", source=folder)
+        raise InputError("results folder does not exist", source=folder)
     values: dict[str, list[float]] = defaultdict(list)
     found = False
     for path in sorted(folder.glob("*.csv")):
@@ -135,6 +150,8 @@ def read_deviations(sim_dir: str | Path) -> dict[str, float]:
         found = True
         for eid, v in table.items():
             values[eid].extend(v)
+    if not found and not required:
+        return None
     if not found:
         raise InputError(
             "no per-element deviation table found: expected a CSV with columns "
