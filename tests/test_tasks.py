@@ -19,7 +19,13 @@ from fabflow.errors import InfeasibleError, InputError
 from fabflow.project import Project, load_project
 from fabflow.tasks import Plan
 from fabflow.tasks.cover import tour
-from fabflow.tasks.order import assign_passes, lift_bands, schedule, visit_patterns
+from fabflow.tasks.order import (
+    assign_passes,
+    dissolve_small_visits,
+    lift_bands,
+    schedule,
+    visit_patterns,
+)
 from fabflow.tasks.planner import plan_project, thin_frames
 from fabflow.tasks.reach import reach_model
 from fabflow.tasks.split import split_wide_paths, with_pieces
@@ -369,6 +375,19 @@ def test_assign_passes_respects_reach_and_supports(seed, k):
                 p for p in range(need, visit[e]) if pattern[p % len(pattern)] in reach_sets[e]
             ]
             assert not earlier
+        # Dissolving small visits keeps both properties and never adds visits.
+        after = dissolve_small_visits(
+            visit,
+            pattern[np.arange(visit.max() + 1) % len(pattern)],
+            reach_sets,
+            src,
+            dst,
+            np.zeros(n, dtype=bool),
+        )
+        station2 = pattern[after % len(pattern)]
+        assert all(station2[e] in reach_sets[e] for e in range(n))
+        assert (after[src] <= after[dst]).all()
+        assert len(np.unique(after)) <= len(np.unique(visit))
 
 
 def test_schedule_builds_blocked_elements_after_the_station_leaves():

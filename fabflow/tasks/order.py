@@ -457,3 +457,110 @@ def plan_visits(
         visit_station.extend(lstations.tolist())
         here = int(lstations[lv.max()])
     return visit, np.array(visit_station, dtype=np.intp)
+
+
+SMALL_VISIT = 12
+"""Visits with at most this many elements are candidates for :func:`dissolve_small_visits`."""
+
+
+def dissolve_small_visits(
+    visit: np.ndarray,
+    visit_station: np.ndarray,
+    reach_sets: list[np.ndarray],
+    src: np.ndarray,
+    dst: np.ndarray,
+    fixed: np.ndarray,
+) -> np.ndarray:
+    """Move the elements of small visits into other planned visits where possible.
+
+    An element may move to another planned visit whose station reaches it, that is
+    not before the visits of what it rests on and not after the visits of what
+    rests on it. A visit is dissolved only if all its elements can move; the
+    smallest visits are tried first.
+
+    Parameters
+    ----------
+    visit
+        (n,) planned visit index of every element (from :func:`plan_visits`).
+    visit_station
+        Station of every visit index.
+    reach_sets
+        For every element, the tour positions of the stations reaching it.
+    src, dst
+        Support edges (dst rests on src).
+    fixed
+        (n,) bool: elements that must not move (e.g. under some station's footprint).
+
+    Returns
+    -------
+    np.ndarray
+        The new visit index of every element.
+    """
+    visit = visit.copy()
+    n = len(visit)
+    down_order = np.argsort(dst, kind="stable")
+    down_starts = np.searchsorted(dst[down_order], np.arange(n + 1))
+    sup_of = src[down_order]
+    up_order = np.argsort(src, kind="stable")
+    up_starts = np.searchsorted(src[up_order], np.arange(n + 1))
+    dep_of = dst[up_order]
+    counts = np.bincount(visit, minlength=len(visit_station))
+    by_visit = np.argsort(visit, kind="stable")
+    bounds = np.searchsorted(visit[by_visit], np.arange(len(visit_station) + 1))
+    small = [int(v) for v in np.argsort(counts, kind="stable") if 0 < counts[v] <= SMALL_VISIT]
+    for v in small:
+        members = by_visit[bounds[v] : bounds[v + 1]]
+        members = members[visit[members] == v]
+        if len(members) == 0 or fixed[members].any():
+            continue
+        used = np.flatnonzero(np.bincount(visit, minlength=len(visit_station)))
+        moved: dict[int, int] = {}
+        # Members in support order: an element's supports inside the visit move first.
+        order = members[
+            np.argsort([len(sup_of[down_starts[e] : down_starts[e + 1]]) for e in members])
+        ]
+        ok = True
+        for e in _topo_within(order, sup_of, down_starts):
+            sups = sup_of[down_starts[e] : down_starts[e + 1]]
+            deps = dep_of[up_starts[e] : up_starts[e + 1]]
+            lo = max((moved.get(int(s), int(visit[s])) for s in sups), default=0)
+            hi = min(
+                (int(visit[d]) for d in deps if int(d) not in moved and visit[d] != v),
+                default=10**18,
+            )
+            options = [
+                int(u)
+                for u in used[(used >= lo) & (used <= hi)]
+                if u != v and visit_station[u] in reach_sets[e]
+            ]
+            if not options:
+                ok = False
+                break
+            moved[int(e)] = min(options, key=lambda u: abs(u - v))
+        if ok:
+            for e, u in moved.items():
+                visit[e] = u
+    return visit
+
+
+def _topo_within(members: np.ndarray, sup_of: np.ndarray, starts: np.ndarray) -> list[int]:
+    """Members ordered so that supports among them come first."""
+    inside = set(members.tolist())
+    done: set[int] = set()
+    out: list[int] = []
+    pending = list(members.tolist())
+    while pending:
+        rest = []
+        for e in pending:
+            if all(
+                int(s) not in inside or int(s) in done for s in sup_of[starts[e] : starts[e + 1]]
+            ):
+                out.append(e)
+                done.add(e)
+            else:
+                rest.append(e)
+        if len(rest) == len(pending):
+            out += rest
+            break
+        pending = rest
+    return out

@@ -34,6 +34,7 @@ from fabflow.errors import InfeasibleError, InputError, UnsupportedError
 from fabflow.project import Project
 from fabflow.tasks.cover import select_stations
 from fabflow.tasks.order import (
+    dissolve_small_visits,
     find_support_cycle,
     lift_bands,
     plan_visits,
@@ -459,6 +460,10 @@ def plan_project(
     ]
     station_xy = cands.xy[chosen]
     visit, visit_station = plan_visits(reach_sets, src, dst, topo, station_xy)
+    fixed = np.zeros(n, dtype=bool)
+    for blk in blocked_by:
+        fixed[blk] = True
+    visit = dissolve_small_visits(visit, visit_station, reach_sets, src, dst, fixed)
     visits = schedule(visit, visit_station, layer, p_target, src, dst, blocked_by, ids)
     t_ord = time.perf_counter()
 
