@@ -22,7 +22,7 @@ from rich.console import Console
 from rich.table import Table
 
 from fabflow.project import load_project
-from fabflow.sim.monte_carlo import dask_client, run_study
+from fabflow.sim.monte_carlo import comparison_row, dask_client, run_study, summarize
 from fabflow.sim.run import Study, prepare_study, simulate_run
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -87,6 +87,9 @@ def main() -> None:
         "speed-up",
         "1000 runs on Dask (projected s)",
         "failed",
+        "p95 mm",
+        "within tol",
+        "sigma ratio xy",
     ):
         table.add_column(col, justify="left" if col == "method" else "right")
     with dask_client(None, n_workers=2) as client:
@@ -97,6 +100,7 @@ def main() -> None:
             cpu, rate, failed = serial_rate(study, n_serial)
             result = run_study(study, n_dask, seed=1, client=client)
             dask_rate = n_dask / result.elapsed_s
+            row = comparison_row(summarize(study, result))
             table.add_row(
                 method,
                 f"{cpu:.3f}",
@@ -105,6 +109,9 @@ def main() -> None:
                 f"{dask_rate / rate:.2f}x",
                 f"{TARGET_RUNS / dask_rate:.0f}",
                 f"{failed}/{n_serial} serial, {len(result.failures)}/{n_dask} Dask",
+                f"{1e3 * row['p95_m']:.1f}",
+                f"{100 * row['within_tolerance']:.1f} %",
+                f"{row['sigma_ratio_xy']:.2f}",
             )
         console.print(table)
         if not (args.quick or args.no_target) and "uwb" in studies:

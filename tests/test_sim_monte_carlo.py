@@ -144,8 +144,8 @@ def test_output_folder_is_what_the_preview_reads(study: Study, tmp_path: Path) -
     np.testing.assert_allclose(
         [deviations[e] for e in study.element_ids], result.translation_m.mean(0), rtol=1e-5
     )
-    poses = read_base_poses(tmp_path)
-    assert set(poses) == {"S1"}
+    poses = read_base_poses(tmp_path)  # by work package index (visit_01 -> 0)
+    assert set(poses) == {0} and poses[0].station == "S1"
     with (tmp_path / "runs.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert [int(r["run"]) for r in rows] == [0, 1, 2, 3, 4]
@@ -196,3 +196,20 @@ def test_unreachable_scheduler_is_an_input_error(monkeypatch: pytest.MonkeyPatch
         with dask_client("tcp://127.0.0.1:1"):
             pass
     assert type(info.value).__name__ == "InputError"
+
+
+def test_every_run_failing_still_writes_a_complete_report(
+    study: Study, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    def fail(st: Study, run: int, seed: int, keep_poses: bool = False) -> mc.RunResult:
+        raise LocalizationError("no clear localization point")
+
+    monkeypatch.setattr(mc, "simulate_run", fail)
+    result = run_study(study, 3, seed=1)
+    summary = write_study(tmp_path, study, result)
+    assert summary["runs"]["completed"] == 0
+    assert [f["run"] for f in summary["failures"]] == [0, 1, 2]
+    assert math.isnan(summary["translation_m"]["rmse"])
+    with (tmp_path / "runs.csv").open() as f:
+        assert [r["status"] for r in csv.DictReader(f)] == ["failed"] * 3
+    assert (tmp_path / "localization_error.png").exists()
