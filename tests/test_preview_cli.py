@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import urllib.request
@@ -115,8 +116,11 @@ def test_sim_folder_gives_deviation_colours_and_base_poses(planned, tmp_path: Pa
     (tmp_path / "stations").mkdir()
     pose.write(tmp_path / "stations" / "base_pose.json")
     (tmp_path / "localization").mkdir()
-    visit_pose = BasePose(T_world_base=np.eye(4), covariance=np.eye(6), method="uwb", station="S9")
-    visit_pose.write(tmp_path / "localization" / "visit_02_S9.json")
+    second = plan.work_packages[1].station.id
+    visit_pose = BasePose(
+        T_world_base=np.eye(4), covariance=np.eye(6), method="uwb", station=second
+    )
+    visit_pose.write(tmp_path / "localization" / f"visit_02_{second}.json")
 
     dev = read_deviations(tmp_path)
     assert dev[blocks[1].id] == pytest.approx((0.002 + 0.004) / 2)
@@ -194,3 +198,39 @@ def test_build_folder_gives_localization_results(tiny: Path, planned, tmp_path: 
     empty.mkdir()
     with pytest.raises(InputError, match="holds neither"):
         model_for_project(project, elements, plan, sim_dir=empty)
+
+
+def test_build_folder_plan_is_used_and_foreign_results_are_rejected(
+    tiny: Path, planned, tmp_path: Path
+) -> None:
+    from fabflow.design.elements import elements_to_json
+    from fabflow.output import write_json
+    from fabflow.preview.inputs import read_build_outputs
+    from fabflow.tasks.plan import Plan
+
+    project, elements, plan = planned
+    # a build whose plan visits the stations in reverse order
+    packages = tuple(
+        dataclasses.replace(wp, index=i) for i, wp in enumerate(reversed(plan.work_packages))
+    )
+    reversed_plan = Plan(work_packages=packages)
+    write_json(tmp_path / "plan.json", {"fabflow_version": "x", **reversed_plan.to_dict()})
+    write_json(tmp_path / "elements.json", {"elements": elements_to_json(elements)})
+    (tmp_path / "localization").mkdir()
+    last = packages[-1]
+    BasePose(
+        T_world_base=np.eye(4), covariance=np.eye(6), method="uwb", station=last.station.id
+    ).write(tmp_path / "localization" / f"visit_{len(packages):02d}_{last.station.id}.json")
+
+    read_elements, read_plan = read_build_outputs(tmp_path)
+    assert [e.id for e in read_elements] == [e.id for e in elements]
+    assert [wp.elements for wp in read_plan.work_packages] == [wp.elements for wp in packages]
+    model = model_for_project(project, sim_dir=tmp_path)
+    assert model.element_at(1).id == packages[0].elements[0]
+    assert model.localization_at(len(packages) - 1).method == "uwb"
+    if len(packages) > 1 and packages[0].station.id != last.station.id:
+        with pytest.raises(InputError, match="made for another plan"):
+            model_for_project(project, elements, plan, sim_dir=tmp_path)
+    (tmp_path / "plan.json").write_text("{not json")
+    with pytest.raises(InputError, match=r"plan\.json: cannot read build output"):
+        read_build_outputs(tmp_path)

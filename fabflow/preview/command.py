@@ -97,7 +97,7 @@ def run_preview(
         Blocks while the live preview runs (default: until Ctrl-C).
     """
     from fabflow.design.generate import generate_elements
-    from fabflow.preview.inputs import model_for_project
+    from fabflow.preview.inputs import model_for_project, read_build_outputs
     from fabflow.project import load_project
     from fabflow.tasks.planner import plan_project
 
@@ -107,8 +107,10 @@ def run_preview(
 
         check_export_target(export)
     project = load_project(project_path)
-    elements = generate_elements(project)
-    plan = plan_project(project, elements)
+    elements, plan = read_build_outputs(sim) if sim is not None else (None, None)
+    if plan is None or elements is None:
+        elements = generate_elements(project)
+        plan = plan_project(project, elements)
     model = model_for_project(project, elements, plan, sim_dir=sim)
     if colour_by == "deviation" and model.deviation is None:
         raise InputError(

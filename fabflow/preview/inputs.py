@@ -52,13 +52,18 @@ def model_for_project(
     sim_dir
         A ``fabflow simulate`` output folder (per-element deviations, mean over
         runs, and base poses) or a ``fabflow build`` output folder (its
-        ``localization/`` base poses).
+        ``localization/`` base poses; its ``elements.json`` and ``plan.json``
+        are used when neither ``elements`` nor ``plan`` is given).
     localization
         Localization results by work-package index or station id (e.g. from the
         build's ``localize`` stage); they take precedence over ``sim_dir``'s.
     """
     from fabflow.robots import get_robot
 
+    if sim_dir is not None and (elements is None or plan is None):
+        built_elements, built_plan = read_build_outputs(sim_dir)
+        if elements is None and plan is None and built_plan is not None:
+            elements, plan = built_elements, built_plan
     if elements is None:
         from fabflow.design.generate import generate_elements
 
@@ -80,6 +85,7 @@ def model_for_project(
                 source=sim_dir,
             )
     results.update(localization or {})
+    check_results_match_plan(results, plan)
     T_flange_tool = project.robot.tool.T_flange_tool.matrix()
     return build_model(
         elements,
@@ -93,6 +99,64 @@ def model_for_project(
         localization=results,
         method=project.localization.method,
     )
+
+
+def read_build_outputs(folder: str | Path) -> tuple[list[Element] | None, Plan | None]:
+    """The elements and plan a ``fabflow build`` wrote (``elements.json``, ``plan.json``).
+
+    Either is ``None`` when its file is absent (e.g. a ``fabflow simulate``
+    folder). Localization results in the same folder are numbered by the visits
+    of this plan, so the preview uses it instead of planning again.
+
+    Raises
+    ------
+    InputError
+        If a file is present but malformed.
+    """
+    from fabflow.design.elements import elements_from_json
+
+    folder = Path(folder)
+    elements = plan = None
+    path = folder / "elements.json"
+    try:
+        if path.is_file():
+            data = json.loads(path.read_text(encoding="utf-8"))
+            elements = elements_from_json(data["elements"] if isinstance(data, dict) else data)
+        path = folder / "plan.json"
+        if path.is_file():
+            plan = Plan.from_dict(json.loads(path.read_text(encoding="utf-8")))
+    except (
+        OSError,
+        UnicodeDecodeError,
+        json.JSONDecodeError,
+        KeyError,
+        TypeError,
+        ValueError,
+    ) as exc:
+        raise InputError(f"cannot read build output: {exc}", source=path) from None
+    return elements, plan
+
+
+def check_results_match_plan(results: Mapping[int | str, BasePose], plan: Plan) -> None:
+    """Check that per-visit localization results belong to this plan's visits.
+
+    Raises
+    ------
+    InputError
+        If a result is numbered for a visit the plan does not have, or was made
+        at another station than the plan's visit of that number.
+    """
+    packages = plan.work_packages
+    for key, result in results.items():
+        if not isinstance(key, int):
+            continue
+        if key >= len(packages) or packages[key].station.id != result.station:
+            planned = packages[key].station.id if key < len(packages) else "no such visit"
+            raise InputError(
+                f"the localization result of visit {key + 1} is for station {result.station}, "
+                f"but the plan has {planned}: the results were made for another plan "
+                "(re-run fabflow build or simulate, or pass the build folder with its plan.json)"
+            )
 
 
 def _deviation_table(path: Path) -> dict[str, list[float]] | None:
