@@ -36,7 +36,7 @@ def test_simulate_in_process(tmp_path: Path) -> None:
 def test_simulate_through_a_scheduler_compares_methods(tmp_path: Path) -> None:
     out = tmp_path / "cmp"
     with LocalCluster(
-        n_workers=1, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=None
+        n_workers=1, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=":0"
     ) as cluster:
         result = invoke(
             str(SMALL),

@@ -37,7 +37,7 @@ def cluster() -> Iterator[LocalCluster]:
         threads_per_worker=2,
         processes=False,
         protocol="tcp",
-        dashboard_address=None,
+        dashboard_address=":0",
     ) as c:
         yield c
 

@@ -242,7 +242,7 @@ def dask_client(scheduler: str | None = None, n_workers: int = 2) -> Iterator[Cl
             n_workers=n_workers,
             threads_per_worker=1,
             processes=True,
-            dashboard_address=None,
+            dashboard_address=":0",  # a free port: the scheduler always serves HTTP
             silence_logs=logging.ERROR,
         ) as cluster,
         Client(cluster) as client,
