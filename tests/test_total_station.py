@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from fabflow.errors import InputError, LocalizationError
@@ -140,6 +140,8 @@ def test_planar_points_never_reflect(seed: int) -> None:
     M = apply_T(T, P) + rng.normal(0, 1e-3, (4, 3))
     R, _ = kabsch(P, M)
     assert np.linalg.det(R) == pytest.approx(1.0)
+    # (three random points can be nearly collinear; then the rotation is ill-posed)
+    assume(np.linalg.svd(P[:3] - P[:3].mean(axis=0), compute_uv=False)[1] > 0.05)
     R3, _ = kabsch(P[:3], apply_T(T, P[:3]))
     np.testing.assert_allclose(R3, T[:3, :3], atol=1e-9)
 

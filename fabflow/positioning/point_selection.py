@@ -20,7 +20,7 @@ All coordinates are in the robot base frame, metres.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import optimize
@@ -43,6 +43,9 @@ class Workspace:
         Points must have ``x > x_min`` (in front of the robot).
     z_min
         Points must have ``z > z_min`` (above the ground or deck).
+    z_max
+        Points must have ``z < z_max`` (not in the paper: where the arm cannot
+        hold the tool above a height, e.g. with the tool pointing down).
     margin
         Fraction of the reach kept free so the arm is never fully stretched.
     min_radius
@@ -56,6 +59,7 @@ class Workspace:
     reach: float = 2.55
     x_min: float = 0.0
     z_min: float = 0.0
+    z_max: float = float("inf")
     margin: float = 0.1
     min_radius: float = 0.3
     reachable: Callable[[np.ndarray], np.ndarray] | None = field(default=None, compare=False)
@@ -74,11 +78,16 @@ class Workspace:
             & (r >= self.min_radius)
             & (p[..., 0] > self.x_min)
             & (p[..., 2] > self.z_min)
+            & (p[..., 2] < self.z_max)
         )
         if self.reachable is not None and ok.any():
             flat = ok.reshape(-1)
             flat[flat] = self.reachable(p.reshape(-1, 3)[flat])
         return ok
+
+    def contains_geometry(self, points: np.ndarray) -> np.ndarray:
+        """Like :meth:`contains` without the (expensive) ``reachable`` test."""
+        return replace(self, reachable=None).contains(points)
 
 
 # ------------------------------------------------------------ eqs 9-11
@@ -138,17 +147,19 @@ def optimal_points(
                 rad**2 - np.einsum("ni,ni->n", d, d),
                 P[:, 0] - workspace.x_min - eps,
                 P[:, 2] - workspace.z_min - eps,
+                np.minimum(workspace.z_max - eps - P[:, 2], 1e6),
             ]
         )
 
     def ineq_jac(x: np.ndarray) -> np.ndarray:
         P = x.reshape(n, 3)
-        Jc = np.zeros((3 * n, n, 3))
+        Jc = np.zeros((4 * n, n, 3))
         rows = np.arange(n)
         Jc[rows, rows] = -2.0 * (P - c)
         Jc[n + rows, rows, 0] = 1.0
         Jc[2 * n + rows, rows, 2] = 1.0
-        return Jc.reshape(3 * n, 3 * n)
+        Jc[3 * n + rows, rows, 2] = -1.0
+        return Jc.reshape(4 * n, 3 * n)
 
     best: np.ndarray | None = None
     best_f = np.inf
@@ -311,29 +322,81 @@ class ClearanceRules:
     min_separation: float = 0.25
 
 
-CRITERIA = ("workspace", "structure", "arm path", "line of sight", "separation")
-"""Names of the criteria of :func:`criteria_masks`, in order."""
+CRITERIA = ("workspace", "structure", "arm path", "line of sight", "separation", "reach")
+"""The criteria of :func:`check_candidates`, in the order they are tested."""
 
 
-def criteria_masks(
+def _boxes_near(boxes: Boxes, lo: np.ndarray, hi: np.ndarray) -> Boxes:
+    """The boxes whose bounding spheres touch the axis-aligned region ``[lo, hi]``."""
+    if len(boxes) == 0:
+        return boxes
+    c = boxes.T_base_box[:, :3, 3]
+    radius = 0.5 * np.linalg.norm(boxes.extents, axis=1)
+    gap = np.maximum(lo - c, 0.0) + np.maximum(c - hi, 0.0)
+    near = np.linalg.norm(gap, axis=1) <= radius
+    return Boxes(boxes.T_base_box[near], boxes.extents[near])
+
+
+def check_candidates(
     candidates: np.ndarray,
     workspace: Workspace,
     boxes: Boxes,
     rules: ClearanceRules,
     chosen: np.ndarray | None = None,
-) -> np.ndarray:
-    """``(5, m)`` pass masks of the candidate points, one row per name in :data:`CRITERIA`."""
-    m = candidates.shape[0]
-    out = np.ones((len(CRITERIA), m), dtype=bool)
-    out[0] = workspace.contains(candidates)
-    out[1] = ~boxes_overlap(candidates, np.asarray(rules.tool_half_extents), boxes)
-    out[2] = ~segments_hit(np.asarray(workspace.center, float), candidates, boxes)
+) -> tuple[np.ndarray, np.ndarray]:
+    """Test candidate points against every criterion, cheapest first.
+
+    Each test only sees the candidates that passed the ones before, and only
+    the boxes near them, so large structures stay cheap.
+
+    Returns
+    -------
+    ok, rejected
+        ``(m,)`` mask of the clear candidates and ``(6,)`` how many were
+        rejected first by each criterion of :data:`CRITERIA`.
+    """
+    cand = np.asarray(candidates, dtype=float)
+    ok = np.ones(cand.shape[0], dtype=bool)
+    rejected = np.zeros(len(CRITERIA), dtype=int)
+    half = np.asarray(rules.tool_half_extents, dtype=float)
+    center = np.asarray(workspace.center, dtype=float)
+
+    def apply(k: int, test: Callable[[np.ndarray], np.ndarray]) -> None:
+        idx = np.flatnonzero(ok)
+        if idx.size == 0:
+            return
+        passed = test(cand[idx])
+        rejected[k] += int((~passed).sum())
+        ok[idx[~passed]] = False
+
+    def overlap(p: np.ndarray) -> np.ndarray:
+        near = _boxes_near(boxes, p.min(axis=0) - half, p.max(axis=0) + half)
+        return ~boxes_overlap(p, half, near)
+
+    def segments_from(start: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        def test(p: np.ndarray) -> np.ndarray:
+            lo = np.minimum(p.min(axis=0), start)
+            hi = np.maximum(p.max(axis=0), start)
+            return ~segments_hit(start, p, _boxes_near(boxes, lo, hi))
+
+        return test
+
+    apply(0, workspace.contains_geometry)
+    apply(1, overlap)
+    apply(2, segments_from(center))
     if rules.sight_from is not None:
-        out[3] = ~segments_hit(np.asarray(rules.sight_from, float), candidates, boxes)
+        apply(3, segments_from(np.asarray(rules.sight_from, dtype=float)))
     if chosen is not None and len(chosen):
-        gap = np.linalg.norm(candidates[:, None, :] - chosen[None], axis=-1).min(axis=1)
-        out[4] = gap >= rules.min_separation
-    return out
+        apply(
+            4,
+            lambda p: (
+                np.linalg.norm(p[:, None, :] - chosen[None], axis=-1).min(axis=1)
+                >= rules.min_separation
+            ),
+        )
+    if workspace.reachable is not None:
+        apply(5, workspace.reachable)
+    return ok, rejected
 
 
 def clear_mask(
@@ -343,8 +406,8 @@ def clear_mask(
     rules: ClearanceRules,
     chosen: np.ndarray | None = None,
 ) -> np.ndarray:
-    """``(m,)`` mask of candidate points meeting every criterion of :class:`ClearanceRules`."""
-    return criteria_masks(candidates, workspace, boxes, rules, chosen).all(axis=0)
+    """``(m,)`` mask of candidate points meeting every criterion (see :func:`check_candidates`)."""
+    return check_candidates(candidates, workspace, boxes, rules, chosen)[0]
 
 
 @dataclass(frozen=True, eq=False)
@@ -393,7 +456,7 @@ def avoid_obstacles(
     points
         ``(n, 3)`` desired points (base frame, metres).
     workspace, boxes, rules
-        The criteria (see :func:`criteria_masks`).
+        The criteria (see :func:`check_candidates`).
     step, max_radius, spacing
         Search sphere growth, largest radius, grid spacing (metres).
     min_points
@@ -424,14 +487,13 @@ def avoid_obstacles(
         while r <= max_radius + 1e-9:
             k = max(12, int(np.ceil(4 * np.pi * r * r / spacing**2)))
             cand = p + r * sphere_grid(k)
-            masks = criteria_masks(cand, workspace, boxes, rules, chosen)
-            ok = masks.all(axis=0)
+            ok, rejected = check_candidates(cand, workspace, boxes, rules, chosen)
             if ok.any():
                 found.append(cand[int(np.argmax(ok))])
                 moved.append(r)
                 index.append(i)
                 break
-            fails += (~masks).sum(axis=1)
+            fails += rejected
             r += step
         else:
             reason = ", ".join(
@@ -442,8 +504,8 @@ def avoid_obstacles(
         i, why = dropped[0]
         raise LocalizationError(
             f"found only {len(found)} of the {need} localization points needed: no clear "
-            f"point within {max_radius} m of desired point {i + 1} {why} (candidate counts "
-            "per criterion; the line of sight to the instrument may need a higher or "
+            f"point within {max_radius} m of desired point {i + 1} {why} (candidates "
+            "rejected first by each criterion; a blocked line of sight needs a higher or "
             "different instrument position)"
         )
     return ClearPoints(

@@ -928,7 +928,16 @@ def _kinematics(model: str, T_flange_tool: np.ndarray, z_min: float) -> _Kinemat
         kin = _Kinematics(ws, robot, T_flange_tool, q, tree)
     else:
         kin = _Kinematics(ws, robot, T_flange_tool)
-    return replace(kin, workspace=replace(ws, reachable=kin.reachable))
+    # the top of the reach sphere is out of reach with the tool held down: cap the
+    # workspace at the highest reachable point (in front of the robot, 5 cm margin)
+    x = np.arange(0.1, ws.radius, 0.05)
+    z = np.arange(z_min, ws.center[2] + ws.radius, 0.05)
+    grid = np.stack(np.meshgrid(x, [0.0], z, indexing="ij"), axis=-1).reshape(-1, 3)
+    ok = kin.reachable(grid)
+    if not ok.any():
+        raise LocalizationError(f"{model}: no prism position above z = {z_min} m is reachable")
+    z_max = float(grid[ok, 2].max()) - 0.05
+    return replace(kin, workspace=replace(ws, reachable=kin.reachable, z_max=z_max))
 
 
 @functools.lru_cache(maxsize=64)
