@@ -239,6 +239,19 @@ class PreviewScene:
                 text=sid,
                 position=tuple(T[s, :3, 3] + (0.0, 0.0, 0.05)),
             )
+        # every station's footprint on the ground, in its station colour
+        hx, hy = (v / 2 for v in m.platform.footprint)
+        corners = np.array([[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]])
+        world = np.einsum("sij,kj->ski", T[:, :3, :3], corners) + T[:, None, :3, 3]
+        world[..., 2] += 0.005
+        segments = np.stack([world, np.roll(world, -1, axis=1)], axis=2).reshape(-1, 2, 3)
+        colours = np.repeat(STATION_PALETTE[np.arange(len(T)) % len(STATION_PALETTE)], 4, axis=0)
+        scene.add_line_segments(
+            "/stations/footprints",
+            points=segments.astype(np.float32),
+            colors=np.repeat(colours[:, None, :], 2, axis=1),
+            thickness=0.015,
+        )
 
     def _add_platform_and_arm(self) -> None:
         scene = self.server.scene
