@@ -513,9 +513,10 @@ def dissolve_small_visits(
         members = members[visit[members] == v]
         if len(members) == 0 or fixed[members].any():
             continue
-        used = np.flatnonzero(np.bincount(visit, minlength=len(visit_station)))
+        counts = np.bincount(visit, minlength=len(visit_station))
+        # Planned (non-empty) visits of every station, ascending.
+        at_station: dict[int, np.ndarray] = {}
         moved: dict[int, int] = {}
-        # Members in support order: an element's supports inside the visit move first.
         order = members[
             np.argsort([len(sup_of[down_starts[e] : down_starts[e + 1]]) for e in members])
         ]
@@ -524,19 +525,22 @@ def dissolve_small_visits(
             sups = sup_of[down_starts[e] : down_starts[e + 1]]
             deps = dep_of[up_starts[e] : up_starts[e + 1]]
             lo = max((moved.get(int(s), int(visit[s])) for s in sups), default=0)
-            hi = min(
-                (int(visit[d]) for d in deps if int(d) not in moved and visit[d] != v),
-                default=10**18,
-            )
-            options = [
-                int(u)
-                for u in used[(used >= lo) & (used <= hi)]
-                if u != v and visit_station[u] in reach_sets[e]
-            ]
-            if not options:
+            hi = min((int(visit[d]) for d in deps if visit[d] != v), default=10**18)
+            best = -1
+            for r in reach_sets[e]:
+                r = int(r)
+                if r not in at_station:
+                    at_station[r] = np.flatnonzero((visit_station == r) & (counts > 0))
+                cand = at_station[r]
+                cand = cand[(cand >= lo) & (cand <= hi) & (cand != v)]
+                if len(cand):
+                    u = int(cand[np.argmin(np.abs(cand - v))])
+                    if best < 0 or abs(u - v) < abs(best - v):
+                        best = u
+            if best < 0:
                 ok = False
                 break
-            moved[int(e)] = min(options, key=lambda u: abs(u - v))
+            moved[int(e)] = best
         if ok:
             for e, u in moved.items():
                 visit[e] = u
