@@ -47,10 +47,15 @@ def plot_heat_map(study: Study, result: StudyResult, path: Path) -> Path:
         xyz[order, 0], xyz[order, 1], c=mean[order], cmap="viridis", s=18, edgecolors="none"
     )
     fig.colorbar(sc, ax=ax, label="mean deviation (mm)")
-    for station in dict.fromkeys(study.stations):
-        p = station.T_world_platform[:2, 3]
-        ax.plot(*p, marker="s", color="#cc6677", ms=7)
-        ax.annotate(station.id, p, textcoords="offset points", xytext=(6, 4))
+    labels: dict[tuple[float, float], list[str]] = {}
+    for station in study.stations:
+        xy = tuple(np.round(station.T_world_platform[:2, 3], 3))
+        ids = labels.setdefault(xy, [])
+        if station.id not in ids:
+            ids.append(station.id)
+    for (x, y), ids in labels.items():
+        ax.plot(x, y, marker="s", color="#cc6677", ms=7)
+        ax.annotate("/".join(ids), (x, y), textcoords="offset points", xytext=(6, 4))
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
