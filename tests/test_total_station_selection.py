@@ -114,17 +114,18 @@ def test_avoid_obstacles_respects_line_of_sight_and_gives_up() -> None:
         avoid_obstacles(desired, ws, everything, rules, max_radius=0.3)
 
 
-def test_avoid_obstacles_drops_hopeless_points_when_enough_remain() -> None:
+def test_avoid_obstacles_refills_hopeless_points_from_the_workspace() -> None:
     ws = Workspace(center=(0.0, 0.0, 1.0), reach=2.55, margin=0.1)
     desired = np.array([[1.5, 0.0, 1.0], [0.5, 1.8, 1.2], [0.6, -1.8, 0.8], [0.3, 0.0, 2.9]])
     # a screen hides the first point from the instrument with no way around within 0.3 m
     screen = wall((3.0, 0.0, 1.0), (0.1, 1.0, 1.0))
     rules = ClearanceRules(sight_from=(8.0, 0.0, 1.0))
     clear = avoid_obstacles(desired, ws, screen, rules, max_radius=0.3, min_points=3)
-    np.testing.assert_array_equal(clear.index, [1, 2, 3])
-    assert len(clear.dropped) == 1 and "line of sight" in clear.dropped[0][1]
-    with pytest.raises(LocalizationError, match="found only 3 of the 4"):
-        avoid_obstacles(desired, ws, screen, rules, max_radius=0.3)
+    assert sorted(clear.index.tolist()) == [0, 1, 2, 3] and clear.dropped == ()
+    k = int(np.flatnonzero(clear.index == 0)[0])
+    assert clear.moved[k] > 0.3
+    assert clear_mask(clear.points, ws, screen, rules).all()
+    assert not segments_hit(np.array([8.0, 0.0, 1.0]), clear.points, screen).any()
 
 
 def test_boxes_from_elements_in_base_frame() -> None:

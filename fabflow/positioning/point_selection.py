@@ -432,6 +432,23 @@ class ClearPoints:
     dropped: tuple[tuple[int, str], ...] = ()
 
 
+def _workspace_grid(workspace: Workspace, spacing: float) -> np.ndarray:
+    """Regular grid points (``spacing`` metres) inside the workspace geometry."""
+    c = np.asarray(workspace.center, dtype=float)
+    r = workspace.radius
+    axes = [np.arange(c[k] - r, c[k] + r + 1e-9, spacing) for k in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return grid[workspace.contains_geometry(grid)]
+
+
+def _most_spread(candidates: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """The candidate that, added to ``chosen``, gives the largest eq 10 objective."""
+    n = len(chosen) + 1
+    s = chosen.sum(axis=0) + candidates
+    sq = np.sum(chosen * chosen) + np.einsum("mi,mi->m", candidates, candidates)
+    return candidates[int(np.argmax((n + 1) * sq - np.einsum("mi,mi->m", s, s)))]
+
+
 def avoid_obstacles(
     points: np.ndarray,
     workspace: Workspace,
@@ -446,10 +463,14 @@ def avoid_obstacles(
 
     For a point that fails a criterion, spheres of radius ``step``,
     ``2 step``, ... around it are tried; each carries an equally spaced grid
-    of about one candidate per ``spacing^2`` of area (at least 12). The first
-    clear candidate of the smallest sphere is taken. A desired point with no
-    clear candidate within ``max_radius`` is dropped, as long as at least
-    ``min_points`` remain.
+    of about one candidate per ``spacing^2`` of area (at least 12). On the
+    smallest sphere with clear candidates, the paper takes the first one; here
+    the one that keeps the points most spread (eq 10 with the points chosen so
+    far) is taken, so a blocked point does not end up next to another one. A
+    desired point with no
+    clear candidate within ``max_radius`` is replaced by the clear point of a
+    20 cm grid over the whole workspace that keeps the points most spread; if
+    there is none it is dropped, as long as at least ``min_points`` remain.
 
     Parameters
     ----------
@@ -489,7 +510,7 @@ def avoid_obstacles(
             cand = p + r * sphere_grid(k)
             ok, rejected = check_candidates(cand, workspace, boxes, rules, chosen)
             if ok.any():
-                found.append(cand[int(np.argmax(ok))])
+                found.append(_most_spread(cand[ok], chosen))
                 moved.append(r)
                 index.append(i)
                 break
@@ -500,6 +521,24 @@ def avoid_obstacles(
                 f"{name} {count}" for name, count in zip(CRITERIA, fails, strict=True) if count
             )
             dropped.append((i, f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}): rejected by {reason}"))
+    if dropped:
+        # refill the dropped points from anywhere in the workspace, most spread first
+        grid = _workspace_grid(workspace, spacing=0.2)
+        ok, _ = check_candidates(grid, workspace, boxes, rules)
+        pool = grid[ok]
+        for i, _why in dropped:
+            chosen = np.asarray(found).reshape(-1, 3)
+            if len(chosen):
+                gap = np.linalg.norm(pool[:, None, :] - chosen[None], axis=-1).min(axis=1)
+                pool = pool[gap >= rules.min_separation]
+            if len(pool) == 0:
+                break
+            best = _most_spread(pool, chosen)
+            found.append(best)
+            moved.append(float(np.linalg.norm(best - P[i])))
+            index.append(i)
+        refilled = {index[k] for k in range(len(index))}
+        dropped = [(i, why) for i, why in dropped if i not in refilled]
     if len(found) < need:
         i, why = dropped[0]
         raise LocalizationError(
