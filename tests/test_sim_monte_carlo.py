@@ -144,6 +144,17 @@ def test_output_folder_is_what_the_preview_reads(study: Study, tmp_path: Path) -
     np.testing.assert_allclose(
         [deviations[e] for e in study.element_ids], result.translation_m.mean(0), rtol=1e-5
     )
+    with (tmp_path / "asbuilt_run0.csv").open() as f:
+        asbuilt = list(csv.DictReader(f))
+    assert [r["element"] for r in asbuilt] == list(study.element_ids)
+    for i, r in enumerate(asbuilt):
+        planned = np.array([float(r[f"planned_{c}_m"]) for c in "xyz"])
+        built = np.array([float(r[f"asbuilt_{c}_m"]) for c in "xyz"])
+        np.testing.assert_allclose(planned, study.T_world_element[i, :3, 3], atol=1e-6)
+        assert np.linalg.norm(built - planned) == pytest.approx(
+            result.translation_m[0, i], abs=2e-6
+        )
+        assert float(r["run0_translation_m"]) == pytest.approx(result.translation_m[0, i])
     poses = read_base_poses(tmp_path)  # by work package index (visit_01 -> 0)
     assert set(poses) == {0} and poses[0].station == "S1"
     with (tmp_path / "runs.csv").open() as f:

@@ -57,7 +57,7 @@ def simulate_chunk(
     seed
         Study seed.
     keep_first
-        Keep the base pose estimates of run 0 (written for the preview).
+        Keep the base pose estimates and as-built poses of run 0 (written to the output).
     """
     out: list[RunResult | RunFailure] = []
     for run in runs:
@@ -94,6 +94,8 @@ class StudyResult:
         Runs that raised.
     base_poses
         The base pose estimates of run 0 (empty if it failed).
+    T_world_element_asbuilt_run0
+        (N, 4, 4) as-built element poses of run 0 (``None`` if it failed).
     elapsed_s
         Wall-clock time of the runs (seconds).
     """
@@ -109,6 +111,7 @@ class StudyResult:
     localization_covariance: np.ndarray
     failures: tuple[RunFailure, ...]
     base_poses: tuple[BasePose, ...]
+    T_world_element_asbuilt_run0: np.ndarray | None
     elapsed_s: float
 
 
@@ -138,6 +141,7 @@ def collect(
         localization_covariance=stack("localization_covariance", (V, 6, 6)),
         failures=failures,
         base_poses=first.base_poses if first is not None else (),
+        T_world_element_asbuilt_run0=None if first is None else first.T_world_element_asbuilt,
         elapsed_s=elapsed,
     )
 

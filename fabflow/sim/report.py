@@ -12,6 +12,8 @@ One localization method writes into one folder:
   estimate) and the predicted sigma of every axis;
 * ``summary.json``: :func:`fabflow.sim.monte_carlo.summarize`;
 * ``deviation_histogram.png``, ``deviation_heat_map.png``, ``localization_error.png``;
+* ``asbuilt_run0.csv``: planned and as-built pose of every element in run 0
+  (x, y, z in metres, KUKA A, B, C in degrees) and its deviation;
 * ``localization/visit_NN_STATION.json``: the base pose estimates of run 0.
 
 Several methods write one such folder each (``OUT/<method>/``) plus
@@ -41,6 +43,7 @@ from fabflow.sim.monte_carlo import (
     within_tolerance,
 )
 from fabflow.sim.run import Study, prepare_study
+from fabflow.transforms.so3 import abc_from_matrix
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -137,6 +140,44 @@ def run_rows(study: Study, result: StudyResult) -> tuple[list[str], list[list[An
     return header, rows
 
 
+def asbuilt_rows(study: Study, result: StudyResult) -> tuple[list[str], list[list[Any]]]:
+    """Header and rows of ``asbuilt_run0.csv``: planned vs as-built pose in run 0.
+
+    The deviation columns are named ``run0_*`` so that ``fabflow preview --sim``
+    (which averages every deviation column it knows) does not mix them in.
+    """
+    pose = ["x_m", "y_m", "z_m", "a_deg", "b_deg", "c_deg"]
+    header = [
+        "element",
+        "station",
+        *(f"planned_{c}" for c in pose),
+        *(f"asbuilt_{c}" for c in pose),
+        "run0_translation_m",
+        "run0_rotation_rad",
+    ]
+    T_asbuilt = result.T_world_element_asbuilt_run0
+    if T_asbuilt is None:
+        return header, []
+    k = int(np.flatnonzero(result.runs == 0)[0])
+
+    def xyzabc(T: np.ndarray) -> np.ndarray:
+        return np.column_stack([T[:, :3, 3], np.degrees(abc_from_matrix(T[:, :3, :3]))])
+
+    planned, built = xyzabc(study.T_world_element), xyzabc(T_asbuilt)
+    rows = [
+        [
+            eid,
+            study.stations[v].id,
+            *planned[i],
+            *built[i],
+            result.translation_m[k, i],
+            result.rotation_rad[k, i],
+        ]
+        for i, (eid, v) in enumerate(zip(study.element_ids, study.element_visit, strict=True))
+    ]
+    return header, rows
+
+
 def visit_rows(study: Study, result: StudyResult) -> tuple[list[str], list[list[Any]]]:
     """Header and rows of ``visits.csv`` (base pose error and predicted sigma per visit)."""
     units = ["m"] * 3 + ["rad"] * 3
@@ -171,6 +212,8 @@ def write_study(
     _write_csv(folder / "elements.csv", *element_rows(study, result))
     _write_csv(folder / "runs.csv", *run_rows(study, result))
     _write_csv(folder / "visits.csv", *visit_rows(study, result))
+    if result.T_world_element_asbuilt_run0 is not None:
+        _write_csv(folder / "asbuilt_run0.csv", *asbuilt_rows(study, result))
     summary = {"fabflow_version": __version__, "project": study.project.name}
     summary |= summarize(study, result)
     write_json(folder / "summary.json", summary)
