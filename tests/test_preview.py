@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Iterator
 from pathlib import Path
@@ -439,3 +440,13 @@ def test_link_quaternion_turns_z_onto_the_link(directions) -> None:
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     R = matrix_from_quat(_quat_z_to(d))
     np.testing.assert_allclose(R[:, :, 2], d, atol=1e-6)  # display precision
+
+
+def test_layer_colours_span_the_layers_present() -> None:
+    elements, plan = wall_design()
+    shifted = [dataclasses.replace(e, layer=e.layer + 5) for e in elements]
+    c = build_model(shifted, plan).element_colours("layer", 0).astype(int)
+    layers = np.array([e.layer for e in shifted])
+    lowest, highest = np.argmin(layers), np.argmax(layers)
+    assert tuple(c[lowest]) == (68, 1, 84)  # viridis at 0
+    assert tuple(c[highest]) == (253, 231, 37)  # viridis at 1

@@ -274,8 +274,9 @@ class PreviewModel:
                 out[self.sequence[step - 1]] = STATE_COLOURS["being placed"]
         elif mode == "layer":
             layers = np.array([e.layer for e in self.elements], dtype=float)
-            span = max(float(np.ptp(layers)) if E else 0.0, 1.0)
-            out[:] = _colormap("viridis", (layers - layers.min(initial=0.0)) / span)
+            lowest = float(layers.min()) if E else 0.0
+            span = max(float(layers.max()) - lowest if E else 0.0, 1.0)
+            out[:] = _colormap("viridis", (layers - lowest) / span)
         elif mode == "deviation":
             if self.deviation is None:
                 raise InputError(
