@@ -11,8 +11,10 @@ the robot localizes in (LiDAR map, world frame) without an initial pose:
 4. matching: mutual nearest neighbours in descriptor space (kd-tree);
 5. geometric verification: both maps are levelled on their RANSAC ground planes;
    RANSAC hypotheses (heading + translation) come from pairs of correspondences
-   whose horizontal and vertical separations agree; the ``n_candidates`` (``b``) most voted
-   transformations move the source segment centroids onto the target centroids;
+   whose horizontal and vertical separations agree; the ``n_candidates`` (``b``) most
+   voted mutually distinct transformations, and the hypotheses from pairs of
+   segment centroids with consistent separations, move the source segment
+   centroids onto the target centroids;
    the candidate with most centroid matches within ``d_match`` wins (ties: the
    smallest largest match distance);
 6. refinement: point-to-plane ICP of the matched source segments against the
@@ -71,6 +73,9 @@ class RegistrationParams:
         Largest distance between matched segment centroids (metres).
     max_rmse
         ``e*_icp``: largest accepted ICP RMSE over the matched segments (metres).
+    min_centroid_matches
+        The chosen candidate must match at least this many segment centroids (or
+        all source segments when there are fewer).
     """
 
     keypoint_voxel: float = 0.2
@@ -83,6 +88,7 @@ class RegistrationParams:
     n_candidates: int = 10
     d_match: float = 1.0
     max_rmse: float = 0.03
+    min_centroid_matches: int = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -205,6 +211,69 @@ def fpfh(
     return spfh + neigh
 
 
+def _centroid_pair_hypotheses(
+    cs: FloatArray, ct: FloatArray, params: RegistrationParams
+) -> FloatArray:
+    """Heading + translation hypotheses from pairs of levelled segment centroids.
+
+    Every source pair ``(i, j)`` is tried against every target pair ``(k, l)`` whose
+    horizontal and vertical separations agree within ``d_match / 2``.
+    """
+    ns, nt = len(cs), len(ct)
+    if ns < 2 or nt < 2:
+        return np.zeros((0, 4, 4))
+    si, sj = np.triu_indices(ns, 1)
+    tk, tl = np.nonzero(~np.eye(nt, dtype=bool))
+    ds = (cs[sj] - cs[si])[:, None, :]
+    dt = (ct[tl] - ct[tk])[None, :, :]
+    hs, ht = np.linalg.norm(ds[..., :2], axis=2), np.linalg.norm(dt[..., :2], axis=2)
+    ok = (
+        (np.abs(hs - ht) < params.d_match / 2)
+        & (np.abs(ds[..., 2] - dt[..., 2]) < params.d_match / 2)
+        & (np.minimum(hs, ht) > params.min_baseline)
+    )
+    a, b = np.nonzero(ok)
+    if len(a) == 0:
+        return np.zeros((0, 4, 4))
+    d_s, d_t = ds[a, 0], dt[0, b]
+    yaw = np.arctan2(d_t[:, 1], d_t[:, 0]) - np.arctan2(d_s[:, 1], d_s[:, 0])
+    c, sn = np.cos(yaw), np.sin(yaw)
+    H = np.tile(np.eye(4), (len(a), 1, 1))
+    H[:, 0, 0], H[:, 0, 1], H[:, 1, 0], H[:, 1, 1] = c, -sn, sn, c
+    mid_s = 0.5 * (cs[si[a]] + cs[sj[a]])
+    mid_t = 0.5 * (ct[tk[b]] + ct[tl[b]])
+    H[:, :3, 3] = mid_t - np.einsum("kij,kj->ki", H[:, :3, :3], mid_s)
+    return H
+
+
+def _distinct_candidates(
+    hyps: FloatArray, votes: NDArray[np.int64], b: int, distance: float
+) -> list[int]:
+    """The ``b`` most voted hypotheses that differ from each other (non-maximum suppression).
+
+    Repetitive structure (a row of columns) makes many near-identical wrong
+    hypotheses collect the most votes; keeping one per cluster of similar
+    transformations lets the right one reach centroid verification. Two hypotheses
+    are similar when they move the source origin's neighbourhood (a 10 m lever) by
+    less than ``distance``.
+    """
+    chosen: list[int] = []
+    for h in np.argsort(-votes, kind="stable"):
+        if votes[h] == 0 or len(chosen) == b:
+            break
+        similar = False
+        for c in chosen:
+            dt = np.linalg.norm(hyps[h, :3, 3] - hyps[c, :3, 3])
+            cos = (np.trace(hyps[h, :3, :3].T @ hyps[c, :3, :3]) - 1.0) / 2.0
+            angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
+            if dt + 10.0 * angle < distance:
+                similar = True
+                break
+        if not similar:
+            chosen.append(int(h))
+    return chosen
+
+
 def _level(plane: FloatArray) -> FloatArray:
     """``T_level_map``: rotates the plane normal onto +z and moves the plane to z = 0."""
     n = np.asarray(plane[:3], dtype=float)
@@ -308,9 +377,16 @@ def register_maps(
         votes[start : start + 256] = (
             np.linalg.norm(moved - Q[None], axis=2) < params.inlier_distance
         ).sum(axis=1)
-    order = np.argsort(-votes, kind="stable")[: params.n_candidates]
+    order = _distinct_candidates(hyps, votes, params.n_candidates, params.d_match)
 
     cs, ct = src_seg.centroids, tgt_seg.centroids
+    # keypoint matches between partial LiDAR views and complete external maps are
+    # mostly wrong, so candidates also come from pairs of segment centroids
+    pair_hyps = _centroid_pair_hypotheses(apply_T(L_s, cs), apply_T(L_t, ct), params)
+    if len(pair_hyps):
+        pair_hyps = np.einsum("ij,kjl,lm->kim", inv_T(L_t), pair_hyps, L_s)
+        order = order + list(range(len(hyps), len(hyps) + len(pair_hyps)))
+        hyps = np.concatenate([hyps, pair_hyps])
     ct_tree = cKDTree(ct)
     best: tuple[int, float, int, NDArray[np.int64]] | None = None
     for h in order:
@@ -321,7 +397,7 @@ def register_maps(
             best = (n_ok, worst, int(h), np.column_stack([np.flatnonzero(ok), j[ok]]))
     assert best is not None
     n_match, _, h, matches = best
-    if n_match < min(2, len(cs)):
+    if n_match < min(params.min_centroid_matches, len(cs)):
         raise LocalizationError(
             f"the best candidate matches only {n_match} segment centroid(s) within "
             f"{params.d_match:g} m"
