@@ -1,8 +1,9 @@
 """Motions per element type, as Cartesian tool waypoints in the world frame.
 
 * Block (pick and place): approach above the pick frame, linear down, grip,
-  retract, travel at safe height, approach above the place pose, linear down,
-  release, retract. The pick frame is on the platform (a block magazine), so it
+  retract, travel at safe height (the pick approach height, where the arm
+  reaches it above the place pose), approach above the place pose, linear
+  down, release, retract. The pick frame is on the platform (a block magazine), so it
   is given in the robot base frame and placed in the world with the station's
   localized base pose.
 * Print path: approach above the first frame, linear down, extruder on, linear
@@ -38,7 +39,11 @@ PTP_SPEED = 0.5
 
 @dataclass(frozen=True, eq=False)
 class Waypoint:
-    """A Cartesian motion target of one element's motion."""
+    """A Cartesian motion target of one element's motion.
+
+    An ``optional`` waypoint (a PTP via point) is left out where the arm cannot
+    reach it, instead of failing the program.
+    """
 
     kind: str
     T_world_tool: np.ndarray
@@ -46,6 +51,7 @@ class Waypoint:
     blend: float
     label: str
     element: str
+    optional: bool = False
 
 
 @dataclass(frozen=True)
@@ -111,7 +117,7 @@ def element_motion(element: Element, project: Project, T_world_pick: np.ndarray)
         if travel_z > place_up[2, 3] + 1e-3:
             travel = place_up.copy()
             travel[2, 3] = travel_z
-            steps.append(Waypoint("ptp", travel, PTP_SPEED, blend, "travel", eid))
+            steps.append(Waypoint("ptp", travel, PTP_SPEED, blend, "travel", eid, optional=True))
         steps += [
             Waypoint("ptp", place_up, PTP_SPEED, blend, "place approach", eid),
             Waypoint("lin", T_place, speed, 0.0, "place", eid),

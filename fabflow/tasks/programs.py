@@ -287,6 +287,19 @@ def _step_through(
     return path, branch
 
 
+def _drop_unreachable_optional(
+    steps: Sequence[Step], robot: RobotModel, T_base_world: np.ndarray, T_flange_tool: np.ndarray
+) -> list[Step]:
+    """The steps without the optional via points the arm cannot reach."""
+    optional = [s for s in steps if isinstance(s, Waypoint) and s.optional]
+    if not optional:
+        return list(steps)
+    T = T_base_world @ np.stack([w.T_world_tool for w in optional]) @ np.linalg.inv(T_flange_tool)
+    _, valid = robot.ik_batch(T)
+    dropped = {id(w) for w, ok in zip(optional, valid.any(axis=1), strict=True) if not ok}
+    return [s for s in steps if id(s) not in dropped]
+
+
 def compile_program(
     name: str,
     steps: Sequence[Step],
@@ -312,6 +325,7 @@ def compile_program(
     robot = get_robot(project.robot.model)
     T_base_world = np.linalg.inv(T_world_base)
     T_flange_tool = project.robot.tool.T_flange_tool.matrix()
+    steps = _drop_unreachable_optional(steps, robot, T_base_world, T_flange_tool)
     waypoints = [s for s in steps if isinstance(s, Waypoint)]
     q, via_q, via_T = solve_moves(waypoints, robot.name, T_base_world, T_flange_tool)
     if waypoints:
