@@ -3,9 +3,10 @@
 The cabin turn joint of the excavator is measured by counting gear teeth: 98 teeth
 give an angle resolution of only 0.92 deg. Its rate is the difference of the
 cabin and chassis gyros. :class:`TurnJointKF` fuses both in a discrete Kalman
-filter over ``x = [psi, psi_dot]`` with a constant-velocity model (eq 2) and
-the observation ``z = [psi_encoder, omega_cabin - omega_chassis]`` (eq 3); the
-encoder's quantization enters as its uniform-error variance ``q^2 / 12``.
+filter over ``x = [psi, psi_dot]`` (plus the gyro-difference bias) with a
+constant-velocity model (eq 2) and the observation
+``z = [psi_encoder, omega_cabin - omega_chassis]`` (eq 3); the encoder's
+quantization enters as its uniform-error variance ``q^2 / 12``.
 :func:`complementary_filter` is the baseline it replaces: the gyro rate
 integrated and pulled towards the encoder angle with a fixed weight.
 
@@ -34,24 +35,31 @@ def quantize(angle: ArrayLike, resolution: float = ENCODER_RESOLUTION) -> FloatA
 
 @dataclass
 class TurnJointKF:
-    """Kalman filter of the turn joint angle and rate.
+    """Kalman filter of the turn joint angle and rate (and the gyro-difference bias).
+
+    The paper's state ``[psi, psi_dot]`` is extended by the constant bias ``b`` of
+    the gyro difference (``z_gyro = psi_dot + b``), which the encoder makes
+    observable; without it a biased rate drags the angle between encoder steps.
 
     Attributes
     ----------
     resolution
         Encoder resolution (radians); its quantization error is modelled as uniform.
     gyro_sigma
-        Standard deviation of the gyro-difference rate (rad/s, per sample). Set it
-        above the gyros' white noise so that it also covers their uncalibrated bias
-        (the filter has no bias state): trusting a biased rate too much makes the
-        angle drift between encoder steps.
+        Standard deviation of the gyro-difference rate (rad/s, per sample).
     accel_sigma
         Process noise: white angular acceleration (rad/s^2).
+    bias_sigma
+        Prior standard deviation of the gyro-difference bias (rad/s).
+    bias_walk
+        Random walk of the bias (rad/s per sqrt(s)).
     """
 
     resolution: float = ENCODER_RESOLUTION
-    gyro_sigma: float = 0.04
+    gyro_sigma: float = 0.01
     accel_sigma: float = 0.2
+    bias_sigma: float = 0.005
+    bias_walk: float = 1e-4
 
     def run(
         self,
@@ -86,31 +94,35 @@ class TurnJointKF:
         r_enc = self.resolution**2 / 12.0
         r_gyr = self.gyro_sigma**2
         first = enc[np.flatnonzero(np.isfinite(enc))[0]] if np.isfinite(enc).any() else 0.0
-        x = np.array([first + 0.5 * self.resolution, gyr[0]])
-        P = np.diag([self.resolution**2, r_gyr])
+        x = np.array([first + 0.5 * self.resolution, gyr[0], 0.0])
+        P = np.diag([self.resolution**2, r_gyr + self.bias_sigma**2, self.bias_sigma**2])
+        H_both = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]])
+        R_both = np.diag([r_enc, r_gyr])
+        H_gyr = H_both[1:]
+        R_gyr = R_both[1:, 1:]
         out = np.empty((len(t), 2))
         prev = t[0]
         for k in range(len(t)):  # a recursive filter: one step per sample
             dt = t[k] - prev
             prev = t[k]
-            F = np.array([[1.0, dt], [0.0, 1.0]])
+            F = np.array([[1.0, dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
             q = self.accel_sigma**2
-            Q = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+            Q = np.zeros((3, 3))
+            Q[:2, :2] = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+            Q[2, 2] = self.bias_walk**2 * dt
             x = F @ x
             P = F @ P @ F.T + Q
             if np.isfinite(enc[k]):
                 z = np.array([enc[k] + 0.5 * self.resolution, gyr[k]])
-                H = np.eye(2)
-                R = np.diag([r_enc, r_gyr])
+                H, R = H_both, R_both
             else:
                 z = gyr[k : k + 1]
-                H = np.array([[0.0, 1.0]])
-                R = np.array([[r_gyr]])
+                H, R = H_gyr, R_gyr
             S = H @ P @ H.T + R
             K = np.linalg.solve(S, H @ P).T
             x = x + K @ (z - H @ x)
-            P = (np.eye(2) - K @ H) @ P
-            out[k] = x
+            P = (np.eye(3) - K @ H) @ P
+            out[k] = x[:2]
         return out[:, 0], out[:, 1]
 
 
