@@ -165,7 +165,8 @@ def solve_moves(
     T_world_tool = np.stack([w.T_world_tool for w in waypoints])
     flat, stops = sample_linear_moves(T_world_tool, np.array([w.kind == "lin" for w in waypoints]))
     T_base_tool = T_base_world @ flat
-    q_all, valid = robot.ik_batch(T_base_tool @ T_tool_flange)
+    T_base_flange = T_base_tool @ T_tool_flange
+    q_all, valid = robot.ik_batch(T_base_flange)
 
     q_prev = (
         robot.joint_limits.mean(axis=1) if q_start is None else np.asarray(q_start, dtype=float)
@@ -190,6 +191,7 @@ def solve_moves(
                 q_all[rows],
                 valid[rows],
                 q_prev,
+                T_base_flange[rows],
                 T_base_tool[rows],
                 linear=wp.kind == "lin" and i > 0,
             )
@@ -251,14 +253,17 @@ def _step_through(
     q_rows: np.ndarray,
     valid_rows: np.ndarray,
     q_prev: np.ndarray,
+    T_base_flange: np.ndarray,
     T_base_tool: np.ndarray,
     linear: bool,
 ) -> tuple[np.ndarray, int]:
     """Choose, sample by sample, the valid configuration nearest the previous one.
 
     Handles the places where the branch numbering of the closed-form solver
-    swaps (a wrist passing its singularity); raises naming the element and
-    target when no configuration continues the motion.
+    swaps, and the wrist singularity, where only the sum of the two aligned
+    axes is determined: there the sample is solved again with the previous
+    configuration as reference, which keeps the split continuous. Raises naming
+    the element and target when no configuration continues the motion.
     """
     path = np.zeros((len(q_rows), robot.dof))
     branch = -1
@@ -274,6 +279,13 @@ def _step_through(
         turned = _nearest_turn(robot, q_rows[j, candidates], q_prev)
         jump = np.abs(turned - q_prev).max(axis=1)
         best = int(np.argmin(jump))
+        if linear and jump[best] > MAX_JOINT_JUMP:
+            q_again, ok = robot.ik_batch(T_base_flange[j][None], q_ref=q_prev)
+            if ok[0].any():
+                candidates = np.flatnonzero(ok[0])
+                turned = _nearest_turn(robot, q_again[0, candidates], q_prev)
+                jump = np.abs(turned - q_prev).max(axis=1)
+                best = int(np.argmin(jump))
         if linear and jump[best] > MAX_JOINT_JUMP:
             raise _fail(
                 wp,
