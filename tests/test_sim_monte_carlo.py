@@ -62,7 +62,7 @@ def test_dask_through_the_scheduler_address_equals_serial(
         )
     assert sorted(done) == [1, 2, 2, 2]
     assert_same(serial, distributed)
-    assert distributed.base_poses and distributed.base_poses[0].station == "S1"
+    assert distributed.base_poses[0].station == study.stations[0].id
 
 
 def test_chunking_does_not_change_results(study: Study) -> None:
@@ -108,7 +108,7 @@ def test_summary_figures(study: Study) -> None:
     tol = study.project.tolerances
     within = (t <= tol.position) & (result.rotation_rad <= math.radians(tol.rotation_deg))
     assert s["within_tolerance"] == pytest.approx(within.mean())
-    assert list(s["per_station"]) == ["S1"]
+    assert list(s["per_station"]) == list(dict.fromkeys(st.id for st in study.stations))
     loc = s["localization"]
     assert set(loc["sigma_ratio"]) == {"x", "y", "z", "rz"}  # roll, pitch: not observed
     assert all(0.2 < r < 5 for r in loc["sigma_ratio"].values())
@@ -156,7 +156,8 @@ def test_output_folder_is_what_the_preview_reads(study: Study, tmp_path: Path) -
         )
         assert float(r["run0_translation_m"]) == pytest.approx(result.translation_m[0, i])
     poses = read_base_poses(tmp_path)  # by work package index (visit_01 -> 0)
-    assert set(poses) == {0} and poses[0].station == "S1"
+    assert set(poses) == set(range(study.n_visits))
+    assert poses[0].station == study.stations[0].id
     with (tmp_path / "runs.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert [int(r["run"]) for r in rows] == [0, 1, 2, 3, 4]
@@ -182,7 +183,8 @@ def test_method_comparison_shares_plan_and_seeds(tmp_path: Path) -> None:
     # same seeds, so the same parking error: estimate + error = the same true base pose
     true = []
     for m in ("uwb", "total_station"):
-        pose = json.loads((tmp_path / m / "localization" / "visit_01_S1.json").read_text())
+        [path] = (tmp_path / m / "localization").glob("visit_01_*.json")
+        pose = json.loads(path.read_text())
         with (tmp_path / m / "visits.csv").open() as f:
             first = next(csv.DictReader(f))
         error = [float(first[k]) for k in first if k.startswith("error_")]
