@@ -34,7 +34,7 @@ CHROMIUM_ARGS = [
     "--no-first-run",
 ]
 ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts" / "preview"
-VIEWPORT = {"width": 1100, "height": 720}
+VIEWPORT = {"width": 1500, "height": 760}
 TIMEOUT_MS = 180_000
 """Software rendering on a loaded machine is slow; be patient before failing."""
 PANEL_WIDTH = 420
