@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -19,6 +20,7 @@ from fabflow.design.elements import Element
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project
 from fabflow.tasks.plan import Plan, Station, T_world_base
+from fabflow.transforms.se3 import compose_covariance
 from fabflow.transforms.so3 import exp_so3
 
 if TYPE_CHECKING:
@@ -104,25 +106,63 @@ def localize_plan(
     Returns
     -------
     dict
-        Visit index (``WorkPackage.index``) to ``(estimated BasePose, true T_world_base)``.
-        Every visit parks anew, so a station visited twice is localized twice.
+        Work package index (``WorkPackage.index``) to ``(estimated BasePose, true
+        T_world_base)``. Every visit to a station parks anew and is localized anew;
+        consecutive work packages at one station (the lift moving between them)
+        share the visit's measurement, moved by the known lift travel.
     """
     localize = method_function(method or project.localization.method)
     by_id = {e.id: e for e in elements}
     prebuilt = [e for e in elements if not e.robot_built]
     built_ids: list[str] = []
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
     results: dict[int, tuple[BasePose, np.ndarray]] = {}
+    previous = None
     for wp in plan.work_packages:
-        _, T_true = parked_pose(project, wp.station, rng)
-        built = prebuilt + [by_id[i] for i in built_ids]
-        estimate = localize(project, T_true, rng, wp.station.id, built=built)
+        if previous is not None and previous.station.id == wp.station.id:
+            # Same visit, the lift moved: no new parking, no new measurement.
+            estimate, T_true = results[previous.index]
+            T_move = lift_move(T_platform_base, previous.station.lift, wp.station.lift)
+            T_true = T_true @ T_move
+            estimate = replace(
+                estimate,
+                T_world_base=estimate.T_world_base @ T_move,
+                covariance=compose_covariance(
+                    estimate.T_world_base, estimate.covariance, T_move, None
+                ),
+                quality={**estimate.quality, "measured_in_package": previous.index},
+            )
+        else:
+            _, T_true = parked_pose(project, wp.station, rng)
+            built = prebuilt + [by_id[i] for i in built_ids]
+            estimate = localize(project, T_true, rng, wp.station.id, built=built)
         results[wp.index] = (estimate, T_true)
         built_ids += list(wp.elements)
+        previous = wp
     return results
 
 
+def lift_move(T_platform_base: np.ndarray, lift_from: float, lift_to: float) -> np.ndarray:
+    """Motion of the arm base, in its own frame, when the lift goes between two heights.
+
+    Parameters
+    ----------
+    T_platform_base
+        Arm mounting on the platform at the lowest lift position.
+    lift_from, lift_to
+        Lift heights (metres along the platform z axis).
+    """
+    T_lift = np.eye(4)
+    T_lift[2, 3] = lift_to - lift_from
+    return np.linalg.inv(T_platform_base) @ T_lift @ T_platform_base
+
+
 def stage_localize(ctx: BuildContext) -> None:
-    """Build stage: localize every visit of the plan; writes ``localization/*.json``.
+    """Build stage: localize every visit of the plan; writes ``localization/visit_NN_S.json``.
+
+    One file per work package (``NN`` its 1-based index, ``S`` its station);
+    packages that continue a visit after a lift move carry the visit's
+    measurement moved by the lift (``quality.measured_in_package``).
 
     Needs ``ctx.results["plan"]`` and ``ctx.results["elements"]``; sets
     ``ctx.results["localization"]`` to ``{visit index: (BasePose, true T_world_base)}``.
@@ -137,11 +177,13 @@ def stage_localize(ctx: BuildContext) -> None:
     ctx.results["localization"] = results
     folder = ctx.out / "localization"
     folder.mkdir()
-    errors = []
+    errors, sigma = [], []
     for wp in plan.work_packages:
         estimate, T_true = results[wp.index]
         error = pose_error(estimate.T_world_base, T_true)
-        errors.append(np.linalg.norm(error[:2]))
+        if "measured_in_package" not in estimate.quality:
+            errors.append(np.linalg.norm(error[:2]))
+            sigma.append(float(np.sqrt(np.trace(estimate.covariance[:2, :2]))))
         write_json(
             folder / f"visit_{wp.index + 1:02d}_{wp.station.id}.json",
             {
@@ -152,12 +194,8 @@ def stage_localize(ctx: BuildContext) -> None:
                 "error": {"xyz_m": error[:3], "rotation_rad": error[3:]},
             },
         )
-    sigma = [
-        float(np.sqrt(np.trace(results[wp.index][0].covariance[:2, :2])))
-        for wp in plan.work_packages
-    ]
     ctx.add("localize", "method", project.localization.method)
-    ctx.add("localize", "visits localized", len(results))
+    ctx.add("localize", "visits localized", len(errors))
     ctx.add(
         "localize",
         "XY error, simulated (mean / max)",
