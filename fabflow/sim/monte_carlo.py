@@ -22,14 +22,11 @@ import numpy as np
 
 from fabflow.errors import InputError
 from fabflow.positioning.result import BasePose
-from fabflow.sim.run import RunResult, Study, simulate_run
+from fabflow.sim.run import UNOBSERVED_SIGMA, RunResult, Study, simulate_run
 
 if TYPE_CHECKING:
     from distributed import Client
 
-UNOBSERVED_SIGMA = 0.5
-"""Predicted sigmas at or above this (radians) mark an axis the method does not
-observe (e.g. roll and pitch for UWB); such axes are left out of the sigma ratio."""
 
 AXES = ("x", "y", "z", "rx", "ry", "rz")
 
@@ -282,7 +279,7 @@ def sigma_ratio(errors: np.ndarray, covariances: np.ndarray) -> dict[str, float]
 
     1 means the predicted covariance is honest, above 1 over-confident, below 1
     pessimistic. Axes with a predicted sigma of at least :data:`UNOBSERVED_SIGMA` are
-    not observed by the method and are left out.
+    not observed by the method and are left out, as are axes predicted exact (zero).
 
     Parameters
     ----------
@@ -299,8 +296,9 @@ def sigma_ratio(errors: np.ndarray, covariances: np.ndarray) -> dict[str, float]
         if e.shape[0] == 0 or np.any(sigma[:, k] >= UNOBSERVED_SIGMA):
             continue
         predicted = float(np.sqrt(np.mean(sigma[:, k] ** 2)))
-        actual = float(np.sqrt(np.mean(e[:, k] ** 2)))
-        out[axis] = actual / predicted if predicted > 0 else (math.inf if actual > 0 else 1.0)
+        if predicted < 1e-12:  # predicted exact (no sensor noise, or an axis held fixed)
+            continue
+        out[axis] = float(np.sqrt(np.mean(e[:, k] ** 2))) / predicted
     return out
 
 

@@ -23,8 +23,8 @@ of ``SeedSequence(s)``), so any run can be repeated alone.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
 
 import numpy as np
 
@@ -34,8 +34,18 @@ from fabflow.localization import LocalizeStation, method_function, parked_pose
 from fabflow.positioning.result import BasePose
 from fabflow.project import LOCALIZATION_METHODS, Project
 from fabflow.tasks.plan import Plan, Station
-from fabflow.transforms.se3 import inv_T, pose_error
+from fabflow.transforms.se3 import exp_T, inv_T, pose_error
 from fabflow.transforms.so3 import log_so3
+
+UNOBSERVED_SIGMA = 0.5
+"""Predicted sigmas at or above this (radians) mark an axis the method does not
+observe (e.g. roll and pitch for UWB)."""
+
+Fidelity = Literal["sensors", "covariance"]
+"""How a run localizes: simulated sensors, or a Gaussian draw from the predicted covariance."""
+
+CALIBRATION_RUNS = 8
+"""Sensor localizations per visit that calibrate the ``"covariance"`` fidelity."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,6 +69,13 @@ class Study:
     built_before
         Per visit, the elements standing when the platform arrives (pre-built ones
         plus those built on earlier visits); LiDAR scans and UWB lines of sight see them.
+    fidelity
+        ``"sensors"``: every run simulates the method's sensors at every visit.
+        ``"covariance"``: every run draws each visit's base pose error from
+        ``visit_covariance`` (a fast Gaussian surrogate, see :func:`prepare_study`).
+    visit_covariance
+        (V, 6, 6) base pose covariance per visit used by the ``"covariance"`` fidelity
+        (axes the method does not observe set to zero); ``None`` for ``"sensors"``.
     """
 
     project: Project
@@ -68,6 +85,8 @@ class Study:
     T_world_element: np.ndarray
     stations: tuple[Station, ...]
     built_before: tuple[tuple[Element, ...], ...]
+    fidelity: Fidelity = "sensors"
+    visit_covariance: np.ndarray | None = None
 
     @property
     def n_elements(self) -> int:
@@ -90,8 +109,20 @@ def prepare_study(
     method: str | None = None,
     elements: Sequence[Element] | None = None,
     plan: Plan | None = None,
+    fidelity: Fidelity = "sensors",
+    calibration_runs: int = CALIBRATION_RUNS,
 ) -> Study:
     """Generate the elements and plan the project once, for any number of runs.
+
+    With ``fidelity="covariance"`` the method's sensors are simulated only here:
+    ``calibration_runs`` times per visit at the planned base pose (seeded from
+    ``simulation.seed``), and the mean predicted covariance becomes that visit's
+    error model. Runs then draw ``[d, r] ~ N(0, C)`` instead of simulating sensors:
+    hundreds of times faster, exact for a method whose predicted covariance is
+    honest (see the sigma ratio of a ``"sensors"`` study) and Gaussian, but blind to
+    outliers and to run-to-run changes of the geometry. Axes the method does not
+    observe (predicted sigma >= 0.5 rad, e.g. roll and pitch for UWB, which assumes
+    a level platform) get no error.
 
     Parameters
     ----------
@@ -101,15 +132,23 @@ def prepare_study(
         Localization method to simulate (default: ``project.localization.method``).
     elements, plan
         Already computed elements and plan (computed here when absent).
+    fidelity
+        ``"sensors"`` (default) or ``"covariance"``.
+    calibration_runs
+        Sensor localizations per visit for the ``"covariance"`` fidelity.
 
     Raises
     ------
     InputError
-        For an unknown method, or a method whose setup the project lacks.
+        For an unknown method or fidelity, or a method whose setup the project lacks.
+    LocalizationError
+        With ``"covariance"``, when the method fails at a visit's planned pose.
     InfeasibleError
         When the project cannot be planned.
     """
     method = method or project.localization.method
+    if fidelity not in ("sensors", "covariance"):
+        raise InputError(f"unknown fidelity {fidelity!r}: expected 'sensors' or 'covariance'")
     if method not in LOCALIZATION_METHODS:
         raise InputError(
             f"unknown localization method {method!r}: expected one of "
@@ -140,7 +179,7 @@ def prepare_study(
         visit_of += [v] * len(wp.elements)
         standing += [by_id[i] for i in wp.elements]
     T = np.stack([np.asarray(by_id[i].T_world_element, dtype=float) for i in ids])
-    return Study(
+    study = Study(
         project=project,
         method=method,
         element_ids=tuple(ids),
@@ -149,6 +188,56 @@ def prepare_study(
         stations=tuple(wp.station for wp in plan.work_packages),
         built_before=tuple(built_before),
     )
+    if fidelity == "sensors":
+        return study
+    return replace(
+        study,
+        fidelity="covariance",
+        visit_covariance=calibrate_covariance(study, max(1, calibration_runs)),
+    )
+
+
+def calibrate_covariance(study: Study, n: int) -> np.ndarray:
+    """(V, 6, 6) mean predicted base covariance per visit over ``n`` sensor localizations.
+
+    Each visit is localized ``n`` times at its planned base pose, from a generator
+    seeded ``[simulation.seed, 0x5EED]`` (independent of every run's stream). Axes
+    the method does not observe are zeroed (see :func:`prepare_study`).
+    """
+    from fabflow.tasks.plan import T_world_base
+
+    rng = np.random.default_rng([study.project.simulation.seed, 0x5EED])
+    localize = study_localizer(study)
+    T_platform_base = study.project.robot.platform.T_platform_base.matrix()
+    out = np.empty((study.n_visits, 6, 6))
+    for v, station in enumerate(study.stations):
+        T_planned = T_world_base(station, T_platform_base)
+        extra = _extra_arguments(study, station)
+        covs = [
+            localize(
+                study.project, T_planned, rng, station.id, study.built_before[v], **extra
+            ).covariance
+            for _ in range(n)
+        ]
+        C = np.mean(covs, axis=0)
+        unobserved = np.sqrt(np.clip(np.diag(C), 0.0, None)) >= UNOBSERVED_SIGMA
+        C[unobserved, :] = 0.0
+        C[:, unobserved] = 0.0
+        out[v] = 0.5 * (C + C.T)
+    return out
+
+
+def _extra_arguments(study: Study, station: Station) -> dict[str, Any]:
+    # the LiDAR sits on the platform, below the lifted base: ICP needs the lift height
+    if study.method == "icp" and study.project.simulation.sensor_noise:
+        return {"lift": station.lift}
+    return {}
+
+
+def _cholesky(C: np.ndarray) -> np.ndarray:
+    """Lower factors ``L @ L.T == C`` of PSD matrices (zero rows/columns allowed)."""
+    w, U = np.linalg.eigh(C)
+    return U * np.sqrt(np.clip(w, 0.0, None))[..., None, :]
 
 
 def run_seed(seed: int, run: int) -> np.random.SeedSequence:
@@ -250,8 +339,6 @@ def simulate_run(
     rng = np.random.default_rng(run_seed(seed, run))
     sim = study.project.simulation
     localize = localize or study_localizer(study)
-    # the LiDAR sits on the platform, below the lifted base: ICP needs the lift height
-    pass_lift = study.method == "icp" and study.project.simulation.sensor_noise
     V = study.n_visits
     T_true = np.empty((V, 4, 4))
     T_est = np.empty((V, 4, 4))
@@ -259,14 +346,37 @@ def simulate_run(
     estimates: list[BasePose] = []
     for v, station in enumerate(study.stations):
         _, T_true[v] = parked_pose(study.project, station, rng)
-        extra = {"lift": station.lift} if pass_lift else {}
+        if study.visit_covariance is not None:
+            continue
         estimate = localize(
-            study.project, T_true[v], rng, station.id, built=study.built_before[v], **extra
+            study.project,
+            T_true[v],
+            rng,
+            station.id,
+            built=study.built_before[v],
+            **_extra_arguments(study, station),
         )
         T_est[v] = estimate.T_world_base
         cov[v] = estimate.covariance
         if keep_poses:
             estimates.append(estimate)
+    if study.visit_covariance is not None:
+        cov[:] = study.visit_covariance
+        error = np.einsum("vij,vj->vi", _cholesky(cov), rng.normal(0.0, 1.0, (V, 6)))
+        # T_true = perturb(T_est, error): T_est = [Exp(-r) R_true, t_true - d]
+        T_est = exp_T(np.concatenate([np.zeros((V, 3)), -error[:, 3:]], axis=1)) @ T_true
+        T_est[:, :3, 3] = T_true[:, :3, 3] - error[:, :3]
+        if keep_poses:
+            estimates = [
+                BasePose(
+                    T_world_base=T_est[v],
+                    covariance=cov[v],
+                    method=study.method,
+                    station=s.id,
+                    quality={"simulated": "drawn from the calibrated covariance"},
+                )
+                for v, s in enumerate(study.stations)
+            ]
     E = T_true @ inv_T(T_est)
     T_asbuilt = E[study.element_visit] @ study.T_world_element
     N = study.n_elements
