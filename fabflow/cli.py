@@ -414,6 +414,13 @@ def simulate(
         typer.Option(min=0, help="Worker processes of the local cluster; 0 runs in-process."),
     ] = 2,
     plots: Annotated[bool, typer.Option(help="Write the PNG plots.")] = True,
+    fidelity: Annotated[
+        str,
+        typer.Option(
+            help="sensors (simulate every visit's sensors) or covariance (fast Gaussian "
+            "surrogate calibrated per visit).",
+        ),
+    ] = "sensors",
 ) -> None:
     """Monte Carlo tolerance study: N simulated construction runs per localization method."""
     from contextlib import nullcontext
@@ -450,8 +457,9 @@ def simulate(
             on_method=start,
             progress=lambda n: bar.advance(tasks["current"], n),
             plots=plots,
+            fidelity=fidelity,  # type: ignore[arg-type]  # checked by prepare_study
         )
-    table = Table(title=f"fabflow simulate: {p.name}, {n_runs} runs")
+    table = Table(title=f"fabflow simulate: {p.name}, {n_runs} runs ({fidelity})")
     for name in ("method", "runs ok/failed", "RMSE mm", "p95 mm", "max mm", "within tol"):
         table.add_column(name, justify="left" if name == "method" else "right")
     table.add_column("loc. xy RMSE mm", justify="right")

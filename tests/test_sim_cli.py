@@ -71,3 +71,15 @@ def test_missing_project_is_exit_2(tmp_path: Path) -> None:
     result = invoke(str(tmp_path / "nope.yaml"), "-o", str(tmp_path / "o"), "--workers", "0")
     assert result.exit_code == 2
     assert "project file does not exist" in result.output
+
+
+def test_simulate_covariance_fidelity(tmp_path: Path) -> None:
+    out = tmp_path / "fast"
+    args = ["-n", "50", "--workers", "0", "--no-plots", "--fidelity", "covariance"]
+    result = invoke(str(SMALL), "-o", str(out), *args)
+    assert result.exit_code == 0, result.output
+    assert "(covariance)" in result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["fidelity"] == "covariance" and summary["runs"]["completed"] == 50
+    bad = invoke(str(SMALL), "-o", str(tmp_path / "x"), "--workers", "0", "--fidelity", "fast")
+    assert bad.exit_code == 2 and "unknown fidelity" in bad.output

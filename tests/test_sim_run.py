@@ -167,3 +167,44 @@ def test_unknown_method_and_missing_setup_are_input_errors(small: Project) -> No
     )
     with pytest.raises(InputError, match=r"localization\.uwb"):
         prepare_study(no_uwb, "uwb")
+
+
+def test_covariance_fidelity_draws_the_calibrated_covariance(small: Project) -> None:
+    project = with_noise(small, driving_error=0.0, robot_repeatability=0.0, lift_error=0.0)
+    study = prepare_study(project, fidelity="covariance", calibration_runs=4)
+    assert study.fidelity == "covariance" and study.visit_covariance is not None
+    C = study.visit_covariance[0]
+    # UWB does not observe roll and pitch (level platform): no error drawn for them
+    np.testing.assert_array_equal(C[3:5], 0.0)
+    assert np.all(np.diag(C)[[0, 1, 2, 5]] > 0)
+    errors = run_study(study, 2000, seed=4).localization_error[:, 0]
+    np.testing.assert_allclose(
+        errors.std(axis=0)[[0, 1, 2, 5]], np.sqrt(np.diag(C))[[0, 1, 2, 5]], rtol=0.05
+    )
+    np.testing.assert_allclose(np.cov(errors.T), C, atol=0.1 * np.abs(C).max())
+    np.testing.assert_array_equal(errors[:, 3:5], 0.0)
+
+
+def test_covariance_fidelity_as_built_follows_the_drawn_base_error(small: Project) -> None:
+    study = prepare_study(
+        with_noise(small, robot_repeatability=0.0, lift_error=0.0),
+        fidelity="covariance",
+        calibration_runs=2,
+    )
+    result = simulate_run(study, 1, 2, keep_poses=True)
+    T_est = result.base_poses[0].T_world_base
+    T_true = perturb(T_est, result.localization_error[0])
+    expected = T_true @ inv_T(T_est) @ study.T_world_element
+    np.testing.assert_allclose(result.T_world_element_asbuilt, expected, atol=1e-12)
+    np.testing.assert_array_equal(result.localization_covariance[0], study.visit_covariance[0])
+
+
+def test_covariance_fidelity_without_noise_is_exact(small: Project) -> None:
+    study = prepare_study(with_noise(small, **NO_NOISE), fidelity="covariance", calibration_runs=1)
+    np.testing.assert_array_equal(study.visit_covariance, 0.0)
+    assert simulate_run(study, 0, 0).translation_m.max() < 1e-12
+
+
+def test_unknown_fidelity_is_an_input_error(small: Project) -> None:
+    with pytest.raises(InputError, match="unknown fidelity 'fast'"):
+        prepare_study(small, fidelity="fast")  # type: ignore[arg-type]

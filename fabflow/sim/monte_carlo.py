@@ -351,6 +351,7 @@ def summarize(study: Study, result: StudyResult) -> dict[str, Any]:
     )
     return {
         "method": result.method,
+        "fidelity": study.fidelity,
         "seed": result.seed,
         "runs": {
             "requested": result.n_runs,

@@ -42,7 +42,7 @@ from fabflow.sim.monte_carlo import (
     summarize,
     within_tolerance,
 )
-from fabflow.sim.run import Study, prepare_study
+from fabflow.sim.run import Fidelity, Study, prepare_study
 from fabflow.transforms.so3 import abc_from_matrix
 
 if TYPE_CHECKING:
@@ -276,6 +276,7 @@ def simulate_project(
     on_method: Callable[[str], None] | None = None,
     progress: Callable[[int], None] | None = None,
     plots: bool = True,
+    fidelity: Fidelity = "sensors",
 ) -> list[dict[str, Any]]:
     """Run a Monte Carlo study per method and write every output into ``out``.
 
@@ -303,6 +304,8 @@ def simulate_project(
         Called with the number of runs just finished.
     plots
         Write the PNG plots (matplotlib).
+    fidelity
+        ``"sensors"`` or ``"covariance"`` (see :func:`fabflow.sim.run.prepare_study`).
 
     Returns
     -------
@@ -315,7 +318,7 @@ def simulate_project(
     methods = list(methods or [project.localization.method])
     elements = generate_elements(project)
     plan = plan_project(project, elements)
-    studies = [prepare_study(project, m, elements, plan) for m in methods]
+    studies = [prepare_study(project, m, elements, plan, fidelity) for m in methods]
     rows: list[dict[str, Any]] = []
     summaries: dict[str, Any] = {}
     for study in studies:
