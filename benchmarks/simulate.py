@@ -21,9 +21,12 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
+from fabflow.design import generate_elements
+from fabflow.errors import FabflowError
 from fabflow.project import load_project
 from fabflow.sim.monte_carlo import comparison_row, dask_client, run_study, summarize
 from fabflow.sim.run import Study, prepare_study, simulate_run
+from fabflow.tasks.planner import plan_project
 
 ROOT = Path(__file__).resolve().parents[1]
 CABIN = ROOT / "projects" / "cabin" / "project.yaml"
@@ -57,7 +60,11 @@ def main() -> None:
     parser.add_argument(
         "--no-target", action="store_true", help="skip the 1,000-run UWB target check"
     )
+    parser.add_argument(
+        "--fidelity", default="sensors,covariance", help="comma-separated: sensors, covariance"
+    )
     args = parser.parse_args()
+    fidelities = args.fidelity.split(",")
     methods = (args.methods or ("uwb" if args.quick else "uwb,total_station,icp")).split(",")
     n_serial = args.serial_runs or (3 if args.quick else 10)
     n_dask = args.dask_runs or (4 if args.quick else 100)
@@ -65,9 +72,22 @@ def main() -> None:
     console = Console(width=160)
     project = load_project(SMALL if args.quick else CABIN)
     t0 = time.perf_counter()
-    base = prepare_study(project)
+    elements = generate_elements(project)
+    plan = plan_project(project, elements)
     prep_s = time.perf_counter() - t0
-    studies = {m: base if m == base.method else prepare_study(project, m) for m in methods}
+    studies: dict[str, Study] = {}
+    for fidelity in fidelities:
+        for m in methods:
+            label = m if fidelity == "sensors" else f"{m} ({fidelity})"
+            t0 = time.perf_counter()
+            try:
+                studies[label] = prepare_study(project, m, elements, plan, fidelity)  # type: ignore[arg-type]
+            except FabflowError as exc:
+                console.print(f"{label}: skipped, {exc}")
+                continue
+            if fidelity != "sensors":
+                console.print(f"{label}: calibrated in {time.perf_counter() - t0:.1f} s")
+    base = next(iter(studies.values()))
     console.print(
         f"{project.name}: {base.n_elements} robot-built elements, {base.n_visits} visits; "
         f"elements + plan once: {prep_s:.1f} s"
@@ -97,9 +117,10 @@ def main() -> None:
         for study in studies.values():
             run_study(study, 2, seed=99, client=client, chunk_size=1)
         for method, study in studies.items():
-            cpu, rate, failed = serial_rate(study, n_serial)
-            result = run_study(study, n_dask, seed=1, client=client)
-            dask_rate = n_dask / result.elapsed_s
+            scale = 1 if study.fidelity == "sensors" else 20  # surrogate runs take ms
+            cpu, rate, failed = serial_rate(study, n_serial * scale)
+            result = run_study(study, n_dask * scale, seed=1, client=client)
+            dask_rate = n_dask * scale / result.elapsed_s
             row = comparison_row(summarize(study, result))
             table.add_row(
                 method,
@@ -108,18 +129,22 @@ def main() -> None:
                 f"{dask_rate:.2f}",
                 f"{dask_rate / rate:.2f}x",
                 f"{TARGET_RUNS / dask_rate:.0f}",
-                f"{failed}/{n_serial} serial, {len(result.failures)}/{n_dask} Dask",
+                f"{failed}/{n_serial * scale} serial, {len(result.failures)}/{n_dask * scale} Dask",
                 f"{1e3 * row['p95_m']:.1f}",
                 f"{100 * row['within_tolerance']:.1f} %",
                 f"{row['sigma_ratio_xy']:.2f}",
             )
         console.print(table)
-        if not (args.quick or args.no_target) and "uwb" in studies:
-            result = run_study(studies["uwb"], TARGET_RUNS, seed=2, client=client)
+        for label in ("uwb (covariance)", "uwb"):
+            if label not in studies or (args.no_target and label == "uwb"):
+                continue
+            n = 20 if args.quick else TARGET_RUNS
+            result = run_study(studies[label], n, seed=2, client=client)
             verdict = "met" if result.elapsed_s < TARGET_S else "NOT met"
             console.print(
-                f"{TARGET_RUNS} UWB runs of the cabin on 2 workers: {result.elapsed_s:.1f} s "
-                f"({len(result.failures)} failed); target < {TARGET_S:.0f} s: {verdict}"
+                f"{n} {label} runs of {project.name} on 2 workers: {result.elapsed_s:.1f} s "
+                f"({len(result.failures)} failed)"
+                + ("" if args.quick else f"; target < {TARGET_S:.0f} s: {verdict}")
             )
 
 
