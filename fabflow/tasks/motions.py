@@ -126,24 +126,7 @@ def element_motion(element: Element, project: Project, T_world_pick: np.ndarray)
         ]
         return steps
     if element.type == "print_path":
-        frames = element_tool_frames(element)
-        print_speed = float(element.attributes.get("speed", speed))
-        steps = [
-            Waypoint("ptp", _lift(frames[0], approach), PTP_SPEED, blend, "approach", eid),
-            Waypoint("lin", frames[0], speed, 0.0, "start", eid),
-            Action("extruder", True, 0.0, eid),
-        ]
-        steps += [
-            Waypoint("lin", frames[i], print_speed, blend, f"path {i}", eid)
-            for i in range(1, len(frames) - 1)
-        ]
-        if len(frames) > 1:
-            steps.append(Waypoint("lin", frames[-1], print_speed, 0.0, "end", eid))
-        steps += [
-            Action("extruder", False, 0.0, eid),
-            Waypoint("lin", _lift(frames[-1], approach), speed, blend, "retract", eid),
-        ]
-        return steps
+        return _print_motion(element, approach, blend, speed)
     T_point = element_tool_frames(element)[0]
     backed = T_point.copy()
     backed[:3, 3] -= T_point[:3, 2] * approach
@@ -155,6 +138,47 @@ def element_motion(element: Element, project: Project, T_world_pick: np.ndarray)
         Action(action, False, 0.0, eid),
         Waypoint("lin", backed, speed, blend, "retract", eid),
     ]
+
+
+def _print_motion(element: Element, approach: float, blend: float, speed: float) -> list[Step]:
+    """Approach, extrude along the path (travel segments with the extruder off), retract.
+
+    The nozzle is rotationally symmetric, so the tool keeps one rotation about
+    its axis for the whole layer (the element frame's x axis) instead of turning
+    with the path: a closed contour would otherwise wind the wrist a full turn
+    per layer. The path-aligned frames stay available from
+    :func:`fabflow.tasks.targets.element_tool_frames`.
+    """
+    eid = element.id
+    frames = element_tool_frames(element).copy()
+    frames[:, :3, :3] = np.asarray(element.T_world_element)[:3, :3] @ R_FLIP_X
+    n = len(frames)
+    extrude = np.asarray(element.attributes.get("extrude", np.ones(max(n - 1, 0))), dtype=bool)
+    print_speed = float(element.attributes.get("speed", speed))
+    steps: list[Step] = [
+        Waypoint("ptp", _lift(frames[0], approach), PTP_SPEED, blend, "approach", eid),
+        Waypoint("lin", frames[0], speed, 0.0, "start", eid),
+    ]
+    on = False
+    for i in range(1, n):
+        if extrude[i - 1] != on:
+            on = bool(extrude[i - 1])
+            steps.append(Action("extruder", on, 0.0, eid))
+        last = i == n - 1 or extrude[i] != on
+        steps.append(
+            Waypoint(
+                "lin",
+                frames[i],
+                print_speed if on else speed,
+                0.0 if last else blend,
+                "end" if i == n - 1 else f"path {i}",
+                eid,
+            )
+        )
+    if on:
+        steps.append(Action("extruder", False, 0.0, eid))
+    steps.append(Waypoint("lin", _lift(frames[-1], approach), speed, blend, "retract", eid))
+    return steps
 
 
 def work_package_motion(

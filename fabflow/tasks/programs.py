@@ -37,9 +37,12 @@ STEP_TRANSLATION = 0.02
 """Largest tool translation between two checked samples of a linear move (m)."""
 STEP_ROTATION = 0.015
 """Largest tool rotation between two checked samples of a linear move (rad)."""
-MAX_JOINT_JUMP = 0.35
-"""A joint moving more than this between neighbouring samples (rad) means the
-line passes a singularity or changes configuration."""
+MIN_SPEED_FRACTION = 0.1
+"""A linear move may be slowed near a singularity so its joints stay within their
+speed limits, down to this fraction of its programmed speed; slower is an error."""
+MAX_JOINT_STEP = np.pi / 2
+"""A joint moving more than this between neighbouring samples (rad) is a
+configuration change, whatever the time allowed."""
 TOOL_ROTATION_SPEED = 1.0
 """Tool rotation speed assumed for timing linear moves (rad/s)."""
 
@@ -128,7 +131,7 @@ def solve_moves(
     T_base_world: np.ndarray,
     T_flange_tool: np.ndarray,
     q_start: np.ndarray | None = None,
-) -> tuple[np.ndarray, list[np.ndarray | None], list[np.ndarray | None]]:
+) -> tuple[np.ndarray, list[np.ndarray | None], list[np.ndarray | None], np.ndarray]:
     """Joint configurations for every waypoint, with linear moves checked along the line.
 
     Parameters
@@ -150,6 +153,9 @@ def solve_moves(
         (n, dof) joint configuration at each waypoint (radians).
     via_q, via_T
         Per waypoint, the intermediate samples of a linear move (or None).
+    slowdown
+        (n,) factor (>= 1) each linear move's speed must be divided by so that
+        its joints stay within their speed limits (near a singularity).
 
     Raises
     ------
@@ -160,7 +166,7 @@ def solve_moves(
     robot = get_robot(robot_name)
     n = len(waypoints)
     if n == 0:
-        return np.zeros((0, robot.dof)), [], []
+        return np.zeros((0, robot.dof)), [], [], np.ones(0)
     T_tool_flange = np.linalg.inv(np.asarray(T_flange_tool, dtype=float))
     T_world_tool = np.stack([w.T_world_tool for w in waypoints])
     flat, stops = sample_linear_moves(T_world_tool, np.array([w.kind == "lin" for w in waypoints]))
@@ -172,7 +178,14 @@ def solve_moves(
         robot.joint_limits.mean(axis=1) if q_start is None else np.asarray(q_start, dtype=float)
     )
     multi_turn = np.diff(robot.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
+    # Time per sample of each linear move at its programmed speed: the joint
+    # speeds the line demands must stay within the robot's limits.
+    dist, angle = move_lengths(T_world_tool)
+    speed = np.array([w.speed for w in waypoints[1:]])
+    counts = np.diff(stops)
+    dt = np.r_[np.inf, np.maximum(dist / speed, angle / TOOL_ROTATION_SPEED) / counts]
     q_out = np.zeros((n, robot.dof))
+    slowdown = np.ones(n)
     via_q: list[np.ndarray | None] = [None] * n
     via_T: list[np.ndarray | None] = [None] * n
     branch = -1
@@ -182,10 +195,10 @@ def solve_moves(
         path = None
         if wp.kind == "lin" and i > 0:
             path = _follow_branch(
-                robot, q_all[rows, branch], valid[rows, branch], q_prev, multi_turn
+                robot, q_all[rows, branch], valid[rows, branch], q_prev, multi_turn, dt[i]
             )
         if path is None:
-            path, branch = _step_through(
+            path, branch, slowdown[i] = _step_through(
                 robot,
                 wp,
                 q_all[rows],
@@ -193,7 +206,7 @@ def solve_moves(
                 q_prev,
                 T_base_flange[rows],
                 T_base_tool[rows],
-                linear=wp.kind == "lin" and i > 0,
+                dt=dt[i] if wp.kind == "lin" and i > 0 else None,
             )
         q_prev = path[-1]
         q_out[i] = q_prev
@@ -201,7 +214,7 @@ def solve_moves(
             via_q[i] = path[:-1]
             via_T[i] = flat[start : stops[i] - 1]
         start = stops[i]
-    return q_out, via_q, via_T
+    return q_out, via_q, via_T, slowdown
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:
@@ -230,18 +243,19 @@ def _follow_branch(
     ok: np.ndarray,
     q_prev: np.ndarray,
     multi_turn: np.ndarray,
+    dt: float,
 ) -> np.ndarray | None:
-    """The joint path along one IK branch, or None when it leaves limits or jumps.
+    """The joint path along one IK branch, or None when it leaves limits or is too fast.
 
     The fast path for linear moves: consecutive samples are one controller step
-    apart, so joints with more than one turn of range are unwrapped by the
-    shortest angle between neighbours.
+    apart (``dt`` seconds at the programmed speed), so joints with more than one
+    turn of range are unwrapped by the shortest angle between neighbours.
     """
     if not ok.all():
         return None
     steps = np.diff(np.vstack([q_prev, q_branch]), axis=0)
     steps[:, multi_turn] = _wrap(steps[:, multi_turn])
-    if np.abs(steps).max() > MAX_JOINT_JUMP:
+    if (np.abs(steps) > robot.velocity_limits * dt).any():
         return None
     path = q_prev + np.cumsum(steps, axis=0)
     return path if robot.within_limits(path).all() else None
@@ -255,18 +269,25 @@ def _step_through(
     q_prev: np.ndarray,
     T_base_flange: np.ndarray,
     T_base_tool: np.ndarray,
-    linear: bool,
-) -> tuple[np.ndarray, int]:
+    dt: float | None,
+) -> tuple[np.ndarray, int, float]:
     """Choose, sample by sample, the valid configuration nearest the previous one.
 
     Handles the places where the branch numbering of the closed-form solver
     swaps, and the wrist singularity, where only the sum of the two aligned
     axes is determined: there the sample is solved again with the previous
-    configuration as reference, which keeps the split continuous. Raises naming
-    the element and target when no configuration continues the motion.
+    configuration as reference, which keeps the split continuous. For a
+    linear move (``dt``: seconds per sample at the programmed speed) the joint
+    speeds must stay within the robot's limits: the returned slowdown (>= 1)
+    divides the move's speed so they do. Raises naming the element and target
+    when no configuration continues the motion.
     """
+    linear = dt is not None
+    # For a PTP the load is its duration at full speed: the fastest configuration wins.
+    rate_limit = robot.velocity_limits * (dt if linear else 1.0)
     path = np.zeros((len(q_rows), robot.dof))
     branch = -1
+    slowdown = 1.0
     for j in range(len(q_rows)):
         candidates = np.flatnonzero(valid_rows[j])
         if len(candidates) == 0:
@@ -277,26 +298,37 @@ def _step_through(
             )
             raise _fail(wp, why, T_base_tool[j])
         turned = _nearest_turn(robot, q_rows[j, candidates], q_prev)
-        jump = np.abs(turned - q_prev).max(axis=1)
-        best = int(np.argmin(jump))
-        if linear and jump[best] > MAX_JOINT_JUMP:
+        load = (np.abs(turned - q_prev) / rate_limit).max(axis=1)
+        best = int(np.argmin(load))
+        if linear and load[best] > 1.0:
             q_again, ok = robot.ik_batch(T_base_flange[j][None], q_ref=q_prev)
             if ok[0].any():
                 candidates = np.flatnonzero(ok[0])
                 turned = _nearest_turn(robot, q_again[0, candidates], q_prev)
-                jump = np.abs(turned - q_prev).max(axis=1)
-                best = int(np.argmin(jump))
-        if linear and jump[best] > MAX_JOINT_JUMP:
-            raise _fail(
-                wp,
-                "the linear move to it changes configuration (a joint would jump "
-                f"{np.degrees(jump[best]):.0f} deg)",
-                T_base_tool[j],
-            )
+                load = (np.abs(turned - q_prev) / rate_limit).max(axis=1)
+                best = int(np.argmin(load))
+        if linear:
+            step = np.abs(turned[best] - q_prev)
+            k = int(np.argmax(step / rate_limit))
+            if step[k] > MAX_JOINT_STEP:
+                why = (
+                    f"the linear move to it changes configuration "
+                    f"(joint {k + 1} jumps {np.degrees(step[k]):.0f} deg)"
+                )
+                raise _fail(wp, why, T_base_tool[j])
+            if load[best] > 1.0 / MIN_SPEED_FRACTION:
+                why = (
+                    f"the linear move to it passes too close to a singularity: joint {k + 1} "
+                    f"would need {np.degrees(step[k] / dt * MIN_SPEED_FRACTION):.0f} deg/s at "
+                    f"{MIN_SPEED_FRACTION:.0%} of the speed (limit "
+                    f"{np.degrees(robot.velocity_limits[k]):.0f} deg/s)"
+                )
+                raise _fail(wp, why, T_base_tool[j])
+            slowdown = max(slowdown, float(load[best]))
         q_prev = turned[best]
         path[j] = q_prev
         branch = int(candidates[best])
-    return path, branch
+    return path, branch, slowdown
 
 
 def _drop_unreachable_optional(
@@ -339,7 +371,7 @@ def compile_program(
     T_flange_tool = project.robot.tool.T_flange_tool.matrix()
     steps = _drop_unreachable_optional(steps, robot, T_base_world, T_flange_tool)
     waypoints = [s for s in steps if isinstance(s, Waypoint)]
-    q, via_q, via_T = solve_moves(waypoints, robot.name, T_base_world, T_flange_tool)
+    q, via_q, via_T, slowdown = solve_moves(waypoints, robot.name, T_base_world, T_flange_tool)
     if waypoints:
         dist, angle = move_lengths(np.stack([w.T_world_tool for w in waypoints]))
     instructions: list[Instruction] = []
@@ -356,19 +388,20 @@ def compile_program(
                 t += step.dwell
                 instructions.append(Wait(step.dwell, step.element, t))
             continue
+        speed = step.speed / slowdown[k]
         if k == 0:
             duration = 0.0
         elif step.kind == "ptp":
-            duration = float(np.max(np.abs(q[k] - q[k - 1]) / (robot.velocity_limits * step.speed)))
+            duration = float(np.max(np.abs(q[k] - q[k - 1]) / (robot.velocity_limits * speed)))
         else:
-            duration = max(dist[k - 1] / step.speed, angle[k - 1] / TOOL_ROTATION_SPEED)
+            duration = max(dist[k - 1] / speed, angle[k - 1] / TOOL_ROTATION_SPEED) * slowdown[k]
         t += duration
         instructions.append(
             Move(
                 kind=step.kind,  # type: ignore[arg-type]
                 T_world_tool=step.T_world_tool,
                 q=q[k],
-                speed=step.speed,
+                speed=round(float(speed), 6),
                 blend=step.blend,
                 label=step.label,
                 element=step.element,
@@ -378,6 +411,13 @@ def compile_program(
             )
         )
         k += 1
+    slowed = slowdown > 1.0
+    if slowed.any():
+        header = {
+            **header,
+            "slowed near singularities": f"{int(slowed.sum())} linear moves, "
+            f"down to {100 / slowdown.max():.0f} % of their speed",
+        }
     return Program(
         name=name,
         robot=robot.name,
