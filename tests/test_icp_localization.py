@@ -137,9 +137,12 @@ def test_base_pose_covariance_moves_to_the_base(site_map: ScanMap) -> None:
     np.testing.assert_allclose(pose.T_world_base, loc.T_world_lidar @ inv_T(T_base_lidar))
     assert pose.method == "icp" and pose.station == "S1"
     assert pose.residuals.shape[1] == 1 and len(pose.residuals) <= 1000
-    # a yaw uncertainty at the sensor becomes a lateral one at the base 0.9 m behind it
-    assert pose.covariance[1, 1] > loc.covariance[1, 1] or pose.covariance[0, 0] > 0
-    np.testing.assert_allclose(pose.covariance, pose.covariance.T)
+    # errors in the world frame: the base moves with the sensor's rotation error about the
+    # sensor origin, d_base = d_lidar + r x (t_base - t_lidar)
+    a = pose.T_world_base[:3, 3] - loc.T_world_lidar[:3, 3]
+    G = np.eye(6)
+    G[:3, 3:] = -np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    np.testing.assert_allclose(pose.covariance, G @ loc.covariance @ G.T, rtol=1e-9, atol=1e-15)
     assert json.loads(json.dumps(pose.to_dict()))["quality"]["fitness"] == loc.icp.fitness
 
 
