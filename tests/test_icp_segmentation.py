@@ -85,8 +85,7 @@ def test_segment_map_finds_the_objects_and_drops_planar_ones() -> None:
 @settings(deadline=None, max_examples=4)
 @given(st.floats(-np.pi, np.pi), st.lists(st.floats(-20, 20), min_size=3, max_size=3))
 def test_fpfh_is_invariant_to_rigid_motion(yaw: float, t: list[float]) -> None:
-    # noisy points: on exact planes the pair-feature source/target choice is a tie that
-    # rounding decides (as in PCL and Open3D)
+    # noisy points: exactly planar samples put many pair features on histogram bin edges
     pts = sample(yard(), 1500, 3, noise=0.003)
     nrm = estimate_normals(pts, k=15)
     T = make_T(exp_so3([0.1, -0.2, yaw]), t)
