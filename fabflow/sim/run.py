@@ -5,7 +5,9 @@ Physics of a run (all poses 4x4, metres, world frame):
 1. At every visit of the plan the platform parks with the project's driving error
    (:func:`fabflow.localization.parked_pose`): the true base pose ``T_world_base_true``.
 2. The localization method simulates its sensors at that pose and estimates the
-   base: ``T_world_base_est`` with a 6x6 covariance (:class:`BasePose`).
+   base: ``T_world_base_est`` with a 6x6 covariance (:class:`BasePose`). With the
+   ``"covariance"`` fidelity the error of the estimate is drawn from the covariance
+   calibrated per visit instead (see :func:`prepare_study`).
 3. The robot program is computed in the estimated base frame, so a target
    ``T_world_target`` is commanded as ``inv(T_world_base_est) @ T_world_target`` and
    lands at ``T_world_base_true @ inv(T_world_base_est) @ T_world_target``. The same
@@ -329,7 +331,8 @@ def simulate_run(
     keep_poses
         Keep the as-built element poses and the base pose estimates in the result.
     localize
-        Localizer to use instead of :func:`study_localizer` (tests).
+        Localizer to use instead of :func:`study_localizer` (tests; unused with the
+        ``"covariance"`` fidelity).
 
     Raises
     ------
