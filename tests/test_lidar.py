@@ -9,7 +9,7 @@ import trimesh
 from fabflow.design.elements import Element
 from fabflow.errors import InputError
 from fabflow.sim.lidar import HESAI_QT64, LidarModel, simulate_scan
-from fabflow.sim.site_scene import SiteLandmarks, boxes_mesh, site_scene
+from fabflow.sim.site_scene import SiteLandmarks, boxes_mesh, prism_mesh, site_scene
 from fabflow.transforms.se3 import apply_T, make_T
 from fabflow.transforms.so3 import exp_so3
 
@@ -105,3 +105,15 @@ def test_scan_sees_a_built_block() -> None:
     near = np.abs(apply_T(T, with_block.points)[:, 0] - 2.7) < 0.05
     assert near.sum() > 3
     assert (np.abs(apply_T(T, without.points)[:, 0] - 2.7) < 0.05).sum() < near.sum()
+
+
+def test_prism_mesh_of_a_non_convex_polygon() -> None:
+    l_shape = [(0, 0), (2, 0), (2, 1), (1, 1), (1, 2), (0, 2)]
+    mesh = prism_mesh(l_shape, 0.5, 3.5)
+    assert abs(mesh.volume) == pytest.approx(3.0 * 3.0)
+    np.testing.assert_allclose(mesh.bounds, [[0, 0, 0.5], [2, 2, 3.5]])
+    # a ray through the notch of the L passes
+    hits = mesh.ray.intersects_any([[1.5, 1.5, 10.0]], [[0.0, 0.0, -1.0]])
+    assert not hits[0]
+    scene = site_scene(prisms=[(l_shape, 0.5, 3.5)])
+    assert len(scene.faces) == len(site_scene().faces) + len(mesh.faces)

@@ -406,6 +406,7 @@ def simulated_site_map(
     voxel_size: float = 0.03,
     seed: int = 0,
     model: LidarModel | None = None,
+    prisms: tuple[tuple[tuple[tuple[float, float], ...], float, float], ...] = (),
 ) -> ScanMap:
     """A map of the simulated site built from nine simulated scans (cached).
 
@@ -425,12 +426,14 @@ def simulated_site_map(
         Seed of the range noise of the mapping scans.
     model
         The mapping LiDAR (default: the Hesai QT64 model).
+    prisms
+        Polygon obstacles ``(plan polygon, z_min, z_max)`` of the site (metres).
     """
     from fabflow.sim.lidar import HESAI_QT64, simulate_scan
     from fabflow.sim.site_scene import site_scene
 
     rng = np.random.default_rng(seed)
-    scene = site_scene(obstacles=obstacles)
+    scene = site_scene(obstacles=obstacles, prisms=prisms)
     poses = mapping_poses()
     scans = [simulate_scan(scene, T, rng, model or HESAI_QT64) for T in poses]
     points = np.vstack([apply_T(s.T_world_lidar, s.points) for s in scans])
@@ -447,10 +450,21 @@ def simulated_site_map(
 def _project_map(setup: IcpSetup, project: Project) -> ScanMap:
     if setup.map is not None:
         return _cached_file_map(str(setup.map), setup.map_voxel_size)
-    obstacles = tuple(
+    boxes, prisms = _site_obstacles(project)
+    return simulated_site_map(boxes, setup.map_voxel_size, 0, None, prisms)  # type: ignore[arg-type]
+
+
+def _site_obstacles(project: Project) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+    """The project's box and polygon obstacles as hashable tuples."""
+    boxes = tuple(
         (tuple(o.box.min), tuple(o.box.max)) for o in project.site.obstacles if o.box is not None
     )
-    return simulated_site_map(obstacles, setup.map_voxel_size)  # type: ignore[arg-type]
+    prisms = tuple(
+        (tuple(tuple(p) for p in o.polygon.points), o.polygon.z_min, o.polygon.z_max)
+        for o in project.site.obstacles
+        if o.polygon is not None
+    )
+    return boxes, prisms
 
 
 @functools.lru_cache(maxsize=4)
@@ -469,8 +483,8 @@ def localize_station(
     """Simulate LiDAR scan-to-map localization of a parked platform.
 
     The platform's LiDAR (``localization.icp.T_platform_lidar``) scans the
-    simulated site (ground, landmarks, the project's box obstacles and the blocks
-    in ``built``) from the true pose; the scan is localized against the map
+    simulated site (ground, landmarks, the project's box and polygon obstacles and
+    the blocks in ``built``) from the true pose; the scan is localized against the map
     (``localization.icp.map``, or a simulated map of the site without blocks),
     starting from the true pose perturbed by the driving error
     (``simulation.driving_error``, ``simulation.driving_heading_error_deg``), i.e.
@@ -514,8 +528,8 @@ def localize_station(
     T_base_lidar = inv_T(T_platform_base) @ T_platform_lidar
     T_true = np.asarray(T_world_base, dtype=float) @ T_base_lidar
 
-    obstacles = [(o.box.min, o.box.max) for o in project.site.obstacles if o.box is not None]
-    scene = site_scene(built=built, obstacles=obstacles)
+    boxes, prisms = _site_obstacles(project)
+    scene = site_scene(built=built, obstacles=boxes, prisms=prisms)
     scan = simulate_scan(scene, T_true, rng, HESAI_QT64)
 
     sim = project.simulation

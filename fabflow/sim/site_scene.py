@@ -71,6 +71,35 @@ def boxes_mesh(T_world_box: NDArray[np.float64], extents: NDArray[np.float64]) -
     return trimesh.Trimesh(verts.reshape(-1, 3), faces.reshape(-1, 3), process=False)
 
 
+def prism_mesh(points: Sequence[Sequence[float]], z_min: float, z_max: float) -> trimesh.Trimesh:
+    """A vertical prism: a plan polygon (metres, any simple polygon) from ``z_min`` to ``z_max``.
+
+    Caps are the Delaunay triangles of the polygon's vertices that lie inside it
+    (shapely), walls one quad per edge.
+    """
+    from shapely.geometry import Polygon
+    from shapely.ops import triangulate
+
+    xy = np.asarray(points, dtype=float).reshape(-1, 2)
+    poly = Polygon(xy)
+    tris = [t for t in triangulate(poly) if poly.contains(t.representative_point())]
+    cap = np.array([np.asarray(t.exterior.coords)[:3] for t in tris]).reshape(-1, 2)
+    n_cap = len(cap)
+    cap_v = np.vstack([np.c_[cap, np.full(n_cap, z_min)], np.c_[cap, np.full(n_cap, z_max)]])
+    idx = np.arange(n_cap).reshape(-1, 3)
+    cap_f = np.vstack([idx[:, ::-1], idx + n_cap])
+    a, b = xy, np.roll(xy, -1, axis=0)
+    m = len(xy)
+    wall_v = np.vstack(
+        [np.c_[a, np.full(m, z_min)], np.c_[b, np.full(m, z_min)],
+         np.c_[b, np.full(m, z_max)], np.c_[a, np.full(m, z_max)]]
+    )  # fmt: skip
+    k = np.arange(m)
+    quads = np.stack([k, k + m, k + 2 * m, k + 3 * m], axis=1) + len(cap_v)
+    wall_f = np.vstack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    return trimesh.Trimesh(np.vstack([cap_v, wall_v]), np.vstack([cap_f, wall_f]), process=False)
+
+
 def _barrack(x0: float, y0: float) -> list[trimesh.Trimesh]:
     body = box_mesh((x0, y0, 0.0), (x0 + 6.0, y0 + 2.5, 2.6))
     # gable roof ridge along x: a triangular prism
@@ -132,6 +161,7 @@ def site_scene(
     built: Sequence[Element] = (),
     obstacles: Sequence[tuple[Sequence[float], Sequence[float]]] = (),
     landmarks: SiteLandmarks | None = SiteLandmarks(),
+    prisms: Sequence[tuple[Sequence[Sequence[float]], float, float]] = (),
 ) -> trimesh.Trimesh:
     """The simulated site as one mesh in the world frame.
 
@@ -146,6 +176,9 @@ def site_scene(
     landmarks
         Where the ground, barrack, bridge and container go; ``None`` for a scene
         of only ``built`` and ``obstacles``.
+    prisms
+        Extra vertical prisms ``(plan polygon, z_min, z_max)`` (metres), e.g. the
+        project's polygon obstacles.
 
     Returns
     -------
@@ -181,6 +214,8 @@ def site_scene(
         parts += _site_objects(ox, oy)
     for lower, upper in obstacles:
         parts.append(box_mesh(lower, upper))
+    for polygon, z_min, z_max in prisms:
+        parts.append(prism_mesh(polygon, z_min, z_max))
     blocks = [e for e in built if e.extents is not None]
     if blocks:
         parts.append(
