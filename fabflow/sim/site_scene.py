@@ -4,8 +4,8 @@ The scene (world frame, metres, z up, ground at z = 0) holds what paper 000's
 site map shows: flat ground, a site barrack with a pitched roof, a bridge deck on
 round columns, and a site container; compact objects lying around (pallets,
 barrels, a generator, a cable drum: the segments global registration matches);
-plus the project's box obstacles and the
-blocks of the structure built so far (any :class:`~fabflow.design.elements.Element`
+plus the project's box and polygon obstacles and the blocks of the structure
+built so far (any :class:`~fabflow.design.elements.Element`
 with ``extents``). The landmarks sit around the default cabin footprint
 (x 0..4 m, y 0..3.3 m), within 20 m LiDAR range of every station.
 """
