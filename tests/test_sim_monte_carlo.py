@@ -226,3 +226,34 @@ def test_every_run_failing_still_writes_a_complete_report(
     with (tmp_path / "runs.csv").open() as f:
         assert [r["status"] for r in csv.DictReader(f)] == ["failed"] * 3
     assert (tmp_path / "localization_error.png").exists()
+
+
+def test_a_method_that_cannot_be_calibrated_fails_all_its_runs(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import fabflow.sim.report as report
+
+    def refuse(study: Study, n: int) -> np.ndarray:
+        if study.method == "total_station":
+            raise LocalizationError("no clear localization point")
+        return real(study, n)
+
+    real = report.calibrate_covariance
+    monkeypatch.setattr(report, "calibrate_covariance", refuse)
+    rows = simulate_project(
+        load_project(SMALL),
+        tmp_path,
+        4,
+        0,
+        ["uwb", "total_station"],
+        plots=False,
+        fidelity="covariance",
+    )
+    by_method = {r["method"]: r for r in rows}
+    assert by_method["uwb"]["runs_completed"] == 4
+    assert by_method["total_station"]["runs_failed"] == 4
+    summary = json.loads((tmp_path / "total_station" / "summary.json").read_text())
+    assert summary["fidelity"] == "covariance"
+    assert "covariance calibration failed" in summary["failures"][0]["error"]
+    uwb = json.loads((tmp_path / "uwb" / "summary.json").read_text())
+    assert uwb["fidelity"] == "covariance"

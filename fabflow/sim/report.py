@@ -25,24 +25,33 @@ from __future__ import annotations
 import csv
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from fabflow import __version__
-from fabflow.errors import InputError
+from fabflow.errors import InputError, LocalizationError
 from fabflow.output import write_json
 from fabflow.project import LOCALIZATION_METHODS, Project
 from fabflow.sim.monte_carlo import (
     AXES,
+    RunFailure,
     StudyResult,
+    collect,
     comparison_row,
     run_study,
     summarize,
     within_tolerance,
 )
-from fabflow.sim.run import Fidelity, Study, prepare_study
+from fabflow.sim.run import (
+    CALIBRATION_RUNS,
+    Fidelity,
+    Study,
+    calibrate_covariance,
+    prepare_study,
+)
 from fabflow.transforms.so3 import abc_from_matrix
 
 if TYPE_CHECKING:
@@ -306,6 +315,8 @@ def simulate_project(
         Write the PNG plots (matplotlib).
     fidelity
         ``"sensors"`` or ``"covariance"`` (see :func:`fabflow.sim.run.prepare_study`).
+        A method whose calibration fails (it cannot localize at a planned pose) has
+        every run reported failed, with the error; the other methods still run.
 
     Returns
     -------
@@ -315,16 +326,37 @@ def simulate_project(
     from fabflow.design import generate_elements
     from fabflow.tasks.planner import plan_project
 
+    if fidelity not in ("sensors", "covariance"):
+        raise InputError(
+            f"unknown fidelity {fidelity!r}: expected 'sensors' or 'covariance'",
+            location="--fidelity",
+        )
     methods = list(methods or [project.localization.method])
     elements = generate_elements(project)
     plan = plan_project(project, elements)
-    studies = [prepare_study(project, m, elements, plan, fidelity) for m in methods]
+    studies = [prepare_study(project, m, elements, plan) for m in methods]
     rows: list[dict[str, Any]] = []
     summaries: dict[str, Any] = {}
     for study in studies:
         if on_method is not None:
             on_method(study.method)
-        result = run_study(study, n_runs, seed, client, chunk_size, progress)
+        try:
+            if fidelity == "covariance":
+                study = replace(
+                    study,
+                    fidelity="covariance",
+                    visit_covariance=calibrate_covariance(study, CALIBRATION_RUNS),
+                )
+        except LocalizationError as exc:
+            # the method cannot localize at a planned pose: every run of it fails
+            error = f"covariance calibration failed: {type(exc).__name__}: {exc}"
+            failures = [RunFailure(run=r, seed=seed, error=error) for r in range(n_runs)]
+            study = replace(study, fidelity="covariance")
+            result = collect(study, seed, n_runs, failures, 0.0)
+            if progress is not None:
+                progress(n_runs)
+        else:
+            result = run_study(study, n_runs, seed, client, chunk_size, progress)
         folder = out if len(methods) == 1 else out / study.method
         summary = write_study(folder, study, result, plots)
         summaries[study.method] = summary
