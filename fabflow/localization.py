@@ -53,6 +53,46 @@ def method_function(method: str) -> LocalizeStation:
     return module.localize_station
 
 
+def exact_localizer(method: str) -> LocalizeStation:
+    """A localizer without sensor noise: the estimate is the true pose, covariance zero."""
+
+    def localize(
+        project: Project,
+        T_world_base: np.ndarray,
+        rng: np.random.Generator,
+        station_id: str,
+        built: Sequence[Element] = (),
+    ) -> BasePose:
+        return BasePose(
+            T_world_base=np.array(T_world_base, dtype=float),
+            covariance=np.zeros((6, 6)),
+            method=method,
+            station=station_id,
+            quality={"simulated": "exact (simulation.sensor_noise is false)"},
+        )
+
+    return localize
+
+
+def station_localizer(project: Project, method: str) -> LocalizeStation:
+    """The method's ``localize_station``, or :func:`exact_localizer` when the project's
+    ``simulation.sensor_noise`` is off."""
+    if not project.simulation.sensor_noise:
+        return exact_localizer(method)
+    return method_function(method)
+
+
+def localizer_arguments(project: Project, method: str, station: Station) -> dict[str, float]:
+    """Method-specific keyword arguments of ``localize_station`` for a station.
+
+    The LiDAR sits on the platform, below the lifted arm base, so ICP needs the
+    lift height to place it.
+    """
+    if method == "icp" and project.simulation.sensor_noise:
+        return {"lift": station.lift}
+    return {}
+
+
 def parked_pose(
     project: Project, station: Station, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -111,7 +151,8 @@ def localize_plan(
         consecutive work packages at one station (the lift moving between them)
         share the visit's measurement, moved by the known lift travel.
     """
-    localize = method_function(method or project.localization.method)
+    method = method or project.localization.method
+    localize = station_localizer(project, method)
     by_id = {e.id: e for e in elements}
     prebuilt = [e for e in elements if not e.robot_built]
     built_ids: list[str] = []
@@ -135,7 +176,14 @@ def localize_plan(
         else:
             _, T_true = parked_pose(project, wp.station, rng)
             built = prebuilt + [by_id[i] for i in built_ids]
-            estimate = localize(project, T_true, rng, wp.station.id, built=built)
+            estimate = localize(
+                project,
+                T_true,
+                rng,
+                wp.station.id,
+                built=built,
+                **localizer_arguments(project, method, wp.station),
+            )
         results[wp.index] = (estimate, T_true)
         built_ids += list(wp.elements)
         previous = wp

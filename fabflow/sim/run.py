@@ -32,7 +32,12 @@ import numpy as np
 
 from fabflow.design.elements import Element
 from fabflow.errors import InputError
-from fabflow.localization import LocalizeStation, method_function, parked_pose
+from fabflow.localization import (
+    LocalizeStation,
+    localizer_arguments,
+    parked_pose,
+    station_localizer,
+)
 from fabflow.positioning.result import BasePose
 from fabflow.project import LOCALIZATION_METHODS, Project
 from fabflow.tasks.plan import Plan, Station
@@ -214,7 +219,7 @@ def calibrate_covariance(study: Study, n: int) -> np.ndarray:
     out = np.empty((study.n_visits, 6, 6))
     for v, station in enumerate(study.stations):
         T_planned = T_world_base(station, T_platform_base)
-        extra = _extra_arguments(study, station)
+        extra = localizer_arguments(study.project, study.method, station)
         covs = [
             localize(
                 study.project, T_planned, rng, station.id, study.built_before[v], **extra
@@ -227,13 +232,6 @@ def calibrate_covariance(study: Study, n: int) -> np.ndarray:
         C[:, unobserved] = 0.0
         out[v] = 0.5 * (C + C.T)
     return out
-
-
-def _extra_arguments(study: Study, station: Station) -> dict[str, Any]:
-    # the LiDAR sits on the platform, below the lifted base: ICP needs the lift height
-    if study.method == "icp" and study.project.simulation.sensor_noise:
-        return {"lift": station.lift}
-    return {}
 
 
 def _cholesky(C: np.ndarray) -> np.ndarray:
@@ -285,32 +283,9 @@ class RunResult:
     base_poses: tuple[BasePose, ...] = field(default_factory=tuple)
 
 
-def exact_localizer(method: str) -> LocalizeStation:
-    """A localizer without sensor noise: the estimate is the true pose, covariance zero."""
-
-    def localize(
-        project: Project,
-        T_world_base: np.ndarray,
-        rng: np.random.Generator,
-        station_id: str,
-        built: Sequence[Element] = (),
-    ) -> BasePose:
-        return BasePose(
-            T_world_base=np.array(T_world_base, dtype=float),
-            covariance=np.zeros((6, 6)),
-            method=method,
-            station=station_id,
-            quality={"simulated": "exact (simulation.sensor_noise is false)"},
-        )
-
-    return localize
-
-
 def study_localizer(study: Study) -> LocalizeStation:
-    """The method's ``localize_station``, or :func:`exact_localizer` without sensor noise."""
-    if not study.project.simulation.sensor_noise:
-        return exact_localizer(study.method)
-    return method_function(study.method)
+    """The method's ``localize_station``, or an exact one without sensor noise."""
+    return station_localizer(study.project, study.method)
 
 
 def simulate_run(
@@ -357,7 +332,7 @@ def simulate_run(
             rng,
             station.id,
             built=study.built_before[v],
-            **_extra_arguments(study, station),
+            **localizer_arguments(study.project, study.method, station),
         )
         T_est[v] = estimate.T_world_base
         cov[v] = estimate.covariance

@@ -300,6 +300,31 @@ def _embed_rows(M: sparse.csr_matrix, rows: np.ndarray, n_rows: int) -> sparse.c
     return sparse.csr_matrix((coo.data, (rows[coo.row], coo.col)), shape=(n_rows, M.shape[1]))
 
 
+def with_approach_frames(
+    T_frames: np.ndarray, owner: np.ndarray, types: Sequence[str], approach: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Tool frames plus each element's approach pose, which the program also moves to.
+
+    Blocks and print paths are approached from above (world z), task points back
+    along the tool axis (as :mod:`fabflow.tasks.motions` does), ``approach``
+    metres away.
+
+    Returns
+    -------
+    T_frames, owner
+        The frames with one approach frame added per element, sorted by owner.
+    """
+    first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    T_up = T_frames[first].copy()
+    along_tool = np.array([types[i] == "task_point" for i in owner[first]])
+    T_up[:, 2, 3] += np.where(along_tool, 0.0, approach)
+    T_up[:, :3, 3] -= along_tool[:, None] * T_up[:, :3, 2] * approach
+    T_all = np.concatenate([T_frames, T_up])
+    owner_all = np.concatenate([owner, owner[first]])
+    order = np.argsort(owner_all, kind="stable")
+    return T_all[order], owner_all[order]
+
+
 def plan_project(
     project: Project,
     elements: Sequence[Element],
@@ -377,6 +402,9 @@ def plan_project(
     first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
     T_targets = T_frames[first]
     p_target = T_targets[:, :3, 3]
+    T_frames, owner = with_approach_frames(
+        T_frames, owner, [e.type for e in work], project.program.approach
+    )
     tilted = np.unique(owner[T_frames[:, 2, 2] > -math.cos(math.radians(5.0))])
     keep = thin_frames(T_frames[:, :3, 3], owner, max(planning.reach_margin, 0.01))
     T_frames, owner = T_frames[keep], owner[keep]

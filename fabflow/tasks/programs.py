@@ -188,33 +188,82 @@ def solve_moves(
     slowdown = np.ones(n)
     via_q: list[np.ndarray | None] = [None] * n
     via_T: list[np.ndarray | None] = [None] * n
-    branch = -1
-    start = 0
-    for i, wp in enumerate(waypoints):
-        rows = slice(start, stops[i])
-        path = None
-        if wp.kind == "lin" and i > 0:
-            path = _follow_branch(
-                robot, q_all[rows, branch], valid[rows, branch], q_prev, multi_turn, dt[i]
+    starts = np.r_[0, stops[:-1]]
+
+    def follow(i: int, q_prev: np.ndarray, branch: int) -> tuple[np.ndarray, int, float]:
+        """Joint path of linear move ``i`` from ``q_prev`` on IK branch ``branch``."""
+        rows = slice(starts[i], stops[i])
+        path = _follow_branch(
+            robot, q_all[rows, branch], valid[rows, branch], q_prev, multi_turn, dt[i]
+        )
+        if path is not None:
+            return path, branch, 1.0
+        return _step_through(
+            robot,
+            waypoints[i],
+            q_all[rows],
+            valid[rows],
+            q_prev,
+            T_base_flange[rows],
+            T_base_tool[rows],
+            dt=dt[i],
+        )
+
+    # A PTP target and the linear moves after it form a chain: the PTP takes the
+    # fastest configuration from which the whole chain can be followed.
+    i = 0
+    while i < n:
+        end = i + 1
+        while end < n and waypoints[end].kind == "lin":
+            end += 1
+        options = _ptp_options(robot, q_all[stops[i] - 1], valid[stops[i] - 1], q_prev)
+        if not options:
+            raise _fail(
+                waypoints[i],
+                "no inverse kinematics solution within the joint limits",
+                T_base_tool[stops[i] - 1],
             )
-        if path is None:
-            path, branch, slowdown[i] = _step_through(
-                robot,
-                wp,
-                q_all[rows],
-                valid[rows],
-                q_prev,
-                T_base_flange[rows],
-                T_base_tool[rows],
-                dt=dt[i] if wp.kind == "lin" and i > 0 else None,
-            )
-        q_prev = path[-1]
-        q_out[i] = q_prev
-        if len(path) > 1:
-            via_q[i] = path[:-1]
-            via_T[i] = flat[start : stops[i] - 1]
-        start = stops[i]
+        first_error: InfeasibleError | None = None
+        for q_i, branch in options:
+            try:
+                chain = []
+                q_chain = q_i
+                for k in range(i + 1, end):
+                    path, branch, slow = follow(k, q_chain, branch)
+                    chain.append((path, slow))
+                    q_chain = path[-1]
+            except InfeasibleError as error:
+                first_error = first_error or error
+                continue
+            break
+        else:
+            assert first_error is not None
+            raise first_error
+        q_out[i] = q_prev = q_i
+        for k, (path, slow) in zip(range(i + 1, end), chain, strict=True):
+            q_out[k] = q_prev = path[-1]
+            slowdown[k] = slow
+            if len(path) > 1:
+                via_q[k] = path[:-1]
+                via_T[k] = flat[starts[k] : stops[k] - 1]
+        i = end
     return q_out, via_q, via_T, slowdown
+
+
+def _ptp_options(
+    robot: RobotModel, q_branches: np.ndarray, ok: np.ndarray, q_prev: np.ndarray
+) -> list[tuple[np.ndarray, int]]:
+    """Valid configurations of a PTP target with their IK branch, fastest first.
+
+    A PTP's duration is its largest joint travel over that joint's speed limit.
+    """
+    candidates = np.flatnonzero(ok)
+    if len(candidates) == 0:
+        return []
+    turned = _nearest_turn(robot, q_branches[candidates], q_prev)
+    duration = (np.abs(turned - q_prev) / robot.velocity_limits).max(axis=1)
+    order = np.argsort(duration, kind="stable")
+    return [(turned[k], int(candidates[k])) for k in order]
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:
@@ -269,22 +318,21 @@ def _step_through(
     q_prev: np.ndarray,
     T_base_flange: np.ndarray,
     T_base_tool: np.ndarray,
-    dt: float | None,
+    dt: float,
 ) -> tuple[np.ndarray, int, float]:
-    """Choose, sample by sample, the valid configuration nearest the previous one.
+    """Follow a linear move sample by sample, each time taking the valid
+    configuration nearest the previous one.
 
     Handles the places where the branch numbering of the closed-form solver
     swaps, and the wrist singularity, where only the sum of the two aligned
     axes is determined: there the sample is solved again with the previous
-    configuration as reference, which keeps the split continuous. For a
-    linear move (``dt``: seconds per sample at the programmed speed) the joint
-    speeds must stay within the robot's limits: the returned slowdown (>= 1)
-    divides the move's speed so they do. Raises naming the element and target
-    when no configuration continues the motion.
+    configuration as reference, which keeps the split continuous. The joint
+    speeds must stay within the robot's limits (``dt``: seconds per sample at the
+    programmed speed): the returned slowdown (>= 1) divides the move's speed so
+    they do. Raises naming the element and target when no configuration
+    continues the motion.
     """
-    linear = dt is not None
-    # For a PTP the load is its duration at full speed: the fastest configuration wins.
-    rate_limit = robot.velocity_limits * (dt if linear else 1.0)
+    rate_limit = robot.velocity_limits * dt
     path = np.zeros((len(q_rows), robot.dof))
     branch = -1
     slowdown = 1.0
@@ -300,31 +348,30 @@ def _step_through(
         turned = _nearest_turn(robot, q_rows[j, candidates], q_prev)
         load = (np.abs(turned - q_prev) / rate_limit).max(axis=1)
         best = int(np.argmin(load))
-        if linear and load[best] > 1.0:
+        if load[best] > 1.0:
             q_again, ok = robot.ik_batch(T_base_flange[j][None], q_ref=q_prev)
             if ok[0].any():
                 candidates = np.flatnonzero(ok[0])
                 turned = _nearest_turn(robot, q_again[0, candidates], q_prev)
                 load = (np.abs(turned - q_prev) / rate_limit).max(axis=1)
                 best = int(np.argmin(load))
-        if linear:
-            step = np.abs(turned[best] - q_prev)
-            k = int(np.argmax(step / rate_limit))
-            if step[k] > MAX_JOINT_STEP:
-                why = (
-                    f"the linear move to it changes configuration "
-                    f"(joint {k + 1} jumps {np.degrees(step[k]):.0f} deg)"
-                )
-                raise _fail(wp, why, T_base_tool[j])
-            if load[best] > 1.0 / MIN_SPEED_FRACTION:
-                why = (
-                    f"the linear move to it passes too close to a singularity: joint {k + 1} "
-                    f"would need {np.degrees(step[k] / dt * MIN_SPEED_FRACTION):.0f} deg/s at "
-                    f"{MIN_SPEED_FRACTION:.0%} of the speed (limit "
-                    f"{np.degrees(robot.velocity_limits[k]):.0f} deg/s)"
-                )
-                raise _fail(wp, why, T_base_tool[j])
-            slowdown = max(slowdown, float(load[best]))
+        step = np.abs(turned[best] - q_prev)
+        k = int(np.argmax(step / rate_limit))
+        if step[k] > MAX_JOINT_STEP:
+            why = (
+                f"the linear move to it changes configuration "
+                f"(joint {k + 1} jumps {np.degrees(step[k]):.0f} deg)"
+            )
+            raise _fail(wp, why, T_base_tool[j])
+        if load[best] > 1.0 / MIN_SPEED_FRACTION:
+            why = (
+                f"the linear move to it passes too close to a singularity: joint {k + 1} "
+                f"would need {np.degrees(step[k] / dt * MIN_SPEED_FRACTION):.0f} deg/s at "
+                f"{MIN_SPEED_FRACTION:.0%} of the speed (limit "
+                f"{np.degrees(robot.velocity_limits[k]):.0f} deg/s)"
+            )
+            raise _fail(wp, why, T_base_tool[j])
+        slowdown = max(slowdown, float(load[best]))
         q_prev = turned[best]
         path[j] = q_prev
         branch = int(candidates[best])
