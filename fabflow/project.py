@@ -255,7 +255,10 @@ class IcpSetup(StrictModel):
     """Voxel grid the map is downsampled on (metres; paper 002, Table 3)."""
     max_correspondence_distance: PositiveFloat = 0.5
     """Last correspondence distance of the coarse ICP stage; the first is 4 times it."""
-    min_fitness: Annotated[float, Field(gt=0, le=1)] = 0.5
+    min_fitness: Annotated[float, Field(gt=0, le=1)] = 0.25
+    """Required share of scan points matching the map. Low, because from inside the
+    growing structure (not in the map) most of a scan is new; wrong poses are caught by
+    ``min_structure_fitness``."""
     min_structure_fitness: Annotated[float, Field(ge=0, le=1)] = 0.5
     """Required fitness of scan points on walls and columns (not the ground)."""
     max_rmse: PositiveFloat = 0.03
