@@ -89,7 +89,7 @@ def test_localizes_from_half_metre_and_ten_degrees(
 def test_fails_loudly_instead_of_silently_wrong(site_map: ScanMap) -> None:
     T_true = lidar_pose(6.5, 1.0, 30.0)
     scan = simulate_scan(site_scene(), T_true, np.random.default_rng(2))
-    with pytest.raises(LocalizationError, match=r"fitness|correspondences"):
+    with pytest.raises(LocalizationError, match=r"fitness|correspondences|walls"):
         localize_scan(scan.points, site_map, perturb(T_true, [6.0, -5.0, 0, 0, 0, 2.0]))
     # only the ground in view (sensor high above an empty plane): degenerate
     flat = site_scene(built=(), landmarks=None, obstacles=[((-30, -30, -0.1), (30, 30, 0.0))])

@@ -206,7 +206,7 @@ def localize_scan(
     scan_map: ScanMap | IcpTarget,
     T_world_lidar_init: ArrayLike,
     voxel_size: float = 0.05,
-    min_fitness: float = 0.5,
+    min_fitness: float = 0.25,
     max_rmse: float = 0.03,
     coarse_schedule: Sequence[float] | None = COARSE_SCHEDULE,
     fine_schedule: Sequence[float] = FINE_SCHEDULE,
