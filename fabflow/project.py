@@ -263,6 +263,8 @@ class IcpSetup(StrictModel):
     """Required fitness of scan points on walls and columns (not the ground)."""
     max_rmse: PositiveFloat = 0.03
     """Largest accepted inlier RMSE (metres)."""
+    map_as_built: bool = True
+    """Add the blocks built so far (at their design poses) to the map before localizing."""
 
 
 class Localization(StrictModel):

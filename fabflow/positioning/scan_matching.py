@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import trimesh
 from numpy.typing import ArrayLike, NDArray
 
 from fabflow.errors import InputError, LocalizationError
@@ -454,6 +455,39 @@ def _project_map(setup: IcpSetup, project: Project) -> ScanMap:
     return simulated_site_map(boxes, setup.map_voxel_size, 0, None, prisms)  # type: ignore[arg-type]
 
 
+def with_as_built(scan_map: ScanMap, built: Sequence[Element], rng: np.random.Generator) -> ScanMap:
+    """The map plus the surfaces of the blocks built so far, at their design poses.
+
+    From inside a growing structure most of a scan sees new blocks, which the site
+    map does not hold; adding them (sampled on the map's voxel grid, with their
+    face normals) keeps the fitness up and removes the pull of unmatched block
+    points on nearby map surfaces. The blocks stand where the design puts them:
+    placement errors of real blocks (within tolerance) become map errors.
+    """
+    from fabflow.sim.site_scene import boxes_mesh
+
+    blocks = [e for e in built if e.extents is not None]
+    if not blocks:
+        return scan_map
+    mesh = boxes_mesh(
+        np.stack([e.T_world_element for e in blocks]),
+        np.stack([np.asarray(e.extents, dtype=float) for e in blocks]),
+    )
+    n = int(np.ceil(mesh.area / scan_map.voxel_size**2))
+    pts, face = trimesh.sample.sample_surface(mesh, n, seed=int(rng.integers(2**31)))
+    merged = map_from_points(
+        np.vstack([scan_map.points, np.asarray(pts, dtype=float)]),
+        scan_map.voxel_size,
+        np.vstack([scan_map.normals, mesh.face_normals[face]]),
+    )
+    return ScanMap(
+        target=merged.target,
+        coarse=merged.coarse,
+        voxel_size=scan_map.voxel_size,
+        T_world_scans=scan_map.T_world_scans,
+    )
+
+
 def _site_obstacles(project: Project) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
     """The project's box and polygon obstacles as hashable tuples."""
     boxes = tuple(
@@ -488,7 +522,9 @@ def localize_station(
     (``localization.icp.map``, or a simulated map of the site without blocks),
     starting from the true pose perturbed by the driving error
     (``simulation.driving_error``, ``simulation.driving_heading_error_deg``), i.e.
-    from where the platform was meant to park.
+    from where the platform was meant to park. With ``localization.icp.map_as_built``
+    (default) the blocks in ``built`` are added to the map at their design poses
+    (:func:`with_as_built`).
 
     Parameters
     ----------
@@ -540,9 +576,12 @@ def localize_station(
     T_world_platform = np.asarray(T_world_base, dtype=float) @ inv_T(T_platform_base)
     T_init = perturb(T_world_platform, err) @ T_platform_lidar
 
+    scan_map = _project_map(setup, project)
+    if setup.map_as_built:
+        scan_map = with_as_built(scan_map, built, rng)
     loc = localize_scan(
         scan.points,
-        _project_map(setup, project),
+        scan_map,
         T_init,
         voxel_size=setup.voxel_size,
         min_fitness=setup.min_fitness,
@@ -557,7 +596,13 @@ def localize_station(
         loc,
         T_base_lidar,
         station=station_id,
-        quality={"n_scan_points": len(scan), "map": str(setup.map) if setup.map else "simulated"},
+        quality={
+            "n_scan_points": len(scan),
+            "map": str(setup.map) if setup.map else "simulated",
+            "map_as_built_blocks": sum(e.extents is not None for e in built)
+            if setup.map_as_built
+            else 0,
+        },
     )
 
 
