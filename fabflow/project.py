@@ -497,7 +497,7 @@ class Planning(StrictModel):
     headings_deg: Annotated[list[float], Field(min_length=1)] = [0.0, 90.0, 180.0, 270.0]
     lift_step: PositiveFloat = 0.25
     """Spacing of the lift heights the planner considers (metres)."""
-    reach_margin: NonNegativeFloat = 0.05
+    reach_margin: NonNegativeFloat = 0.08
     """Every target stays this far inside the arm's reach (metres), for parking error."""
     start: Vec2 | None = None
     """Where the platform enters the site; the tour starts near it (default: extent_min)."""

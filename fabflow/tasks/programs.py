@@ -197,7 +197,7 @@ def solve_moves(
             robot, q_all[rows, branch], valid[rows, branch], q_prev, multi_turn, dt[i]
         )
         if path is not None:
-            return path, branch, 1.0
+            return path[0], branch, path[1]
         return _step_through(
             robot,
             waypoints[i],
@@ -277,10 +277,11 @@ def _nearest_turn(robot: RobotModel, q: np.ndarray, q_ref: np.ndarray) -> np.nda
     The shortest-angle turn is tried first; candidates it puts outside the
     limits are left to the robot model's general rule.
     """
-    multi_turn = np.diff(robot.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
+    lo, hi = robot.joint_limits[:, 0], robot.joint_limits[:, 1]
+    multi_turn = hi - lo > 2.0 * np.pi
     turned = q.copy()
     turned[:, multi_turn] = q_ref[multi_turn] + _wrap(q[:, multi_turn] - q_ref[multi_turn])
-    outside = ~robot.within_limits(turned)
+    outside = ((turned < lo - 1e-9) | (turned > hi + 1e-9)).any(axis=1)
     if outside.any():
         turned[outside] = robot.nearest_turn(q[outside], q_ref)
     return turned
@@ -293,8 +294,9 @@ def _follow_branch(
     q_prev: np.ndarray,
     multi_turn: np.ndarray,
     dt: float,
-) -> np.ndarray | None:
-    """The joint path along one IK branch, or None when it leaves limits or is too fast.
+) -> tuple[np.ndarray, float] | None:
+    """The joint path along one IK branch and its slowdown, or None when the branch
+    leaves the limits, jumps, or would need more than the allowed slowdown.
 
     The fast path for linear moves: consecutive samples are one controller step
     apart (``dt`` seconds at the programmed speed), so joints with more than one
@@ -304,10 +306,13 @@ def _follow_branch(
         return None
     steps = np.diff(np.vstack([q_prev, q_branch]), axis=0)
     steps[:, multi_turn] = _wrap(steps[:, multi_turn])
-    if (np.abs(steps) > robot.velocity_limits * dt).any():
+    if np.abs(steps).max() > MAX_JOINT_STEP:
+        return None
+    slowdown = max(1.0, float((np.abs(steps) / (robot.velocity_limits * dt)).max()))
+    if slowdown > 1.0 / MIN_SPEED_FRACTION:
         return None
     path = q_prev + np.cumsum(steps, axis=0)
-    return path if robot.within_limits(path).all() else None
+    return (path, slowdown) if robot.within_limits(path).all() else None
 
 
 def _step_through(
