@@ -11,7 +11,7 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
@@ -20,6 +20,9 @@ from rich.table import Table
 
 from fabflow import __version__
 from fabflow.errors import FabflowError
+
+if TYPE_CHECKING:
+    from fabflow.project import Project
 
 app = typer.Typer(
     name="fabflow",
@@ -104,6 +107,18 @@ def print_summary(rows: list[tuple[str, str, str]], title: str) -> None:
     console.print(table)
 
 
+def run_stages(project: Project, out: Path, command: str, until: str | None = None) -> None:
+    """Run the build stages (up to ``until``) with a status line, then print the summary."""
+    from fabflow.pipeline import run_build
+
+    with console.status(command) as status:
+        ctx = run_build(
+            project, out, on_stage=lambda name: status.update(f"stage: {name}"), until=until
+        )
+    print_summary(ctx.summary, title=f"fabflow {command}: {project.name}")
+    console.print(f"[green]wrote[/] {Path(out).resolve()}")
+
+
 @app.command()
 @user_errors
 def build(
@@ -111,14 +126,9 @@ def build(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
 ) -> None:
     """Run every stage on a project and write the results under OUT."""
-    from fabflow.pipeline import run_build
     from fabflow.project import load_project
 
-    p = load_project(project)
-    with console.status("building") as status:
-        ctx = run_build(p, out, on_stage=lambda name: status.update(f"stage: {name}"))
-    print_summary(ctx.summary, title=f"fabflow build: {p.name}")
-    console.print(f"[green]wrote[/] {Path(out).resolve()}")
+    run_stages(load_project(project), out, "build")
 
 
 @app.command()
@@ -155,7 +165,6 @@ def program(
     ] = None,
 ) -> None:
     """Write one robot program per work package under OUT/programs (plans and localizes first)."""
-    from fabflow.pipeline import run_build
     from fabflow.project import load_project
     from fabflow.tasks.programs import check_format
 
@@ -163,12 +172,7 @@ def program(
     if fmt is not None:
         check_format(fmt, p.robot.model)
         p = p.model_copy(update={"program": p.program.model_copy(update={"format": fmt})})
-    with console.status("writing programs") as status:
-        ctx = run_build(
-            p, out, on_stage=lambda name: status.update(f"stage: {name}"), until="program"
-        )
-    print_summary(ctx.summary, title=f"fabflow program: {p.name}")
-    console.print(f"[green]wrote[/] {Path(out).resolve() / 'programs'}")
+    run_stages(p, out, "program", until="program")
 
 
 @localize_app.command("total-station")
