@@ -4,12 +4,17 @@ A run writes into a fresh staging folder beside the destination; only when the
 whole run has completed is the staging folder swapped into place. A run that
 fails leaves the destination exactly as it was before (absent, or holding the
 previous complete result) and removes its staging folder.
+
+fabflow only ever replaces a folder it wrote itself (it carries the marker file
+:data:`MARKER`) or an empty one: pointing ``-o`` at a project folder or a home
+directory is refused, never wiped.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -17,6 +22,24 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from fabflow.errors import InputError
+
+MARKER = ".fabflow-output"
+"""File in every output folder fabflow writes; only such folders are replaced."""
+
+
+def _check_destination(out: Path) -> None:
+    if out.name in ("", ".", "..") or out.resolve() == Path(out.resolve().anchor):
+        raise InputError("choose a named output folder, not the current or root folder", out)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", out)
+    if out.is_dir() and any(out.iterdir()) and not (out / MARKER).exists():
+        raise InputError(
+            "output folder exists, is not empty and was not written by fabflow; "
+            "choose another folder or remove it first (fabflow only replaces its own outputs)",
+            out,
+        )
 
 
 @contextlib.contextmanager
@@ -27,33 +50,52 @@ def atomic_output_dir(out: str | Path) -> Iterator[Path]:
     ----------
     out
         The destination folder. Its parent is created if needed. An existing
-        ``out`` is replaced only after the block has finished without error.
+        ``out`` is replaced only after the block has finished without error, and
+        only if it is empty or an earlier fabflow output.
 
     Yields
     ------
     Path
         An empty folder on the same file system as ``out``; write everything there.
+
+    Raises
+    ------
+    InputError
+        When ``out`` cannot be used (a file, a foreign non-empty folder, not
+        writable).
     """
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if out.exists() and not out.is_dir():
-        from fabflow.errors import InputError
-
-        raise InputError("output path exists and is not a folder", source=out)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
+    _check_destination(out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder: {exc.strerror or exc}", out) from None
+    # mkdtemp makes a private folder; give the result the usual permissions.
+    umask = os.umask(0)
+    os.umask(umask)
+    staging.chmod(0o777 & ~umask)
+    (staging / MARKER).write_text("written by fabflow; replaced by the next run\n")
     try:
         yield staging
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    previous = None
-    if out.exists():
-        previous = Path(tempfile.mkdtemp(prefix=f".{out.name}.previous-", dir=out.parent))
-        previous.rmdir()
-        out.rename(previous)
-    staging.rename(out)
-    if previous is not None:
-        shutil.rmtree(previous, ignore_errors=True)
+        previous = None
+        if out.exists():
+            previous = Path(tempfile.mkdtemp(prefix=f".{out.name}.previous-", dir=out.parent))
+            previous.rmdir()
+            out.rename(previous)
+        try:
+            staging.rename(out)
+        except OSError as exc:
+            if previous is not None:
+                previous.rename(out)
+            raise InputError(
+                f"cannot move the results into place: {exc.strerror or exc}", out
+            ) from None
+        if previous is not None:
+            shutil.rmtree(previous, ignore_errors=True)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
 
 
 def _json_default(obj: Any) -> Any:

@@ -10,7 +10,7 @@ from conftest import PROJECTS, ROOT
 
 from fabflow import pipeline
 from fabflow.errors import InfeasibleError
-from fabflow.output import atomic_output_dir
+from fabflow.output import MARKER, atomic_output_dir
 from fabflow.pipeline import run_build
 from fabflow.project import load_project
 
@@ -106,12 +106,36 @@ def test_atomic_output_keeps_previous_result_on_failure(tmp_path, monkeypatch) -
 
 def test_atomic_output_replaces_whole_folder(tmp_path) -> None:
     out = tmp_path / "out"
-    out.mkdir()
-    (out / "stale.txt").write_text("old")
+    with atomic_output_dir(out) as staging:
+        (staging / "stale.txt").write_text("old")
     with atomic_output_dir(out) as staging:
         (staging / "new.txt").write_text("new")
         assert not (out / "new.txt").exists(), "nothing appears before completion"
-    assert sorted(p.name for p in out.iterdir()) == ["new.txt"]
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "new.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_foreign_folder_is_never_replaced(cli, tmp_path) -> None:
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    result = cli("plan", str(PROJECTS / "cabin"), "-o", str(out))
+    assert result.returncode == 2
+    assert "not written by fabflow" in result.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine"]
+
+
+@pytest.mark.parametrize("where", ["/", "file.txt/below"])
+def test_unusable_output_paths_exit_2(cli, tmp_path, where) -> None:
+    (tmp_path / "file.txt").write_text("x")
+    target = where if where == "/" else str(tmp_path / where)
+    result = cli("validate", str(PROJECTS / "cabin"))
+    assert result.returncode == 0
+    result = cli("plan", str(PROJECTS / "cabin"), "-o", target)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert (tmp_path / "file.txt").read_text() == "x"
 
 
 def test_output_path_that_is_a_file(cli, tmp_path) -> None:

@@ -282,11 +282,15 @@ def test_krl_header_and_structure(kuka_program: Program) -> None:
     assert src.startswith("&ACCESS RVP\n&REL 1\nDEF writer_test_S1( )\n")
     assert "BAS (#INITMOV,0)" in src
     assert "; station: S1" in src
-    # every output switch is preceded by CONTINUE so the advance run keeps blending
+    # every output switch follows an exact stop, and is not advanced with CONTINUE
     lines = src.splitlines()
     for i, line in enumerate(lines):
         if line.startswith("$OUT["):
-            assert lines[i - 1] == "CONTINUE"
+            motion = next(m for m in reversed(lines[:i]) if m.startswith(("PTP", "LIN")))
+            assert "C_DIS" not in motion and "C_PTP" not in motion, motion
+    assert "CONTINUE" not in src
+    assert all("C_DIS" not in m for m in lines if m.startswith("PTP"))
+    assert any(m.startswith("PTP") and "C_PTP" in m for m in lines)
     assert "FOLD" not in src
 
 

@@ -5,9 +5,13 @@ Units at this edge: millimetres and degrees; ``A B C`` with R = Rz(A) Ry(B) Rx(C
 ``$TOOL`` the tool centre point in the flange frame; both are declared as FRAMEs
 in the ``.dat``. PTP targets are E6POS with status and turn bits from the joint
 configuration inverse kinematics chose, so the controller takes the same
-configuration. Outputs are switched with ``CONTINUE`` so the advance run does
-not stop and blending is kept. Programs longer than ``max_moves`` motions are
-split into sub-programs, each its own module, called from the main module.
+configuration. PTP moves are approximated with ``C_PTP`` (``$APO.CPTP``),
+linear moves with ``C_DIS`` (``$APO.CDIS``). Every output switch follows a
+motion that stops exactly at its point (grip, release, extruder on and off), and
+is written without ``CONTINUE``: the advance run waits, so the output switches
+when the robot is there, not up to ``$ADVANCE`` motions early. Programs longer
+than ``max_moves`` motions are split into sub-programs, each its own module,
+called from the main module.
 """
 
 from __future__ import annotations
@@ -21,6 +25,9 @@ from fabflow.transforms.so3 import abc_from_matrix
 
 MAX_NAME = 24
 """KRL identifiers and module names have at most 24 characters."""
+
+PTP_APPROXIMATION_PERCENT = 10
+"""``$APO.CPTP``: how early an approximated PTP move leaves its point (percent)."""
 
 
 def kuka_frame_values(T: np.ndarray) -> np.ndarray:
@@ -67,7 +74,7 @@ def _module_text(
             src.append(f"; {ins.text}")
         elif isinstance(ins, SetOutput):
             number = program.outputs[ins.name]
-            src += ["CONTINUE", f"$OUT[{number}] = {'TRUE' if ins.value else 'FALSE'}"]
+            src.append(f"$OUT[{number}] = {'TRUE' if ins.value else 'FALSE'}")
         elif isinstance(ins, Wait):
             src.append(f"WAIT SEC {_num(ins.seconds, 3)}")
         else:
@@ -81,9 +88,14 @@ def _module_text(
                 src.append(f"$VEL.CP = {_num(ins.speed, 4)}")
                 current_speed = ins.speed
             if ins.blend > 0 and ins.blend != current_blend:
-                src.append(f"$APO.CDIS = {_num(ins.blend * 1000.0, 3)}")
+                src += [
+                    f"$APO.CDIS = {_num(ins.blend * 1000.0, 3)}",
+                    f"$APO.CPTP = {PTP_APPROXIMATION_PERCENT}",
+                ]
                 current_blend = ins.blend
-            approx = " C_DIS" if ins.blend > 0 else ""
+            approx = ""
+            if ins.blend > 0:
+                approx = " C_PTP" if ins.kind == "ptp" else " C_DIS"
             if ins.kind == "ptp":
                 st = f",S {status[n]},T {turn[n]}"
                 dat.append(f"DECL E6POS {point}={{{_frame(values[n])}{st}}}")

@@ -47,6 +47,9 @@ SPEEDS_MM_S = (
 )
 """The predefined ``speeddata`` (``v5`` ... ``v7000``)."""
 
+PTP_TCP_SPEED = 2.0
+"""TCP speed (m/s) a PTP speed fraction of 1 stands for in ``MoveJ``."""
+
 ZONES_MM = (0, 1, 5, 10, 15, 20, 30, 40, 50, 60, 80, 100, 150, 200)
 """The predefined ``zonedata`` (``z0`` ... ``z200``; 0 blending is ``fine``)."""
 
@@ -93,8 +96,10 @@ def _pose(T: np.ndarray) -> str:
 
 
 def _speed(speed: float) -> str:
-    mm_s = speed * 1000.0
-    return "v" + str(min(SPEEDS_MM_S, key=lambda v: abs(v - mm_s)))
+    """The fastest predefined ``speeddata`` not above ``speed`` (m/s): never faster
+    than the inverse kinematics check allowed."""
+    mm_s = speed * 1000.0 + 1e-6
+    return "v" + str(max((v for v in SPEEDS_MM_S if v <= mm_s), default=SPEEDS_MM_S[0]))
 
 
 def _zone(blend: float) -> str:
@@ -152,7 +157,7 @@ def write_rapid(program: Program, shoulder_x: float = 0.175) -> dict[str, str]:
                 f"[{','.join(str(c) for c in conf)}],[9E9,9E9,9E9,9E9,9E9,9E9]];"
             )
             instr = "MoveJ" if ins.kind == "ptp" else "MoveL"
-            speed = "v1000" if ins.kind == "ptp" else _speed(ins.speed)
+            speed = _speed(PTP_TCP_SPEED * ins.speed if ins.kind == "ptp" else ins.speed)
             comment = f" ! {ins.element} {ins.label}".rstrip() if ins.element else ""
             body.append(
                 f"    {instr} {point}, {speed}, {_zone(ins.blend)}, {tool}\\WObj:=wobj_world;"

@@ -36,21 +36,24 @@ def _p(T: np.ndarray) -> str:
     return "p[" + ", ".join(_num(v) for v in ur_pose_values(T)) + "]"
 
 
-def write_urscript(program: Program, max_joint_speed: float = 1.0) -> dict[str, str]:
+def write_urscript(program: Program) -> dict[str, str]:
     """URScript for a program.
 
     Parameters
     ----------
     program
         The program (frames in metres and radians).
-    max_joint_speed
-        Joint speed (rad/s) that a ``ptp`` speed fraction of 1 stands for.
 
     Returns
     -------
     dict[str, str]
         ``{"name.script": text}``.
     """
+    from fabflow.robots import get_robot
+
+    # movej takes one joint speed: a PTP speed fraction of 1 stands for the
+    # slowest joint's limit, as in the program's timing.
+    max_joint_speed = float(get_robot(program.robot).velocity_limits.min())
     name = _sanitize(program.name, 63).lower()
     lines = [f"def {name}():"]
     lines += [f"  # {k}: {v}" for k, v in program.header.items()]

@@ -446,7 +446,8 @@ def compile_program(
         elif step.kind == "ptp":
             duration = float(np.max(np.abs(q[k] - q[k - 1]) / (robot.velocity_limits * speed)))
         else:
-            duration = max(dist[k - 1] / speed, angle[k - 1] / TOOL_ROTATION_SPEED) * slowdown[k]
+            duration = max(dist[k - 1] / step.speed, angle[k - 1] / TOOL_ROTATION_SPEED)
+            duration *= slowdown[k]
         t += duration
         instructions.append(
             Move(
