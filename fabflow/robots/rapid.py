@@ -11,12 +11,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from fabflow.errors import UnsupportedError
+from fabflow.robots.catalog import IRB4600_60_205_OPW
+from fabflow.robots.opw import OPWParameters
 from fabflow.robots.program import Comment, Move, Program, SetOutput, Wait
 from fabflow.robots.program import sanitize_identifier as _sanitize
 from fabflow.transforms.so3 import quat_from_matrix
 
 MAX_NAME = 32
 """RAPID identifiers have at most 32 characters."""
+
+ARM_GEOMETRY = {"abb_irb4600_60_205": IRB4600_60_205_OPW}
+"""Geometry of the ABB arms, for the ``confdata`` flags."""
 
 SPEEDS_MM_S = (
     5,
@@ -60,27 +66,34 @@ def abb_pose_values(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return T[..., :3, 3] * 1000.0, quat_from_matrix(T[..., :3, :3])
 
 
-def confdata(q: np.ndarray, T_base_flange: np.ndarray, shoulder_x: float) -> tuple[int, ...]:
+def confdata(q: np.ndarray, T_base_flange: np.ndarray, arm: OPWParameters) -> tuple[int, ...]:
     """ABB ``confdata`` [cf1, cf4, cf6, cfx] for a 6-axis configuration.
 
     cf1, cf4, cf6 are the quadrants (``floor(q / 90 deg)``) of axes 1, 4 and 6.
-    cfx packs three flags: 4 when the wrist centre is behind axis 1, 2 when it is
-    behind the lower arm (elbow down), 1 when axis 5 is negative.
+    cfx packs three flags, as ABB's table orders them: 4 when the wrist centre is
+    behind axis 1, 2 when it is behind the lower arm (the line from axis 2 to
+    axis 3, seen in the arm's plane), 1 when axis 5 is negative.
 
     Parameters
     ----------
     q
-        Joint angles in radians.
+        Joint angles in radians (ABB controller values).
     T_base_flange
-        The flange pose at ``q`` (base frame, metres), for the wrist centre.
-    shoulder_x
-        Distance of axis 2 from axis 1 (metres).
+        The flange pose at ``q`` (base frame, metres).
+    arm
+        The arm's geometry: axis 2 offset and height, lower arm length, wrist
+        centre to flange.
     """
     cf1, cf4, cf6 = (int(np.floor(np.degrees(q[i]) / 90.0)) for i in (0, 3, 5))
-    wrist = T_base_flange[:3, 3]
-    heading = np.array([np.cos(q[0]), np.sin(q[0])])
-    behind_axis1 = float(wrist[:2] @ heading) < 0.0
-    behind_lower_arm = float(wrist[:2] @ heading) < shoulder_x if not behind_axis1 else False
+    wrist = T_base_flange[:3, 3] - arm.c4 * T_base_flange[:3, 2]
+    heading = np.array([np.cos(q[0]), np.sin(q[0]), 0.0])
+    forward = float(wrist @ heading)
+    behind_axis1 = forward < 0.0
+    # In the arm's plane (forward, up): axis 2 at (a1, c1), axis 3 along the lower arm.
+    axis2 = np.array([arm.a1, arm.c1])
+    lower_arm = np.array([np.sin(q[1]), np.cos(q[1])])
+    to_wrist = np.array([forward, wrist[2]]) - axis2
+    behind_lower_arm = lower_arm[0] * to_wrist[1] - lower_arm[1] * to_wrist[0] > 0.0
     cfx = 4 * behind_axis1 + 2 * behind_lower_arm + 1 * bool(q[4] < 0.0)
     return cf1, cf4, cf6, cfx
 
@@ -108,15 +121,13 @@ def _zone(blend: float) -> str:
     return "z" + str(min(ZONES_MM[1:], key=lambda v: abs(v - blend * 1000.0)))
 
 
-def write_rapid(program: Program, shoulder_x: float = 0.175) -> dict[str, str]:
+def write_rapid(program: Program) -> dict[str, str]:
     """RAPID module for a program.
 
     Parameters
     ----------
     program
         The program (frames in metres and radians).
-    shoulder_x
-        Offset of axis 2 from axis 1 (metres), for the ``cfx`` flags.
 
     Returns
     -------
@@ -126,6 +137,11 @@ def write_rapid(program: Program, shoulder_x: float = 0.175) -> dict[str, str]:
     from fabflow.robots import get_robot
 
     robot = get_robot(program.robot)
+    arm = ARM_GEOMETRY.get(program.robot)
+    if arm is None:
+        raise UnsupportedError(
+            f"RAPID programs need an ABB arm's geometry; '{program.robot}' has none"
+        )
     name = _sanitize(program.name, MAX_NAME)
     tool = _sanitize(f"t_{program.tool_name}", MAX_NAME)
     lines = [f"MODULE {name}"]
@@ -149,7 +165,7 @@ def write_rapid(program: Program, shoulder_x: float = 0.175) -> dict[str, str]:
             body.append(f"    WaitTime {_num(ins.seconds, 3)};")
         else:
             assert isinstance(ins, Move)
-            conf = confdata(ins.q, flanges[n], shoulder_x)
+            conf = confdata(ins.q, flanges[n], arm)
             n += 1
             point = f"p{n}"
             lines.append(
