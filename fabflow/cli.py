@@ -22,6 +22,7 @@ from fabflow import __version__
 from fabflow.errors import FabflowError
 
 if TYPE_CHECKING:
+    from fabflow.positioning.result import BasePose
     from fabflow.project import Project
 
 app = typer.Typer(
@@ -175,6 +176,40 @@ def program(
     run_stages(p, out, "program", until="program")
 
 
+def report_base_pose(pose: BasePose, out: Path, method: str, rows: list[tuple[str, str]]) -> None:
+    """Write ``OUT/base_pose.json`` atomically and print the pose with its uncertainty.
+
+    Parameters
+    ----------
+    pose
+        The localization result.
+    out
+        Output folder.
+    method
+        Name shown in the summary (``uwb``, ``total-station``, ``icp``).
+    rows
+        Method-specific ``(item, value)`` rows shown first.
+    """
+    import numpy as np
+
+    from fabflow.output import atomic_output_dir
+
+    with atomic_output_dir(out) as staging:
+        pose.write(staging / "base_pose.json")
+    T = pose.T_world_base
+    sd = np.sqrt(np.diag(pose.covariance))
+    rows = [
+        *rows,
+        ("position (m)", ", ".join(f"{v:.4f}" for v in T[:3, 3])),
+        ("heading (deg)", f"{np.degrees(np.arctan2(T[1, 0], T[0, 0])):.4f}"),
+        ("sigma xyz (mm)", ", ".join(f"{1e3 * v:.2f}" for v in sd[:3])),
+        ("sigma heading (deg)", f"{np.degrees(sd[5]):.4f}"),
+        ("rmse (mm)", f"{1e3 * pose.rmse:.2f}"),
+    ]
+    print_summary([(method, i, v) for i, v in rows], title=f"fabflow localize {method}")
+    console.print(f"[green]wrote[/] {(Path(out) / 'base_pose.json').resolve()}")
+
+
 @localize_app.command("total-station")
 @user_errors
 def localize_total_station(
@@ -220,9 +255,7 @@ def localize_total_station(
     station: Annotated[str | None, typer.Option(help="Station id stored in the result.")] = None,
 ) -> None:
     """Localize the robot base from total station readings of prisms on the robot."""
-    import numpy as np
 
-    from fabflow.output import atomic_output_dir
     from fabflow.positioning.total_station import localize_files
     from fabflow.project import load_project
 
@@ -244,24 +277,13 @@ def localize_total_station(
         robot=robot,
         tcp_xyz=tcp_xyz,
     )
-    with atomic_output_dir(out) as staging:
-        pose.write(staging / "base_pose.json")
-    T = pose.T_world_base
-    sd = np.sqrt(np.diag(pose.covariance))
     q = pose.quality
-    rows = [
-        ("total-station", "points used", f"{q['n_inliers']} of {q['n_points']}"),
-        ("total-station", "position (m)", ", ".join(f"{v:.4f}" for v in T[:3, 3])),
-        ("total-station", "heading (deg)", f"{np.degrees(np.arctan2(T[1, 0], T[0, 0])):.4f}"),
-        ("total-station", "sigma xyz (mm)", ", ".join(f"{1e3 * v:.2f}" for v in sd[:3])),
-        ("total-station", "rmse (mm)", f"{1e3 * pose.rmse:.2f}"),
-    ]
+    rows = [("points used", f"{q['n_inliers']} of {q['n_points']}")]
     test = q.get("outlier_test")
     if test is not None and test["flagged"]:
         bad = q["point_ids"][test["index"]]
-        rows.append(("total-station", "bad reading", f"{bad} (p = {test['p_value']:.2g})"))
-    print_summary(rows, title="fabflow localize total-station")
-    console.print(f"[green]wrote[/] {(Path(out) / 'base_pose.json').resolve()}")
+        rows.append(("bad reading", f"{bad} (p = {test['p_value']:.2g})"))
+    report_base_pose(pose, out, "total-station", rows)
 
 
 @localize_app.command("uwb")
@@ -278,30 +300,15 @@ def localize_uwb(
     ] = None,
 ) -> None:
     """Localize the robot base from UWB ranges (and an IMU); writes OUT/base_pose.json."""
-    import numpy as np
 
-    from fabflow.output import atomic_output_dir
     from fabflow.positioning.uwb_io import localize_from_files
 
     pose = localize_from_files(ranges, anchors, imu)
-    with atomic_output_dir(out) as staging:
-        pose.write(staging / "base_pose.json")
-    T = pose.T_world_base
-    sd = np.sqrt(np.diag(pose.covariance))
     q = pose.quality
-    rows = [
-        ("uwb", "estimator", str(q["estimator"])),
-        ("uwb", "ranges", str(q["n_ranges"])),
-        ("uwb", "position (m)", ", ".join(f"{v:.4f}" for v in T[:3, 3])),
-        ("uwb", "heading (deg)", f"{np.degrees(np.arctan2(T[1, 0], T[0, 0])):.3f}"),
-        ("uwb", "sigma xyz (mm)", ", ".join(f"{1e3 * v:.1f}" for v in sd[:3])),
-        ("uwb", "sigma heading (deg)", f"{np.degrees(sd[5]):.3f}"),
-        ("uwb", "rmse (mm)", f"{1e3 * pose.rmse:.1f}"),
-    ]
+    rows = [("estimator", str(q["estimator"])), ("ranges", str(q["n_ranges"]))]
     if q.get("unobserved"):
-        rows.append(("uwb", "not observed", ", ".join(q["unobserved"])))
-    print_summary(rows, title="fabflow localize uwb")
-    console.print(f"[green]wrote[/] {(Path(out) / 'base_pose.json').resolve()}")
+        rows.append(("not observed", ", ".join(q["unobserved"])))
+    report_base_pose(pose, out, "uwb", rows)
 
 
 @localize_app.command("icp")
@@ -323,9 +330,7 @@ def localize_icp(
     station: Annotated[str | None, typer.Option(help="Station id stored in the result.")] = None,
 ) -> None:
     """Localize the robot base by ICP of a LiDAR scan against a map; writes OUT/base_pose.json."""
-    import numpy as np
 
-    from fabflow.output import atomic_output_dir
     from fabflow.positioning.scan_matching import localize_files, parse_init
     from fabflow.project import load_project
 
@@ -337,22 +342,12 @@ def localize_icp(
         lift=lift,
         station=station,
     )
-    with atomic_output_dir(out) as staging:
-        pose.write(staging / "base_pose.json")
-    T = pose.T_world_base
-    sd = np.sqrt(np.diag(pose.covariance))
     q = pose.quality
     rows = [
-        ("icp", "scan points", f"{q['n_points']} used of {q['n_scan_points']}"),
-        ("icp", "fitness", f"{q['fitness']:.3f} (structure {q['structure_fitness']:.3f})"),
-        ("icp", "inlier rmse (mm)", f"{1e3 * pose.rmse:.2f}"),
-        ("icp", "position (m)", ", ".join(f"{v:.4f}" for v in T[:3, 3])),
-        ("icp", "heading (deg)", f"{np.degrees(np.arctan2(T[1, 0], T[0, 0])):.4f}"),
-        ("icp", "sigma xyz (mm)", ", ".join(f"{1e3 * v:.3f}" for v in sd[:3])),
-        ("icp", "sigma heading (deg)", f"{np.degrees(sd[5]):.4f}"),
+        ("scan points", f"{q['n_points']} used of {q['n_scan_points']}"),
+        ("fitness", f"{q['fitness']:.3f} (structure {q['structure_fitness']:.3f})"),
     ]
-    print_summary(rows, title="fabflow localize icp")
-    console.print(f"[green]wrote[/] {(Path(out) / 'base_pose.json').resolve()}")
+    report_base_pose(pose, out, "icp", rows)
 
 
 @app.command()

@@ -9,6 +9,7 @@ import numpy as np
 from conftest import PROJECTS
 
 from fabflow.design.generate import generate_elements
+from fabflow.output import MARKER
 from fabflow.pipeline import BuildContext, stages
 from fabflow.project import load_project
 from fabflow.tasks import Plan
@@ -47,12 +48,13 @@ def test_infeasible_project_fails_cleanly_and_writes_nothing(cli, tmp_path: Path
     project.write_text(FAR_PROJECT)
     out = tmp_path / "out"
     out.mkdir()
+    (out / MARKER).write_text("")  # an earlier fabflow output
     (out / "previous.txt").write_text("kept")
     res = cli("plan", str(project), "-o", str(out))
     assert res.returncode == 2
     assert "far_away" in res.stderr and "near" not in res.stderr.replace("far_away", "")
     assert "Traceback" not in res.stderr
-    assert sorted(p.name for p in out.iterdir()) == ["previous.txt"]
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "previous.txt"]
     assert not list(tmp_path.glob(".out.staging-*"))
 
 
