@@ -62,6 +62,9 @@ def user_errors(func: F) -> F:
 ProjectArg = Annotated[
     Path, typer.Argument(help="A project YAML file, or a folder holding project.yaml.")
 ]
+OutOption = Annotated[
+    Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")
+]
 
 
 def _version(value: bool) -> None:
@@ -124,7 +127,7 @@ def run_stages(project: Project, out: Path, command: str, until: str | None = No
 @user_errors
 def build(
     project: ProjectArg,
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+    out: OutOption,
 ) -> None:
     """Run every stage on a project and write the results under OUT."""
     from fabflow.project import load_project
@@ -136,7 +139,7 @@ def build(
 @user_errors
 def plan(
     project: ProjectArg,
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+    out: OutOption,
 ) -> None:
     """Slice a project into per-station work packages: OUT/plan.json and OUT/site_plan.dxf."""
     from fabflow.design.generate import generate_elements
@@ -157,7 +160,7 @@ def plan(
 @user_errors
 def program(
     project: ProjectArg,
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+    out: OutOption,
     fmt: Annotated[
         str | None,
         typer.Option(
@@ -220,7 +223,7 @@ def localize_total_station(
         Path,
         typer.Option("--robot-points", help="CSV point_id,x_m,y_m,z_m: prisms in the base frame."),
     ],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+    out: OutOption,
     project: Annotated[
         Path | None, typer.Option("--project", help="Take instrument and pose from a project.")
     ] = None,
@@ -294,7 +297,7 @@ def localize_uwb(
         Path,
         typer.Option("--anchors", help="YAML: the localization.uwb section (+ T_platform_base)."),
     ],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+    out: OutOption,
     imu: Annotated[
         Path | None, typer.Option("--imu", help="CSV t,ax,ay,az,gx,gy,gz: fuse with the ESKF.")
     ] = None,
@@ -321,7 +324,7 @@ def localize_icp(
     init: Annotated[
         str, typer.Option("--init", help="Planned platform pose 'x,y,yaw' (m, m, deg).")
     ],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+    out: OutOption,
     project: Annotated[
         Path | None,
         typer.Option("--project", help="Take LiDAR mounting and thresholds from a project."),
@@ -394,7 +397,7 @@ def preview(
 @user_errors
 def simulate(
     project: ProjectArg,
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")],
+    out: OutOption,
     runs: Annotated[
         int | None,
         typer.Option("--runs", "-n", min=1, help="Runs per method (default: simulation.runs)."),
