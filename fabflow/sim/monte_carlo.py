@@ -189,7 +189,7 @@ def run_study(
 
     from distributed import as_completed
 
-    [study_future] = client.scatter([study], broadcast=True)
+    [study_future] = client.scatter([study], broadcast=True, hash=False)
     futures = {
         client.submit(simulate_chunk, study_future, chunk, seed, True, pure=False): chunk
         for chunk in chunks
