@@ -53,9 +53,9 @@ from fabflow.positioning.turn_joint import (
     complementary_filter,
 )
 from fabflow.project import CabinSpec
-from fabflow.sim.arm_motion import end_effector_streams, turn_joint_streams
-from fabflow.sim.lidar import simulate_scan
-from fabflow.sim.site_scene import SiteLandmarks, site_scene
+from fabflow.sensors.arm_motion import end_effector_streams, turn_joint_streams
+from fabflow.sensors.lidar import simulate_scan
+from fabflow.sensors.site_scene import SiteLandmarks, site_scene
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, perturb, pose_error
 from fabflow.transforms.so3 import exp_so3
 

@@ -34,7 +34,7 @@ from fabflow.positioning.total_station import (
     three_point_base_points,
     three_point_localization,
 )
-from fabflow.sim.total_station import simulate_procedures
+from fabflow.sensors.ts_procedures import simulate_procedures
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, pose_error
 from fabflow.transforms.so3 import exp_so3
 

@@ -36,8 +36,8 @@ from fabflow.positioning.eskf import (
 )
 from fabflow.positioning.uwb import crlb, horizontal_ranges, locate
 from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers
-from fabflow.sim.imu import ImuErrorModel, simulate_imu
-from fabflow.sim.uwb import (
+from fabflow.sensors.imu import ImuErrorModel, simulate_imu
+from fabflow.sensors.uwb import (
     PAPER_ANCHORS_2D,
     PAPER_ANCHORS_3D,
     PAPER_POINTS_2D,

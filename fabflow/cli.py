@@ -113,7 +113,7 @@ def print_summary(rows: list[tuple[str, str, str]], title: str) -> None:
 
 def run_stages(project: Project, out: Path, command: str, until: str | None = None) -> None:
     """Run the build stages (up to ``until``) with a status line, then print the summary."""
-    from fabflow.pipeline import run_build
+    from fabflow.build.runner import run_build
 
     with console.status(command) as status:
         ctx = run_build(
@@ -142,10 +142,10 @@ def plan(
     out: OutOption,
 ) -> None:
     """Slice a project into per-station work packages: OUT/plan.json and OUT/site_plan.dxf."""
+    from fabflow.build.plan import make_plan, plan_rows, write_plan_outputs
     from fabflow.design.generate import generate_elements
     from fabflow.output import atomic_output_dir
     from fabflow.project import load_project
-    from fabflow.tasks.stage import make_plan, plan_rows, write_plan_outputs
 
     p = load_project(project)
     with console.status("planning"), atomic_output_dir(out) as staging:
@@ -169,8 +169,8 @@ def program(
     ] = None,
 ) -> None:
     """Write one robot program per work package under OUT/programs (plans and localizes first)."""
+    from fabflow.programs.compile import check_format
     from fabflow.project import load_project
-    from fabflow.tasks.programs import check_format
 
     p = load_project(project)
     if fmt is not None:

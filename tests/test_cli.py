@@ -8,10 +8,10 @@ from pathlib import Path
 import pytest
 from conftest import PROJECTS, ROOT
 
-from fabflow import pipeline
+from fabflow.build import runner
+from fabflow.build.runner import run_build
 from fabflow.errors import InfeasibleError
 from fabflow.output import MARKER, atomic_output_dir
-from fabflow.pipeline import run_build
 from fabflow.project import load_project
 
 BAD = ROOT / "tests" / "data" / "bad_projects"
@@ -87,13 +87,13 @@ def test_atomic_output_keeps_previous_result_on_failure(tmp_path, monkeypatch) -
 
     written: list[Path] = []
 
-    def failing_stage(ctx: pipeline.BuildContext) -> None:
+    def failing_stage(ctx: runner.BuildContext) -> None:
         (ctx.out / "half.json").write_text("{")
         written.append(ctx.out)
         raise InfeasibleError("cannot build this")
 
-    original = pipeline.stages
-    monkeypatch.setattr(pipeline, "stages", lambda: [*original(), ("fail", failing_stage)])
+    original = runner.stages
+    monkeypatch.setattr(runner, "stages", lambda: [*original(), ("fail", failing_stage)])
     with pytest.raises(InfeasibleError):
         run_build(project, out)
     assert written and not written[0].exists(), "staging folder must be removed"

@@ -12,6 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fabflow.build.design import stage_design
+from fabflow.build.runner import BuildContext
 from fabflow.design import (
     Element,
     cabin_blocks,
@@ -22,9 +24,7 @@ from fabflow.design import (
     max_overlap_volume,
 )
 from fabflow.design.cabin import cabin_layer_counts
-from fabflow.design.stage import stage_design
 from fabflow.errors import InputError
-from fabflow.pipeline import BuildContext
 from fabflow.project import BlockSize, CabinSpec, Opening, parse_project
 
 DEFAULT = CabinSpec()
@@ -342,7 +342,7 @@ def test_any_cabin_stands_without_overlaps(length, width, eave, roof, block_leng
 def test_site_sensors_in_world_frame() -> None:
     from conftest import PROJECTS
 
-    from fabflow.design.stage import site_sensors
+    from fabflow.build.design import site_sensors
     from fabflow.project import load_project
 
     anchors, instrument = site_sensors(load_project(PROJECTS / "cabin"))

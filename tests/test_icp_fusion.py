@@ -13,7 +13,7 @@ from fabflow.positioning.turn_joint import (
     complementary_filter,
     quantize,
 )
-from fabflow.sim.arm_motion import end_effector_streams, turn_joint_streams
+from fabflow.sensors.arm_motion import end_effector_streams, turn_joint_streams
 from fabflow.transforms.se3 import pose_error
 
 

@@ -22,8 +22,8 @@ from fabflow.positioning.scan_matching import (
     to_base_pose,
 )
 from fabflow.project import parse_project
-from fabflow.sim.lidar import LidarModel, simulate_scan
-from fabflow.sim.site_scene import site_scene
+from fabflow.sensors.lidar import LidarModel, simulate_scan
+from fabflow.sensors.site_scene import site_scene
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, perturb, pose_error
 from fabflow.transforms.so3 import exp_so3
 

@@ -21,7 +21,7 @@ from fabflow.positioning.segmentation import (
     ransac_plane,
     segment_map,
 )
-from fabflow.sim.site_scene import SiteLandmarks, site_scene
+from fabflow.sensors.site_scene import SiteLandmarks, site_scene
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, pose_error
 from fabflow.transforms.so3 import exp_so3
 

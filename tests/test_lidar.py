@@ -8,8 +8,8 @@ import trimesh
 
 from fabflow.design.elements import Element
 from fabflow.errors import InputError
-from fabflow.sim.lidar import HESAI_QT64, LidarModel, simulate_scan
-from fabflow.sim.site_scene import SiteLandmarks, boxes_mesh, prism_mesh, site_scene
+from fabflow.sensors.lidar import HESAI_QT64, LidarModel, simulate_scan
+from fabflow.sensors.site_scene import SiteLandmarks, boxes_mesh, prism_mesh, site_scene
 from fabflow.transforms.se3 import apply_T, make_T
 from fabflow.transforms.so3 import exp_so3
 

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from fabflow.build.preview import stage_preview
+from fabflow.build.runner import BuildContext
 from fabflow.cli import app
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
-from fabflow.pipeline import BuildContext
 from fabflow.positioning.result import BasePose
 from fabflow.preview.command import project_program_source, run_preview
 from fabflow.preview.inputs import model_for_project, read_base_poses, read_deviations
-from fabflow.preview.stage import stage_preview
 from fabflow.project import load_project
 from fabflow.tasks.planner import plan_project
 

@@ -19,14 +19,14 @@ from conftest import ROOT
 
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError, UnsupportedError
+from fabflow.programs.compile import WRITERS, check_format, compile_program
+from fabflow.programs.ir import Move, Program, sanitize_identifier
+from fabflow.programs.motions import work_package_motion
+from fabflow.programs.writers.krl import write_krl
+from fabflow.programs.writers.rapid import write_rapid
+from fabflow.programs.writers.urscript import write_urscript
 from fabflow.project import load_project
 from fabflow.robots import get_robot
-from fabflow.robots.krl import write_krl
-from fabflow.robots.program import Move, Program, sanitize_identifier
-from fabflow.robots.rapid import write_rapid
-from fabflow.robots.urscript import write_urscript
-from fabflow.tasks.motions import work_package_motion
-from fabflow.tasks.programs import WRITERS, check_format, compile_program
 from fabflow.transforms.so3 import exp_so3, matrix_from_abc, matrix_from_quat
 
 GOLDEN = ROOT / "tests" / "golden" / "programs"

@@ -16,8 +16,8 @@ import pytest
 from conftest import PROJECTS
 from test_programs import read_krl
 
+from fabflow.build.runner import run_build
 from fabflow.design.elements import elements_from_json
-from fabflow.pipeline import run_build
 from fabflow.project import load_project
 from fabflow.tasks.targets import element_tool_frames
 

@@ -13,6 +13,7 @@ import shapely
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fabflow.build.plan import make_plan
 from fabflow.design.elements import Element
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InfeasibleError, InputError
@@ -29,7 +30,6 @@ from fabflow.tasks.order import (
 from fabflow.tasks.planner import plan_project, thin_frames
 from fabflow.tasks.reach import reach_model
 from fabflow.tasks.split import split_wide_paths, with_pieces
-from fabflow.tasks.stage import make_plan
 from fabflow.tasks.stations import element_polygons, footprint_polygons
 from fabflow.tasks.targets import element_targets
 from fabflow.tasks.verify import unreachable_targets
@@ -488,8 +488,8 @@ def test_thin_frames_keeps_ends_and_spacing():
 
 
 def test_plan_stage_hands_the_pieces_to_later_stages(tmp_path):
-    from fabflow.pipeline import BuildContext
-    from fabflow.tasks.stage import stage_plan
+    from fabflow.build.plan import stage_plan
+    from fabflow.build.runner import BuildContext
 
     ctx = BuildContext(project=small_project(), out=tmp_path)
     ctx.results["elements"] = print_layers(5.0, 2)

@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 from conftest import PROJECTS
 
+from fabflow.build.plan import stage_plan
+from fabflow.build.runner import BuildContext, stages
 from fabflow.design.generate import generate_elements
 from fabflow.output import MARKER
-from fabflow.pipeline import BuildContext, stages
 from fabflow.project import load_project
 from fabflow.tasks import Plan
-from fabflow.tasks.stage import stage_plan
 
 FAR_PROJECT = """
 name: far

@@ -23,7 +23,7 @@ from fabflow.positioning.point_selection import (
 )
 from fabflow.positioning.total_station import localize_station
 from fabflow.project import parse_project
-from fabflow.sim.total_station import simulate_procedures
+from fabflow.sensors.ts_procedures import simulate_procedures
 from fabflow.transforms.se3 import apply_T, make_T, pose_error
 from fabflow.transforms.so3 import exp_so3
 

@@ -18,7 +18,7 @@ from fabflow.positioning.uwb import (
 )
 from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers, running_median
 from fabflow.project import load_project
-from fabflow.sim.uwb import (
+from fabflow.sensors.uwb import (
     PAPER_ANCHORS_3D,
     PAPER_POINTS_3D,
     AnchorBias,

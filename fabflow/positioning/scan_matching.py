@@ -41,7 +41,7 @@ from fabflow.transforms.se3 import apply_T, compose_covariance, inv_T, perturb
 if TYPE_CHECKING:
     from fabflow.design.elements import Element
     from fabflow.project import IcpSetup, Project
-    from fabflow.sim.lidar import LidarModel
+    from fabflow.sensors.lidar import LidarModel
 
 FloatArray = NDArray[np.float64]
 
@@ -430,8 +430,8 @@ def simulated_site_map(
     prisms
         Polygon obstacles ``(plan polygon, z_min, z_max)`` of the site (metres).
     """
-    from fabflow.sim.lidar import HESAI_QT64, simulate_scan
-    from fabflow.sim.site_scene import site_scene
+    from fabflow.sensors.lidar import HESAI_QT64, simulate_scan
+    from fabflow.sensors.site_scene import site_scene
 
     rng = np.random.default_rng(seed)
     scene = site_scene(obstacles=obstacles, prisms=prisms)
@@ -464,7 +464,7 @@ def with_as_built(scan_map: ScanMap, built: Sequence[Element], rng: np.random.Ge
     points on nearby map surfaces. The blocks stand where the design puts them:
     placement errors of real blocks (within tolerance) become map errors.
     """
-    from fabflow.sim.site_scene import boxes_mesh
+    from fabflow.sensors.site_scene import boxes_mesh
 
     blocks = [e for e in built if e.extents is not None]
     if not blocks:
@@ -553,8 +553,8 @@ def localize_station(
         When the scan fails the fitness, RMSE or geometry checks.
     """
     from fabflow.project import IcpSetup
-    from fabflow.sim.lidar import HESAI_QT64, simulate_scan
-    from fabflow.sim.site_scene import site_scene
+    from fabflow.sensors.lidar import HESAI_QT64, simulate_scan
+    from fabflow.sensors.site_scene import site_scene
 
     setup = project.localization.icp or IcpSetup()
     T_lift = np.eye(4)

@@ -716,7 +716,7 @@ def localize_station(
 
     The platform stands still for ``uwb.dwell_s`` seconds at the true pose; its
     tags (``uwb.tags``, platform frame) range to every anchor at ``uwb.rate_hz``
-    with the simulator's error model (:class:`fabflow.sim.uwb.UwbErrorModel` with
+    with the simulator's error model (:class:`fabflow.sensors.uwb.UwbErrorModel` with
     ``sigma_1m = uwb.sigma``): distance-dependent noise, a per-anchor linear bias
     (fitted by a simulated calibration campaign and corrected), 2 % NLOS outliers,
     and NLOS with probability 0.5 on lines of sight blocked by ``built`` blocks.
@@ -748,7 +748,7 @@ def localize_station(
         ``quality["unobserved"]`` says.
     """
     from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers_static
-    from fabflow.sim.uwb import (
+    from fabflow.sensors.uwb import (
         UwbErrorModel,
         calibration_campaign,
         draw_bias,

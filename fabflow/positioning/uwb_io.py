@@ -305,7 +305,7 @@ def localize_from_files(
         reject_outliers,
         reject_outliers_static,
     )
-    from fabflow.sim.uwb import UwbErrorModel
+    from fabflow.sensors.uwb import UwbErrorModel
     from fabflow.transforms.se3 import compose_covariance
     from fabflow.transforms.so3 import matrix_from_quat
 

@@ -11,6 +11,6 @@ Modules, from data to browser:
   server (blocks as one batched mesh) and applies steps and colour modes.
 * :mod:`~fabflow.preview.gui`: the control panel; :mod:`~fabflow.preview.app`:
   :func:`serve` (live); :mod:`~fabflow.preview.export`: :func:`export_html`.
-* :mod:`~fabflow.preview.command`: ``fabflow preview``; :mod:`~fabflow.preview.stage`:
+* :mod:`~fabflow.preview.command`: ``fabflow preview``; :mod:`~fabflow.build.preview`:
   the ``preview`` stage of ``fabflow build``.
 """

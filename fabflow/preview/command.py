@@ -30,7 +30,7 @@ def project_program_source(
     one. A format that writes several files (KRL ``.src`` + ``.dat``) comes as
     a zip.
     """
-    from fabflow.tasks.programs import WRITERS, work_package_program
+    from fabflow.programs.compile import WRITERS, work_package_program
 
     by_id = {e.id: e for e in elements}
 

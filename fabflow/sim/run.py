@@ -3,7 +3,7 @@
 Physics of a run (all poses 4x4, metres, world frame):
 
 1. At every visit of the plan the platform parks with the project's driving error
-   (:func:`fabflow.localization.parked_pose`): the true base pose ``T_world_base_true``.
+   (:func:`fabflow.localize.plan.parked_pose`): the true base pose ``T_world_base_true``.
 2. The localization method simulates its sensors at that pose and estimates the
    base: ``T_world_base_est`` with a 6x6 covariance (:class:`BasePose`). With the
    ``"covariance"`` fidelity the error of the estimate is drawn from the covariance
@@ -32,7 +32,7 @@ import numpy as np
 
 from fabflow.design.elements import Element
 from fabflow.errors import InputError
-from fabflow.localization import (
+from fabflow.localize.plan import (
     LocalizeStation,
     localizer_arguments,
     parked_pose,

@@ -306,7 +306,7 @@ def with_approach_frames(
     """Tool frames plus each element's approach pose, which the program also moves to.
 
     Blocks and print paths are approached from above (world z), task points back
-    along the tool axis (as :mod:`fabflow.tasks.motions` does), ``approach``
+    along the tool axis (as :mod:`fabflow.programs.motions` does), ``approach``
     metres away.
 
     Returns

@@ -12,8 +12,8 @@ import numpy as np
 import yaml
 
 from fabflow.positioning.uwb_io import write_imu_csv, write_ranges_csv
-from fabflow.sim.imu import ImuErrorModel, simulate_imu
-from fabflow.sim.uwb import (
+from fabflow.sensors.imu import ImuErrorModel, simulate_imu
+from fabflow.sensors.uwb import (
     PlanarTrajectory,
     UwbErrorModel,
     draw_bias,

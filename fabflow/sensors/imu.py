@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fabflow.sim.uwb import PlanarTrajectory
+from fabflow.sensors.uwb import PlanarTrajectory
 
 GRAVITY = 9.81
 """Magnitude of gravity (m/s^2) used by the simulator and the filters."""

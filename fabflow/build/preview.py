@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from fabflow.pipeline import BuildContext
+    from fabflow.build.runner import BuildContext
 
 
 def stage_preview(ctx: BuildContext) -> None:

@@ -12,10 +12,10 @@ from __future__ import annotations
 import numpy as np
 
 from fabflow.errors import UnsupportedError
+from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
+from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.robots.catalog import IRB4600_60_205_OPW
 from fabflow.robots.opw import OPWParameters
-from fabflow.robots.program import Comment, Move, Program, SetOutput, Wait
-from fabflow.robots.program import sanitize_identifier as _sanitize
 from fabflow.transforms.so3 import quat_from_matrix
 
 MAX_NAME = 32

@@ -19,19 +19,19 @@ from fabflow import __version__
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError, UnsupportedError
 from fabflow.positioning.result import BasePose
+from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
+from fabflow.programs.motions import OUTPUTS, Action, Step, Waypoint, work_package_motion
+from fabflow.programs.writers.json_stream import write_json_stream
+from fabflow.programs.writers.krl import write_krl
+from fabflow.programs.writers.rapid import write_rapid
+from fabflow.programs.writers.urscript import write_urscript
 from fabflow.project import Project
 from fabflow.robots import RobotModel, get_robot
-from fabflow.robots.json_stream import write_json_stream
-from fabflow.robots.krl import write_krl
-from fabflow.robots.program import Comment, Instruction, Move, Program, SetOutput, Wait
-from fabflow.robots.rapid import write_rapid
-from fabflow.robots.urscript import write_urscript
-from fabflow.tasks.motions import OUTPUTS, Action, Step, Waypoint, work_package_motion
 from fabflow.tasks.plan import Plan, WorkPackage
 from fabflow.transforms.so3 import exp_so3, log_so3
 
 if TYPE_CHECKING:
-    from fabflow.pipeline import BuildContext
+    from fabflow.build.runner import BuildContext
 
 STEP_TRANSLATION = 0.02
 """Largest tool translation between two checked samples of a linear move (m)."""

@@ -12,7 +12,7 @@ delay on a small fraction of ranges (non-line-of-sight).
 
 Trajectories are planar paths at a fixed height with rounded corners, driven
 with a smooth (cosine ramp) speed profile, so position, velocity and
-acceleration are all analytic; the IMU simulator (:mod:`fabflow.sim.imu`)
+acceleration are all analytic; the IMU simulator (:mod:`fabflow.sensors.imu`)
 differentiates nothing numerically.
 """
 

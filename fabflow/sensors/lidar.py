@@ -116,7 +116,7 @@ def simulate_scan(
     Parameters
     ----------
     scene
-        The site mesh in the world frame (see :func:`fabflow.sim.site_scene.site_scene`).
+        The site mesh in the world frame (see :func:`fabflow.sensors.site_scene.site_scene`).
     T_world_lidar
         4x4 sensor pose in the world (metres).
     rng

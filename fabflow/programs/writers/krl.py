@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
+from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.robots import kuka_status_turn
-from fabflow.robots.program import Comment, Instruction, Move, Program, SetOutput, Wait
-from fabflow.robots.program import sanitize_identifier as _sanitize
 from fabflow.transforms.so3 import abc_from_matrix
 
 MAX_NAME = 24

@@ -14,13 +14,13 @@ from pathlib import Path
 from typing import Any
 
 from fabflow import __version__
-from fabflow.design.stage import stage_design
-from fabflow.localization import stage_localize
+from fabflow.build.design import stage_design
+from fabflow.build.plan import stage_plan
+from fabflow.build.preview import stage_preview
+from fabflow.localize.plan import stage_localize
 from fabflow.output import atomic_output_dir, write_json
-from fabflow.preview.stage import stage_preview
+from fabflow.programs.compile import stage_program
 from fabflow.project import Project
-from fabflow.tasks.programs import stage_program
-from fabflow.tasks.stage import stage_plan
 
 
 @dataclass

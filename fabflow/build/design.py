@@ -14,7 +14,7 @@ from fabflow.output import write_json
 from fabflow.project import Project, TotalStationSetup
 
 if TYPE_CHECKING:
-    from fabflow.pipeline import BuildContext
+    from fabflow.build.runner import BuildContext
 
 
 def site_sensors(project: Project) -> tuple[dict[str, np.ndarray] | None, np.ndarray | None]:

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from fabflow.robots.program import Comment, Move, Program, SetOutput, Wait
-from fabflow.robots.program import sanitize_identifier as _sanitize
+from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
+from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.transforms.so3 import quat_from_matrix
 
 FORMAT = "fabflow-command-stream"

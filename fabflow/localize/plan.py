@@ -24,7 +24,7 @@ from fabflow.transforms.se3 import compose_covariance
 from fabflow.transforms.so3 import exp_so3
 
 if TYPE_CHECKING:
-    from fabflow.pipeline import BuildContext
+    from fabflow.build.runner import BuildContext
 
 METHOD_MODULES = {
     "uwb": "fabflow.positioning.uwb",

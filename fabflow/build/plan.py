@@ -17,7 +17,7 @@ from fabflow.tasks.split import with_pieces
 from fabflow.tasks.verify import unreachable_targets
 
 if TYPE_CHECKING:
-    from fabflow.pipeline import BuildContext
+    from fabflow.build.runner import BuildContext
 
 
 def plan_rows(plan: Plan) -> list[tuple[str, str]]:
@@ -45,8 +45,8 @@ def write_plan_outputs(
     out: Path, project: Project, elements: Sequence[Element], plan: Plan
 ) -> None:
     """Write ``plan.json`` and redraw ``site_plan.dxf`` with the stations into ``out``."""
+    from fabflow.build.design import site_sensors
     from fabflow.design.site_plan import write_site_plan
-    from fabflow.design.stage import site_sensors
 
     write_json(
         out / "plan.json",

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fabflow.robots.program import Comment, Move, Program, SetOutput, Wait
-from fabflow.robots.program import sanitize_identifier as _sanitize
+from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
+from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.transforms.so3 import log_so3
 
 JOINT_ACCELERATION = 1.4
