@@ -25,7 +25,7 @@ from fabflow.design import (
     with_block_supports,
     write_site_plan,
 )
-from fabflow.project import CabinSpec, Opening
+from fabflow.design.specs import CabinSpec, Opening
 
 ROOT = Path(__file__).resolve().parents[1]
 SINE_WALL = ROOT / "projects" / "print_path" / "sine_wall.dxf"

@@ -40,6 +40,7 @@ import numpy as np
 import trimesh
 
 from fabflow.design.cabin import cabin_elements
+from fabflow.design.specs import CabinSpec
 from fabflow.errors import LocalizationError
 from fabflow.positioning.global_registration import REGISTRATION_SEGMENTATION, register_maps
 from fabflow.positioning.icp import icp, prepare_target
@@ -52,7 +53,6 @@ from fabflow.positioning.turn_joint import (
     TurnJointKF,
     complementary_filter,
 )
-from fabflow.project import CabinSpec
 from fabflow.sensors.arm_motion import end_effector_streams, turn_joint_streams
 from fabflow.sensors.lidar import simulate_scan
 from fabflow.sensors.site_scene import SiteLandmarks, site_scene

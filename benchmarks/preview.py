@@ -164,7 +164,7 @@ def main() -> None:
 
         repeats = args.repeats or 3
         project = load_project(ROOT / "projects" / "cabin")
-        elements = generate_elements(project)
+        elements = generate_elements(project.elements, project.path)
         plan = plan_project(project, elements)
         rows.append(measure("cabin", elements, plan, project, repeats, rng))
         e, p = shifted_copies(elements, plan, 10, 8.0)

@@ -47,7 +47,7 @@ def main() -> None:
     repeats = 1 if args.quick else args.repeats
 
     cabin = load_project(ROOT / "projects" / "cabin")
-    cases = [("cabin", cabin, generate_elements(cabin))]
+    cases = [("cabin", cabin, generate_elements(cabin.elements, cabin.path))]
     if not args.quick:
         big, big_elements = cabin_rows(cabin, 10)
         cases.append(("10 cabins", big, big_elements))

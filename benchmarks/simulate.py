@@ -72,7 +72,7 @@ def main() -> None:
     console = Console(width=160)
     project = load_project(SMALL if args.quick else CABIN)
     t0 = time.perf_counter()
-    elements = generate_elements(project)
+    elements = generate_elements(project.elements, project.path)
     plan = plan_project(project, elements)
     prep_s = time.perf_counter() - t0
     studies: dict[str, Study] = {}

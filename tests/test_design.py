@@ -24,8 +24,9 @@ from fabflow.design import (
     max_overlap_volume,
 )
 from fabflow.design.cabin import cabin_layer_counts
+from fabflow.design.specs import BlockSize, CabinSpec, Opening
 from fabflow.errors import InputError
-from fabflow.project import BlockSize, CabinSpec, Opening, parse_project
+from fabflow.project import parse_project
 
 DEFAULT = CabinSpec()
 
@@ -234,7 +235,7 @@ def mixed_project(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def mixed_elements(mixed_project):
-    return generate_elements(mixed_project)
+    return generate_elements(mixed_project.elements, mixed_project.path)
 
 
 def test_generate_elements_runs_every_source(mixed_elements) -> None:
@@ -271,7 +272,7 @@ elements:
 """
     project = parse_project(text, tmp_path / "p.yaml", tmp_path)
     with pytest.raises(InputError, match=r"elements\[0\]\.task_points\[0\]\.id"):
-        generate_elements(project)
+        generate_elements(project.elements, project.path)
 
 
 def test_design_stage_writes_elements_and_site_plan(mixed_project, tmp_path) -> None:

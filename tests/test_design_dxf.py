@@ -19,8 +19,9 @@ from fabflow.design import (
     write_site_plan,
 )
 from fabflow.design.generate import task_point_elements
+from fabflow.design.specs import TaskPoint
 from fabflow.errors import InputError
-from fabflow.project import PoseSpec, TaskPoint
+from fabflow.schema import PoseSpec
 
 
 def _doc(units: int = 4):

@@ -21,8 +21,9 @@ from fabflow.design import (
     slice_mesh,
     tool_frames,
 )
+from fabflow.design.specs import PrintPathSpec
 from fabflow.errors import InputError
-from fabflow.project import PoseSpec, PrintPathSpec
+from fabflow.schema import PoseSpec
 
 SINE_WALL = PROJECTS / "print_path" / "sine_wall.dxf"
 MAX_DEVIATION = 5e-4  # metres: the bound on the sampled path vs the drawing

@@ -53,7 +53,7 @@ def tiny(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def planned(tiny: Path):
     project = load_project(tiny)
-    elements = generate_elements(project)
+    elements = generate_elements(project.elements, project.path)
     return project, elements, plan_project(project, elements)
 
 

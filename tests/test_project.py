@@ -12,7 +12,8 @@ import yaml
 from conftest import PROJECTS, ROOT
 
 from fabflow.errors import InputError
-from fabflow.project import PoseSpec, format_loc, load_project, parse_project, project_json_schema
+from fabflow.project import format_loc, load_project, parse_project, project_json_schema
+from fabflow.schema import PoseSpec
 
 BAD = ROOT / "tests" / "data" / "bad_projects"
 

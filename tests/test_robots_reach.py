@@ -11,7 +11,7 @@ from fabflow.errors import InputError, UnsupportedError
 from fabflow.project import Platform, Tool
 from fabflow.robots import MobilePlatform, get_robot, reach_map
 from fabflow.robots import reach as reach_module
-from fabflow.tasks.plan import Station, T_world_base
+from fabflow.tasks.plan import Station
 
 TOOL = np.eye(4)
 TOOL[2, 3] = 0.2
@@ -111,17 +111,27 @@ def test_reach_map_bad_input() -> None:
     rm = reach_map("kuka_kr60_3", TOOL, step=0.1, n_yaw=2, disk_cache=False)
     with pytest.raises(InputError):
         rm.reachable(np.zeros((4, 2)))
-    # The project's tool pose (PoseSpec) is accepted and keys the same map.
-    assert reach_map("kuka_kr60_3", Tool().T_flange_tool, step=0.1, n_yaw=2, disk_cache=False) is rm
+    # The project's tool pose, as a matrix, keys the same map.
+    assert (
+        reach_map("kuka_kr60_3", Tool().T_flange_tool.matrix(), step=0.1, n_yaw=2, disk_cache=False)
+        is rm
+    )
 
 
 def test_platform_from_project_and_lift() -> None:
-    plat = MobilePlatform.from_project(Platform(), "kuka_kr60_3")
+    spec = Platform()
+    plat = MobilePlatform(
+        robot=get_robot("kuka_kr60_3"),
+        footprint=spec.footprint,
+        lift_range=spec.lift,
+        T_platform_base=spec.T_platform_base.matrix(),
+        safety_margin=spec.safety_margin,
+    )
     T_wp = np.eye(4)
     T_wp[:3, 3] = [5.0, 2.0, 0.0]
     station = Station("S1", T_wp, lift=0.4)
     np.testing.assert_allclose(
-        plat.T_world_base(T_wp, 0.4), T_world_base(station, plat.T_platform_base)
+        plat.T_world_base(T_wp, 0.4), station.T_world_base(plat.T_platform_base)
     )
     rm = reach_map("kuka_kr60_3", TOOL, step=0.08, disk_cache=False)
     p_base = np.array([[1.3, 0.2, 0.3], [1.0, -0.4, -0.2], [0.5, 0.5, 1.2]])

@@ -41,7 +41,7 @@ BLOCK = np.array([0.6, 0.105, 0.105])
 @pytest.fixture(scope="module")
 def cabin():
     project = load_project(PROJECTS / "cabin" / "project.yaml")
-    elements = generate_elements(project)
+    elements = generate_elements(project.elements, project.path)
     return project, elements, make_plan(project, elements)
 
 

@@ -65,7 +65,7 @@ def test_plan_stage_sets_result_and_summary_rows(tmp_path: Path):
     tmp_path = tmp_path / "out"
     tmp_path.mkdir()
     ctx = BuildContext(project=project, out=tmp_path)
-    ctx.results["elements"] = generate_elements(project)
+    ctx.results["elements"] = generate_elements(project.elements, project.path)
     stage_plan(ctx)
     plan = ctx.results["plan"]
     assert isinstance(plan, Plan)

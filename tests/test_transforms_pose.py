@@ -168,7 +168,7 @@ def test_vendor_bad_input() -> None:
 
 
 def test_project_posespec_uses_kuka_abc() -> None:
-    from fabflow.project import PoseSpec
+    from fabflow.schema import PoseSpec
 
     spec = PoseSpec(xyz=(1.0, 2.0, 3.0), abc_deg=(30.0, -45.0, 120.0))
     ref = from_kuka_xyzabc([1000.0, 2000.0, 3000.0, 30.0, -45.0, 120.0])

@@ -83,7 +83,7 @@ def stage_design(ctx: BuildContext) -> None:
 
     Sets ``ctx.results["elements"]`` (list of :class:`Element`, world frame).
     """
-    elements = generate_elements(ctx.project)
+    elements = generate_elements(ctx.project.elements, ctx.project.path)
     ctx.results["elements"] = elements
     write_json(
         ctx.out / "elements.json",

@@ -1,6 +1,6 @@
 """The parametric log cabin: timber blocks laid in layers, crossing at the corners.
 
-Cabin frame (see :class:`fabflow.project.CabinSpec`): origin at the outer corner
+Cabin frame (see :class:`fabflow.design.specs.CabinSpec`): origin at the outer corner
 of the front and right walls, x along the left and right walls (``length``), y
 along the front and rear walls (``width``), z up. Layer ``k`` occupies
 ``k * h <= z <= (k + 1) * h`` with ``h`` the block height.
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fabflow.design.elements import Element
-from fabflow.project import CabinSpec
+from fabflow.design.specs import CabinSpec
 from fabflow.transforms import make_T, matrix_from_abc
 
 _X_WALLS = ("right", "left")

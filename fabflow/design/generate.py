@@ -1,18 +1,20 @@
-"""Turn the ``elements`` sources of a project into :class:`Element` objects."""
+"""Turn the ``elements`` sources of a project file into :class:`Element` objects."""
 
 from __future__ import annotations
 
 import dataclasses
 from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
 from fabflow.design.cabin import cabin_elements
 from fabflow.design.elements import Element
 from fabflow.design.print_path import print_path_elements
+from fabflow.design.specs import ElementSource, TaskPoint
 from fabflow.design.supports import compute_supports
 from fabflow.errors import InputError
-from fabflow.project import Project, TaskPoint
 
 
 def task_point_elements(points: list[TaskPoint], source_index: int = 0) -> list[Element]:
@@ -51,12 +53,21 @@ def with_block_supports(elements: list[Element]) -> list[Element]:
     return out
 
 
-def generate_elements(project: Project) -> list[Element]:
-    """Every element of a project, sources in file order, with unique ids.
+def generate_elements(
+    sources: Sequence[ElementSource], source_file: str | Path | None = None
+) -> list[Element]:
+    """Every element of a project's sources, in file order, with unique ids.
 
     Block ids are ``B0000``, ``B0001``, ... counted over all cabins; print path
     layers are ``P000``, ... counted over all print path sources; task points
     keep their ids from the project file.
+
+    Parameters
+    ----------
+    sources
+        The ``elements`` entries of a project (``project.elements``).
+    source_file
+        The project file, named in error messages (``project.path``).
 
     Raises
     ------
@@ -66,7 +77,7 @@ def generate_elements(project: Project) -> list[Element]:
     """
     elements: list[Element] = []
     n_blocks = n_paths = 0
-    for i, source in enumerate(project.elements):
+    for i, source in enumerate(sources):
         if source.cabin is not None:
             new = cabin_elements(source.cabin, id_start=n_blocks)
             n_blocks += len(new)
@@ -82,14 +93,14 @@ def generate_elements(project: Project) -> list[Element]:
     if dup:
         where = next(
             f"elements[{i}].task_points[{j}].id"
-            for i, s in enumerate(project.elements)
+            for i, s in enumerate(sources)
             for j, p in enumerate(s.task_points or [])
             if p.id in dup
         )
         raise InputError(
             f"element id {dup[0]!r} is used twice (task point ids must be unique and "
             "differ from generated ids such as B0000 and P000)",
-            project.path,
+            source_file,
             where,
         )
     return with_block_supports(elements)

@@ -28,8 +28,8 @@ import numpy as np
 
 from fabflow.design.dxf_in import Contour, read_dxf_contours
 from fabflow.design.elements import Element
+from fabflow.design.specs import PrintPathSpec
 from fabflow.errors import InputError
-from fabflow.project import PrintPathSpec
 from fabflow.transforms import make_T
 
 if TYPE_CHECKING:

@@ -19,7 +19,8 @@ import numpy as np
 from fabflow.design.elements import Element
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project
-from fabflow.tasks.plan import Plan, Station, T_world_base
+from fabflow.robots import platform
+from fabflow.tasks.plan import Plan, Station
 from fabflow.transforms.se3 import compose_covariance
 from fabflow.transforms.so3 import exp_so3
 
@@ -107,7 +108,7 @@ def parked_pose(
         4x4 poses in the world frame (metres).
     """
     T_platform_base = project.robot.platform.T_platform_base.matrix()
-    planned = T_world_base(station, T_platform_base)
+    planned = station.T_world_base(T_platform_base)
     sim = project.simulation
     error = np.eye(4)
     error[:2, 3] = rng.normal(0.0, sim.driving_error, 2)
@@ -115,9 +116,7 @@ def parked_pose(
         np.array([0.0, 0.0, rng.normal(0.0, np.radians(sim.driving_heading_error_deg))])
     )
     T_world_platform = station.T_world_platform @ error
-    lift = np.eye(4)
-    lift[2, 3] = station.lift
-    return planned, T_world_platform @ lift @ T_platform_base
+    return planned, platform.T_world_base(T_world_platform, station.lift, T_platform_base)
 
 
 def localize_plan(
@@ -163,7 +162,7 @@ def localize_plan(
         if previous is not None and previous.station.id == wp.station.id:
             # Same visit, the lift moved: no new parking, no new measurement.
             estimate, T_true = results[previous.index]
-            T_move = lift_move(T_platform_base, previous.station.lift, wp.station.lift)
+            T_move = platform.lift_move(T_platform_base, previous.station.lift, wp.station.lift)
             T_true = T_true @ T_move
             estimate = replace(
                 estimate,
@@ -188,21 +187,6 @@ def localize_plan(
         built_ids += list(wp.elements)
         previous = wp
     return results
-
-
-def lift_move(T_platform_base: np.ndarray, lift_from: float, lift_to: float) -> np.ndarray:
-    """Motion of the arm base, in its own frame, when the lift goes between two heights.
-
-    Parameters
-    ----------
-    T_platform_base
-        Arm mounting on the platform at the lowest lift position.
-    lift_from, lift_to
-        Lift heights (metres along the platform z axis).
-    """
-    T_lift = np.eye(4)
-    T_lift[2, 3] = lift_to - lift_from
-    return np.linalg.inv(T_platform_base) @ T_lift @ T_platform_base
 
 
 def stage_localize(ctx: BuildContext) -> None:

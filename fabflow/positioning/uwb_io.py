@@ -220,7 +220,8 @@ def load_anchors_file(path: str | Path) -> tuple[Any, np.ndarray]:
     InputError
         YAML that does not parse or fields that do not validate (with the field path).
     """
-    from fabflow.project import PoseSpec, UwbSetup, format_loc
+    from fabflow.project import UwbSetup, format_loc
+    from fabflow.schema import PoseSpec
 
     path = Path(path)
     if not path.exists():

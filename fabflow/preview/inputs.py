@@ -67,7 +67,7 @@ def model_for_project(
     if elements is None:
         from fabflow.design.generate import generate_elements
 
-        elements = generate_elements(project)
+        elements = generate_elements(project.elements, project.path)
     if plan is None:
         from fabflow.tasks.planner import plan_project
 

@@ -24,7 +24,7 @@ from fabflow.design.elements import Element
 from fabflow.errors import InputError
 from fabflow.positioning.result import BasePose
 from fabflow.project import Platform
-from fabflow.tasks.plan import Plan, T_world_base
+from fabflow.tasks.plan import Plan
 from fabflow.transforms.so3 import quat_from_matrix
 
 ColourMode = Literal["station", "state", "layer", "deviation"]
@@ -473,7 +473,7 @@ def build_model(
     ).reshape(P, 4, 4)
     lift = np.array([wp.station.lift for wp in plan.work_packages], dtype=float)
     T_wb = np.array(
-        [T_world_base(wp.station, T_platform_base) for wp in plan.work_packages], dtype=float
+        [wp.station.T_world_base(T_platform_base) for wp in plan.work_packages], dtype=float
     ).reshape(P, 4, 4)
     targets = [np.asarray(wp.T_world_targets, dtype=float) for wp in plan.work_packages]
     for wp, t in zip(plan.work_packages, targets, strict=True):

@@ -1,11 +1,16 @@
 """The mobile platform carrying an arm: footprint, lift and the arm mounting.
 
-Built from the project's :class:`fabflow.project.Platform`. The arm base sits at
-``T_world_base = T_world_platform @ Lift(h) @ T_platform_base`` where ``Lift(h)``
-raises by ``h`` along the platform z axis (the convention of
-:func:`fabflow.tasks.plan.T_world_base`). The reach map of an arm is computed
-once in the arm base frame; the lift only moves that frame, which is how
-:meth:`MobilePlatform.reachable` applies it.
+This module owns the platform chain. The arm base sits at
+
+``T_world_base = T_world_platform @ Lift(h) @ T_platform_base``
+
+where ``T_world_platform`` is the platform origin on the ground (z up, x
+forward), ``Lift(h)`` raises by ``h`` metres along the platform z axis and
+``T_platform_base`` is the arm mounting at the lowest lift position. Every stage
+that needs the base pose of a station, the platform pose of a base pose or the
+motion of the base when the lift moves calls the functions here. The reach map
+of an arm is computed once in the arm base frame; the lift only moves that
+frame, which is how :meth:`MobilePlatform.reachable` applies it.
 """
 
 from __future__ import annotations
@@ -16,12 +21,69 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from fabflow.errors import InputError
-from fabflow.project import Platform
-from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
 from fabflow.robots.reach import ReachMap
 
 FloatArray = NDArray[np.float64]
+
+
+def lift_transform(lift: ArrayLike) -> FloatArray:
+    """``Lift(h)``: translation by ``h`` metres along the platform z axis, ``(..., 4, 4)``."""
+    h = np.asarray(lift, dtype=float)
+    T = np.broadcast_to(np.eye(4), (*h.shape, 4, 4)).copy()
+    T[..., 2, 3] = h
+    return T
+
+
+def T_platform_base_at(T_platform_base: ArrayLike, lift: ArrayLike) -> FloatArray:
+    """Arm base pose on the platform at lift height(s) ``lift`` (metres)."""
+    return lift_transform(lift) @ np.asarray(T_platform_base, dtype=float)
+
+
+def T_world_base(
+    T_world_platform: ArrayLike, lift: ArrayLike, T_platform_base: ArrayLike
+) -> FloatArray:
+    """Arm base pose(s) in the world: ``T_world_platform @ Lift(lift) @ T_platform_base``.
+
+    Parameters
+    ----------
+    T_world_platform
+        ``(..., 4, 4)`` platform pose(s) on the ground (metres).
+    lift
+        Lift height(s) (metres), broadcastable with the leading shape of ``T_world_platform``.
+    T_platform_base
+        4x4 arm mounting on the platform at the lowest lift position.
+    """
+    return (
+        np.asarray(T_world_platform, dtype=float)
+        @ lift_transform(lift)
+        @ np.asarray(T_platform_base, dtype=float)
+    )
+
+
+def T_world_platform_of(
+    T_world_base: ArrayLike, lift: ArrayLike, T_platform_base: ArrayLike
+) -> FloatArray:
+    """The platform pose under an arm base pose: the inverse of :func:`T_world_base`."""
+    return np.asarray(T_world_base, dtype=float) @ np.linalg.inv(
+        T_platform_base_at(T_platform_base, lift)
+    )
+
+
+def lift_move(T_platform_base: ArrayLike, lift_from: float, lift_to: float) -> FloatArray:
+    """Motion of the arm base, in its own frame, when the lift goes between two heights.
+
+    ``T_world_base(lift_to) = T_world_base(lift_from) @ lift_move(...)``.
+
+    Parameters
+    ----------
+    T_platform_base
+        Arm mounting on the platform at the lowest lift position.
+    lift_from, lift_to
+        Lift heights (metres along the platform z axis).
+    """
+    T_pb = np.asarray(T_platform_base, dtype=float)
+    return np.linalg.inv(T_pb) @ lift_transform(lift_to - lift_from) @ T_pb
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,17 +110,6 @@ class MobilePlatform:
     T_platform_base: FloatArray
     safety_margin: float = 0.0
 
-    @classmethod
-    def from_project(cls, platform: Platform, robot_name: str) -> MobilePlatform:
-        """The platform described in a project file, carrying the named arm."""
-        return cls(
-            robot=get_robot(robot_name),
-            footprint=(float(platform.footprint[0]), float(platform.footprint[1])),
-            lift_range=(float(platform.lift[0]), float(platform.lift[1])),
-            T_platform_base=platform.T_platform_base.matrix(),
-            safety_margin=float(platform.safety_margin),
-        )
-
     def _check_lift(self, lift: float) -> None:
         lo, hi = self.lift_range
         if not lo - 1e-9 <= lift <= hi + 1e-9:
@@ -67,13 +118,12 @@ class MobilePlatform:
     def T_platform_base_at(self, lift: float) -> FloatArray:
         """Arm base pose on the platform at a lift height (metres)."""
         self._check_lift(lift)
-        L = np.eye(4)
-        L[2, 3] = lift
-        return L @ self.T_platform_base
+        return T_platform_base_at(self.T_platform_base, lift)
 
     def T_world_base(self, T_world_platform: ArrayLike, lift: float) -> FloatArray:
         """Arm base pose in the world for a platform pose and lift height."""
-        return np.asarray(T_world_platform, dtype=float) @ self.T_platform_base_at(lift)
+        self._check_lift(lift)
+        return T_world_base(T_world_platform, lift, self.T_platform_base)
 
     def footprint_corners(
         self, T_world_platform: ArrayLike, with_margin: bool = True

@@ -31,7 +31,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from fabflow.errors import InputError, UnsupportedError
-from fabflow.project import PoseSpec
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
 
@@ -155,7 +154,7 @@ def _cache_dir() -> Path:
 
 def reach_map(
     robot_name: str,
-    T_flange_tool: ArrayLike | PoseSpec,
+    T_flange_tool: ArrayLike,
     tool_axis: str = "down",
     *,
     step: float | None = None,
@@ -169,7 +168,7 @@ def reach_map(
     robot_name
         Catalogue name (see :func:`fabflow.robots.get_robot`).
     T_flange_tool
-        4x4 TCP pose in the flange frame (metres), or the project's ``PoseSpec``.
+        4x4 TCP pose in the flange frame (metres).
     tool_axis
         ``"down"`` (tool z axis along -z of the base) or ``"up"``.
     step
@@ -189,8 +188,6 @@ def reach_map(
         The map; repeated calls with the same inputs return the same object.
     """
     robot = get_robot(robot_name)
-    if isinstance(T_flange_tool, PoseSpec):
-        T_flange_tool = T_flange_tool.matrix()
     T_ft = np.asarray(T_flange_tool, dtype=float)
     if T_ft.shape != (4, 4):
         raise InputError(f"T_flange_tool must be a 4x4 pose, got shape {T_ft.shape}")

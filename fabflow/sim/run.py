@@ -170,7 +170,7 @@ def prepare_study(
     if elements is None:
         from fabflow.design import generate_elements
 
-        elements = generate_elements(project)
+        elements = generate_elements(project.elements, project.path)
     if plan is None:
         from fabflow.tasks.planner import plan_project
 
@@ -211,14 +211,13 @@ def calibrate_covariance(study: Study, n: int) -> np.ndarray:
     seeded ``[simulation.seed, 0x5EED]`` (independent of every run's stream). Axes
     the method does not observe are zeroed (see :func:`prepare_study`).
     """
-    from fabflow.tasks.plan import T_world_base
 
     rng = np.random.default_rng([study.project.simulation.seed, 0x5EED])
     localize = study_localizer(study)
     T_platform_base = study.project.robot.platform.T_platform_base.matrix()
     out = np.empty((study.n_visits, 6, 6))
     for v, station in enumerate(study.stations):
-        T_planned = T_world_base(station, T_platform_base)
+        T_planned = station.T_world_base(T_platform_base)
         extra = localizer_arguments(study.project, study.method, station)
         covs = [
             localize(

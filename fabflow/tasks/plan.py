@@ -1,9 +1,9 @@
 """The plan: stations where the platform parks and the work package of each visit.
 
 ``T_world_platform`` is the platform origin on the ground (z = ground height,
-z axis up, x forward). The arm base sits at
-``T_world_base = T_world_platform @ lift(station.lift) @ T_platform_base`` where
-``lift(h)`` translates by ``h`` along the platform z axis (see :func:`T_world_base`).
+z axis up, x forward). The arm base of a station sits at
+``T_world_base = T_world_platform @ Lift(station.lift) @ T_platform_base``
+(:meth:`Station.T_world_base`, the chain of :mod:`fabflow.robots.platform`).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from fabflow.design.elements import Element
+from fabflow.robots import platform
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,6 +43,10 @@ class Station:
             "lift": float(self.lift),
         }
 
+    def T_world_base(self, T_platform_base: np.ndarray) -> np.ndarray:
+        """Planned arm base pose in the world (metres) for the arm mounting ``T_platform_base``."""
+        return platform.T_world_base(self.T_world_platform, self.lift, T_platform_base)
+
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Station:
         """Inverse of :meth:`to_dict`."""
@@ -50,21 +55,6 @@ class Station:
             T_world_platform=np.asarray(d["T_world_platform"], dtype=float).reshape(4, 4),
             lift=float(d.get("lift", 0.0)),
         )
-
-
-def T_world_base(station: Station, T_platform_base: np.ndarray) -> np.ndarray:
-    """Planned arm base pose in the world for a station.
-
-    Parameters
-    ----------
-    station
-        The station (platform pose and lift height).
-    T_platform_base
-        4x4 arm mounting pose on the platform at the lowest lift position.
-    """
-    lift = np.eye(4)
-    lift[2, 3] = station.lift
-    return station.T_world_platform @ lift @ T_platform_base
 
 
 @dataclass(frozen=True, eq=False)

@@ -6,7 +6,8 @@ import math
 
 from fabflow.design.elements import Element
 from fabflow.design.generate import generate_elements
-from fabflow.project import ElementSource, Project, Site
+from fabflow.design.specs import ElementSource
+from fabflow.project import Project, Site
 
 
 def cabin_rows(project: Project, n_cabins: int, gap: float = 3.0) -> tuple[Project, list[Element]]:
@@ -49,4 +50,4 @@ def cabin_rows(project: Project, n_cabins: int, gap: float = 3.0) -> tuple[Proje
         obstacles=[],
     )
     big = project.model_copy(update={"elements": sources, "site": site})
-    return big, generate_elements(big)
+    return big, generate_elements(big.elements, big.path)

@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from fabflow.project import Project
-from fabflow.tasks.plan import Plan, T_world_base
+from fabflow.robots import platform
+from fabflow.tasks.plan import Plan
 
 
 def base_targets(plan: Plan, project: Project) -> list[np.ndarray]:
@@ -26,7 +27,7 @@ def base_targets(plan: Plan, project: Project) -> list[np.ndarray]:
     T_platform_base = project.robot.platform.T_platform_base.matrix()
     out = []
     for wp in plan.work_packages:
-        T_wb = T_world_base(wp.station, T_platform_base)
+        T_wb = wp.station.T_world_base(T_platform_base)
         out.append(np.linalg.inv(T_wb)[None] @ np.asarray(wp.T_world_targets))
     return out
 
@@ -98,9 +99,7 @@ def ik_lift_masks(
     T_tool_flange = np.linalg.inv(project.robot.tool.T_flange_tool.matrix())
     masks = np.zeros(len(T_world_tool), dtype=np.int64)
     for bit, h in enumerate(lifts):
-        lift = np.eye(4)
-        lift[2, 3] = h
-        T_world_base = T_world_platform @ (lift @ T_platform_base)
+        T_world_base = platform.T_world_base(T_world_platform, h, T_platform_base)
         T_base_flange = np.linalg.inv(T_world_base) @ T_world_tool @ T_tool_flange
         _, valid = robot.ik_batch(T_base_flange)
         masks |= valid.any(axis=1).astype(np.int64) << bit

@@ -1,0 +1,209 @@
+"""The element sources of a project file: what to build, as the user writes it.
+
+One entry of ``elements`` is a parametric cabin (:class:`CabinSpec`), print paths
+from a drawing or a mesh (:class:`PrintPathSpec`) or explicit task points
+(:class:`TaskPoint`). Lengths are metres, ``*_deg`` fields degrees. The design
+functions (:mod:`fabflow.design.cabin`, :mod:`fabflow.design.print_path`,
+:mod:`fabflow.design.generate`) turn them into elements in the world frame.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+from pydantic import (
+    Field,
+    model_validator,
+)
+
+from fabflow.schema import (
+    ExistingPath,
+    NonNegativeFloat,
+    PoseSpec,
+    PositiveFloat,
+    StrictModel,
+    Vec3,
+)
+
+
+class BlockSize(StrictModel):
+    """Timber block dimensions (metres): length along the wall, width across, height."""
+
+    length: PositiveFloat = 0.60
+    width: PositiveFloat = 0.105
+    height: PositiveFloat = 0.105
+
+
+class Opening(StrictModel):
+    """A door or window in one wall of the cabin (metres).
+
+    ``center`` is measured along the wall from its start corner (the corner at
+    x = 0 for the left and right walls, at y = 0 for the front and rear walls),
+    ``sill`` is the height of the bottom edge above the floor. Every block
+    layer that overlaps ``[sill, sill + height]`` is left open; a lintel spans
+    the opening in the first layer above it.
+    """
+
+    wall: Literal["front", "rear", "left", "right"]
+    kind: Literal["door", "window"] = "window"
+    center: float
+    width: PositiveFloat
+    sill: NonNegativeFloat = 0.0
+    height: PositiveFloat
+
+
+def _default_openings() -> list[Opening]:
+    return [
+        Opening(wall="front", kind="door", center=1.65, width=0.9, sill=0.0, height=2.1),
+        Opening(wall="left", kind="window", center=1.0, width=0.9, sill=0.84, height=1.05),
+        Opening(wall="left", kind="window", center=3.0, width=0.9, sill=0.84, height=1.05),
+        Opening(wall="right", kind="window", center=1.0, width=0.9, sill=0.84, height=1.05),
+        Opening(wall="right", kind="window", center=3.0, width=0.9, sill=0.84, height=1.05),
+    ]
+
+
+CabinPiece = Literal["front", "rear", "left", "right", "front_gable", "rear_gable"]
+
+
+def _default_parts() -> dict[str, str]:
+    return {
+        "left": "A",
+        "rear": "B",
+        "right": "C",
+        "front": "front",
+        "front_gable": "front",
+        "rear_gable": "rear",
+    }
+
+
+class CabinSpec(StrictModel):
+    """Parameters of the parametric log cabin (defaults: the cabin of the UWB paper).
+
+    Cabin frame: origin at the outer corner of the front and right walls, x along
+    ``length`` (the left and right walls, which carry the eaves), y along
+    ``width`` (the front wall at x = 0 and the rear wall at x = length, which
+    carry the gables), z up; ``origin`` and ``heading_deg`` place it in the
+    world. ``height`` is the ridge height, ``eave_height`` the top of the four
+    walls; above it the front and rear walls continue as stepped gables.
+    ``parts`` names the part of each wall (and of each gable); the parts in
+    ``robot_parts`` are built by the robot, the others are pre-built.
+    """
+
+    origin: Vec3 = (0.0, 0.0, 0.0)
+    heading_deg: float = 0.0
+    length: PositiveFloat = 4.00
+    width: PositiveFloat = 3.30
+    height: PositiveFloat = 4.20
+    eave_height: PositiveFloat = 3.15
+    block: BlockSize = BlockSize()
+    openings: list[Opening] = Field(default_factory=_default_openings)
+    lintel_bearing: PositiveFloat = 0.15
+    """How far a lintel reaches past each side of its opening (metres)."""
+    min_piece: PositiveFloat = 0.15
+    """Shortest cut block at the end of a row (metres)."""
+    parts: dict[CabinPiece, str] = Field(default_factory=_default_parts)
+    robot_parts: list[str] = ["A", "B", "C"]
+
+    @model_validator(mode="after")
+    def _geometry(self) -> CabinSpec:
+        b = self.block
+        if self.eave_height > self.height:
+            raise ValueError("'eave_height' must not exceed 'height' (the ridge)")
+        if self.eave_height < b.height:
+            raise ValueError("'eave_height' must be at least one block height")
+        if min(self.length, self.width) < 2 * b.width + self.min_piece:
+            raise ValueError("'length' and 'width' must exceed two block widths plus 'min_piece'")
+        if self.min_piece > b.length / 2:
+            raise ValueError("'min_piece' must not exceed half the block length")
+        pieces = ("front", "rear", "left", "right", "front_gable", "rear_gable")
+        missing = [k for k in pieces if k not in self.parts]
+        if missing:
+            raise ValueError(f"'parts' lacks {', '.join(missing)}")
+        n_wall = math.floor(self.eave_height / b.height + 1e-6)
+        spans = {"front": self.width, "rear": self.width, "left": self.length, "right": self.length}
+        reach: dict[str, list[tuple[float, float, int]]] = {}
+        for i, o in enumerate(self.openings):
+            lo = o.center - o.width / 2 - self.lintel_bearing
+            hi = o.center + o.width / 2 + self.lintel_bearing
+            if lo < b.width - 1e-9 or hi > spans[o.wall] - b.width + 1e-9:
+                raise ValueError(
+                    f"openings[{i}]: the opening plus its lintel bearings "
+                    f"({lo:.3f}..{hi:.3f} m along the {o.wall} wall) must lie between the "
+                    f"corners ({b.width:.3f}..{spans[o.wall] - b.width:.3f} m)"
+                )
+            if math.ceil((o.sill + o.height) / b.height - 1e-6) >= n_wall:
+                raise ValueError(
+                    f"openings[{i}]: the top of the opening plus its lintel must stay below "
+                    f"the eave ({self.eave_height} m)"
+                )
+            for j_lo, j_hi, j in reach.get(o.wall, []):
+                if lo < j_hi and hi > j_lo:
+                    raise ValueError(
+                        f"openings[{i}] and openings[{j}] overlap (with lintel bearings) "
+                        f"on the {o.wall} wall"
+                    )
+            reach.setdefault(o.wall, []).append((lo, hi, i))
+        return self
+
+
+class PrintPathSpec(StrictModel):
+    """Print paths from a DXF drawing (named layers) or a mesh (sliced into layers).
+
+    The drawing is a plan: its contours, placed at ``origin``, are printed
+    ``n_layers`` times, each ``layer_height`` higher. A mesh is sliced every
+    ``layer_height`` into closed contours (all of its height unless ``n_layers``
+    is given).
+    """
+
+    dxf: ExistingPath | None = None
+    mesh: ExistingPath | None = None
+    layers: list[str] = []
+    """DXF layers holding the path geometry (all layers when empty)."""
+    units: Literal["auto", "m", "cm", "mm", "in", "ft"] = "auto"
+    """Drawing units; ``auto``: $INSUNITS of a DXF (mm when unset), metres for a mesh."""
+    closed: bool = True
+    """Every contour must be closed (a wall outline); ``false`` allows open paths."""
+    origin: PoseSpec = PoseSpec()
+    """Where the drawing's origin sits in the world."""
+    layer_height: PositiveFloat = 0.02
+    n_layers: Annotated[int, Field(ge=1)] = 10
+    bead_width: PositiveFloat = 0.03
+    speed: PositiveFloat = 0.1
+    """Tool speed along the path (m/s)."""
+    sample_rate_hz: PositiveFloat = 100.0
+
+    @model_validator(mode="after")
+    def _source(self) -> PrintPathSpec:
+        if (self.dxf is None) == (self.mesh is None):
+            raise ValueError("give exactly one of 'dxf' or 'mesh'")
+        return self
+
+
+class TaskPoint(StrictModel):
+    """An explicit tool frame with an action (drill, mark, measure)."""
+
+    id: Annotated[str, Field(min_length=1)]
+    pose: PoseSpec
+    action: Literal["drill", "mark", "measure"] = "mark"
+    params: dict[str, float | str] = {}
+    layer: Annotated[int, Field(ge=0)] = 0
+    """Build-order layer (0 = first)."""
+
+
+class ElementSource(StrictModel):
+    """One entry of ``elements``: exactly one of ``cabin``, ``print_path``, ``task_points``."""
+
+    cabin: CabinSpec | None = None
+    print_path: PrintPathSpec | None = None
+    task_points: list[TaskPoint] | None = None
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> ElementSource:
+        given = [k for k in ("cabin", "print_path", "task_points") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(
+                "each entry needs exactly one of 'cabin', 'print_path', 'task_points'"
+                + (f" (got {', '.join(given)})" if given else "")
+            )
+        return self
