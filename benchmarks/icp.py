@@ -46,7 +46,7 @@ from fabflow.positioning.global_registration import REGISTRATION_SEGMENTATION, r
 from fabflow.positioning.icp import icp, prepare_target
 from fabflow.positioning.icp_fusion import fuse_icp_kinematics
 from fabflow.positioning.pointcloud import voxel_downsample
-from fabflow.positioning.scan_matching import localize_scan, simulated_site_map
+from fabflow.positioning.scan_matching import localize_scan
 from fabflow.positioning.segmentation import segment_map
 from fabflow.positioning.turn_joint import (
     ENCODER_RESOLUTION,
@@ -55,6 +55,7 @@ from fabflow.positioning.turn_joint import (
 )
 from fabflow.sensors.arm_motion import end_effector_streams, turn_joint_streams
 from fabflow.sensors.lidar import simulate_scan
+from fabflow.sensors.site_map import simulated_site_map
 from fabflow.sensors.site_scene import SiteLandmarks, site_scene
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, perturb, pose_error
 from fabflow.transforms.so3 import exp_so3

@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from fabflow.build.plan import make_plan
 from fabflow.design.generate import generate_elements
 from fabflow.localize.plan import localize_plan
 from fabflow.programs.compile import write_programs
 from fabflow.project import load_project
+from fabflow.tasks.planner import make_plan
 from fabflow.tasks.synthetic import cabin_rows
 
 ROOT = Path(__file__).resolve().parents[1]

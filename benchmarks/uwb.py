@@ -451,7 +451,7 @@ def speed(rng: np.random.Generator, quick: bool) -> dict[str, Any]:
 
 def stations(rng: np.random.Generator, n: int) -> dict[str, Any]:
     from fabflow.design.cabin import cabin_elements
-    from fabflow.positioning.uwb import localize_station
+    from fabflow.localize.uwb import localize_station
     from fabflow.project import load_project
 
     project = load_project(Path(__file__).resolve().parents[1] / "projects" / "cabin")

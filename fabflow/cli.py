@@ -142,10 +142,11 @@ def plan(
     out: OutOption,
 ) -> None:
     """Slice a project into per-station work packages: OUT/plan.json and OUT/site_plan.dxf."""
-    from fabflow.build.plan import make_plan, plan_rows, write_plan_outputs
+    from fabflow.build.plan import plan_rows, write_plan_outputs
     from fabflow.design.generate import generate_elements
     from fabflow.output import atomic_output_dir
     from fabflow.project import load_project
+    from fabflow.tasks.planner import make_plan
 
     p = load_project(project)
     with console.status("planning"), atomic_output_dir(out) as staging:
@@ -259,7 +260,7 @@ def localize_total_station(
 ) -> None:
     """Localize the robot base from total station readings of prisms on the robot."""
 
-    from fabflow.positioning.total_station import localize_files
+    from fabflow.localize.total_station import localize_files
     from fabflow.project import load_project
 
     pose = localize_files(
@@ -304,7 +305,7 @@ def localize_uwb(
 ) -> None:
     """Localize the robot base from UWB ranges (and an IMU); writes OUT/base_pose.json."""
 
-    from fabflow.positioning.uwb_io import localize_from_files
+    from fabflow.localize.uwb_files import localize_from_files
 
     pose = localize_from_files(ranges, anchors, imu)
     q = pose.quality
@@ -334,7 +335,7 @@ def localize_icp(
 ) -> None:
     """Localize the robot base by ICP of a LiDAR scan against a map; writes OUT/base_pose.json."""
 
-    from fabflow.positioning.scan_matching import localize_files, parse_init
+    from fabflow.localize.icp import localize_files, parse_init
     from fabflow.project import load_project
 
     pose = localize_files(

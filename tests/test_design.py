@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fabflow.build.design import stage_design
-from fabflow.build.runner import BuildContext
+from fabflow.build.context import BuildContext
 from fabflow.design import (
     Element,
     cabin_blocks,
@@ -343,7 +343,7 @@ def test_any_cabin_stands_without_overlaps(length, width, eave, roof, block_leng
 def test_site_sensors_in_world_frame() -> None:
     from conftest import PROJECTS
 
-    from fabflow.build.design import site_sensors
+    from fabflow.localize.site import site_sensors
     from fabflow.project import load_project
 
     anchors, instrument = site_sensors(load_project(PROJECTS / "cabin"))

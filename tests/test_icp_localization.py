@@ -10,19 +10,12 @@ import pytest
 
 from fabflow.design.elements import Element
 from fabflow.errors import InputError, LocalizationError
+from fabflow.localize.icp import localize_station, parse_init
 from fabflow.positioning.pointcloud import write_point_cloud
-from fabflow.positioning.scan_matching import (
-    ScanMap,
-    build_map,
-    localize_scan,
-    localize_station,
-    mapping_poses,
-    parse_init,
-    simulated_site_map,
-    to_base_pose,
-)
+from fabflow.positioning.scan_matching import ScanMap, build_map, localize_scan, to_base_pose
 from fabflow.project import parse_project
 from fabflow.sensors.lidar import LidarModel, simulate_scan
+from fabflow.sensors.site_map import mapping_poses, simulated_site_map
 from fabflow.sensors.site_scene import site_scene
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, perturb, pose_error
 from fabflow.transforms.so3 import exp_so3

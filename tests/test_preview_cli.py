@@ -14,7 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from fabflow.build.preview import stage_preview
-from fabflow.build.runner import BuildContext
+from fabflow.build.context import BuildContext
 from fabflow.cli import app
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError

@@ -13,7 +13,6 @@ import shapely
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fabflow.build.plan import make_plan
 from fabflow.design.elements import Element
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InfeasibleError, InputError
@@ -27,7 +26,7 @@ from fabflow.tasks.order import (
     schedule,
     visit_patterns,
 )
-from fabflow.tasks.planner import plan_project, thin_frames
+from fabflow.tasks.planner import make_plan, plan_project, thin_frames
 from fabflow.tasks.reach import reach_model
 from fabflow.tasks.split import split_wide_paths, with_pieces
 from fabflow.tasks.stations import element_polygons, footprint_polygons
@@ -489,7 +488,7 @@ def test_thin_frames_keeps_ends_and_spacing():
 
 def test_plan_stage_hands_the_pieces_to_later_stages(tmp_path):
     from fabflow.build.plan import stage_plan
-    from fabflow.build.runner import BuildContext
+    from fabflow.build.context import BuildContext
 
     ctx = BuildContext(project=small_project(), out=tmp_path)
     ctx.results["elements"] = print_layers(5.0, 2)

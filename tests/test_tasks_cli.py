@@ -9,7 +9,8 @@ import numpy as np
 from conftest import PROJECTS
 
 from fabflow.build.plan import stage_plan
-from fabflow.build.runner import BuildContext, stages
+from fabflow.build.context import BuildContext
+from fabflow.build.runner import stages
 from fabflow.design.generate import generate_elements
 from fabflow.output import MARKER
 from fabflow.project import load_project

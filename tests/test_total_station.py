@@ -20,13 +20,11 @@ from fabflow.positioning.polar import (
     polar_to_cartesian,
     to_world,
 )
+from fabflow.positioning.registration import register_points
 from fabflow.positioning.result import BasePose
-from fabflow.positioning.total_station import (
-    kabsch,
+from fabflow.positioning.rigid_fit import kabsch, refine_registration, register_leveled
+from fabflow.positioning.three_point import (
     localize_three_point,
-    refine_registration,
-    register_leveled,
-    register_points,
     three_point_base_points,
     three_point_localization,
 )

@@ -13,10 +13,11 @@ from typer.testing import CliRunner
 
 from fabflow.cli import app
 from fabflow.errors import InputError, LocalizationError, UnsupportedError
+from fabflow.localize.total_station import localize_files
 from fabflow.positioning.gsi import parse_gsi, read_gsi
 from fabflow.positioning.polar import DEG, GON, INSTRUMENTS
 from fabflow.positioning.result import BasePose
-from fabflow.positioning.total_station import localize_files, localize_observations
+from fabflow.positioning.total_station import localize_observations
 from fabflow.positioning.ts_io import read_observations, read_robot_points
 from fabflow.transforms.se3 import make_T, pose_error
 from fabflow.transforms.so3 import exp_so3
@@ -241,7 +242,7 @@ def test_cli_bad_file_is_one_message(tmp_path: Path) -> None:
 
 
 def test_project_with_measured_observations(tmp_path: Path) -> None:
-    from fabflow.positioning.total_station import localize_station
+    from fabflow.localize.total_station import localize_station
     from fabflow.project import parse_project
 
     text = f"""

@@ -7,6 +7,7 @@ import pytest
 
 from fabflow.design.elements import Element
 from fabflow.errors import InputError, LocalizationError
+from fabflow.localize.total_station import localize_station
 from fabflow.positioning.point_selection import (
     Boxes,
     ClearanceRules,
@@ -21,7 +22,6 @@ from fabflow.positioning.point_selection import (
     sphere_grid,
     spread_objective,
 )
-from fabflow.positioning.total_station import localize_station
 from fabflow.project import parse_project
 from fabflow.sensors.ts_procedures import simulate_procedures
 from fabflow.transforms.se3 import apply_T, make_T, pose_error
@@ -201,7 +201,8 @@ def test_procedure_a_error_grows_and_b_does_not() -> None:
 
 
 def test_instrument_setup_uncertainty_propagates() -> None:
-    from fabflow.positioning.total_station import add_instrument_uncertainty, register_points
+    from fabflow.positioning.registration import register_points
+    from fabflow.positioning.total_station import add_instrument_uncertainty
 
     # a heading error a of an instrument 10 m away moves the base sideways by 10 a
     T_wi = make_T(np.eye(3), [0.0, -10.0, 1.6])

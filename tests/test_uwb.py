@@ -8,15 +8,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fabflow.errors import InputError, LocalizationError
-from fabflow.positioning.uwb import (
-    UNOBSERVED_VARIANCE,
-    crlb,
-    horizontal_ranges,
-    localize_station,
-    locate,
-    locate_platform,
-)
+from fabflow.localize.uwb import localize_station
+from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, crlb, horizontal_ranges, locate
 from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers, running_median
+from fabflow.positioning.uwb_platform import locate_platform
 from fabflow.project import load_project
 from fabflow.sensors.uwb import (
     PAPER_ANCHORS_3D,

@@ -3,35 +3,16 @@
 from __future__ import annotations
 
 from collections import Counter
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from fabflow.build.context import BuildContext
 from fabflow.design.elements import Element, elements_to_json
 from fabflow.design.generate import generate_elements
 from fabflow.design.site_plan import write_site_plan
+from fabflow.localize.site import site_sensors
 from fabflow.output import write_json
-from fabflow.project import Project, TotalStationSetup
-
-if TYPE_CHECKING:
-    from fabflow.build.runner import BuildContext
-
-
-def site_sensors(project: Project) -> tuple[dict[str, np.ndarray] | None, np.ndarray | None]:
-    """UWB anchors (world frame, metres) and the total-station pose from the project."""
-    loc = project.localization
-    anchors = None
-    if loc.uwb is not None:
-        T_world_uwb = loc.uwb.T_world_uwb.matrix()
-        anchors = {
-            name: T_world_uwb[:3, :3] @ np.asarray(xyz) + T_world_uwb[:3, 3]
-            for name, xyz in loc.uwb.anchors.items()
-        }
-    station = loc.total_station
-    if station is None and loc.method == "total_station":
-        station = TotalStationSetup()
-    instrument = None if station is None else station.T_world_instrument.matrix()
-    return anchors, instrument
 
 
 def _runs(counts: np.ndarray) -> str:
@@ -81,10 +62,10 @@ def design_summary(elements: list[Element]) -> list[tuple[str, Any]]:
 def stage_design(ctx: BuildContext) -> None:
     """Generate the elements; write ``elements.json`` and ``site_plan.dxf``.
 
-    Sets ``ctx.results["elements"]`` (list of :class:`Element`, world frame).
+    Sets ``ctx.elements`` (world frame).
     """
     elements = generate_elements(ctx.project.elements, ctx.project.path)
-    ctx.results["elements"] = elements
+    ctx.elements = elements
     write_json(
         ctx.out / "elements.json",
         {

@@ -2,22 +2,19 @@
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-from fabflow import __version__
+from fabflow.build.context import BuildContext
 from fabflow.design.elements import Element
+from fabflow.design.site_plan import write_site_plan
+from fabflow.localize.site import site_sensors
 from fabflow.output import write_json
 from fabflow.project import Project
 from fabflow.tasks.plan import Plan
-from fabflow.tasks.planner import plan_project
+from fabflow.tasks.planner import make_plan
 from fabflow.tasks.split import with_pieces
-from fabflow.tasks.verify import unreachable_targets
-
-if TYPE_CHECKING:
-    from fabflow.build.runner import BuildContext
+from fabflow.version import __version__
 
 
 def plan_rows(plan: Plan) -> list[tuple[str, str]]:
@@ -45,9 +42,6 @@ def write_plan_outputs(
     out: Path, project: Project, elements: Sequence[Element], plan: Plan
 ) -> None:
     """Write ``plan.json`` and redraw ``site_plan.dxf`` with the stations into ``out``."""
-    from fabflow.build.design import site_sensors
-    from fabflow.design.site_plan import write_site_plan
-
     write_json(
         out / "plan.json",
         {"fabflow_version": __version__, "frame": "world", "units": "m", **plan.to_dict()},
@@ -63,32 +57,17 @@ def write_plan_outputs(
     )
 
 
-def make_plan(project: Project, elements: Sequence[Element]) -> Plan:
-    """Plan the project and record the inverse-kinematics check of every target."""
-    plan = plan_project(project, elements)
-    bad = unreachable_targets(plan, project)
-    if bad is None:
-        return plan
-    notes = plan.notes
-    if bad:
-        notes = (
-            *notes,
-            f"{len(bad)} target(s) fail the inverse-kinematics check: {', '.join(bad[:12])}",
-        )
-    return dataclasses.replace(plan, notes=notes, summary={**plan.summary, "ik_unreachable": bad})
-
-
 def stage_plan(ctx: BuildContext) -> None:
     """Slice the elements into work packages; write ``plan.json``, redraw the site plan.
 
-    Reads ``ctx.results["elements"]``; sets ``ctx.results["plan"]`` (:class:`Plan`). When
-    print paths were split into per-station pieces, ``ctx.results["elements"]`` is
-    replaced by the list with the pieces (see :mod:`fabflow.tasks.split`).
+    Reads the elements; sets ``ctx.plan``. When print paths were split into
+    per-station pieces, ``ctx.elements`` is replaced by the list with the pieces
+    (see :mod:`fabflow.tasks.split`).
     """
-    plan = make_plan(ctx.project, ctx.results["elements"])
-    ctx.results["plan"] = plan
-    elements = with_pieces(ctx.results["elements"], plan.split_elements)
-    ctx.results["elements"] = elements
+    plan = make_plan(ctx.project, ctx.need_elements())
+    ctx.plan = plan
+    elements = with_pieces(ctx.need_elements(), plan.split_elements)
+    ctx.elements = elements
     write_plan_outputs(ctx.out, ctx.project, elements, plan)
     for item, value in plan_rows(plan):
         ctx.add("plan", item, value)

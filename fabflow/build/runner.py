@@ -1,68 +1,25 @@
-"""The build pipeline: every stage that exists, run in order into one output folder.
+"""The build runner: every stage, in order, into one output folder.
 
-A stage is a function ``stage(ctx) -> None`` that reads the project and the
-results of earlier stages from ``ctx.results``, writes its files under
-``ctx.out`` and adds rows to ``ctx.summary``. :func:`run_build` runs the stages
+Each stage lives in its own module of this package (``project``, ``design``,
+``plan``, ``localize``, ``program``, ``preview``) and shares a typed
+:class:`~fabflow.build.context.BuildContext`. :func:`run_build` runs the stages
 into a staging folder and moves it into place only when all have completed.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
-from fabflow import __version__
+from fabflow.build.context import BuildContext, Stage
 from fabflow.build.design import stage_design
+from fabflow.build.localize import stage_localize
 from fabflow.build.plan import stage_plan
 from fabflow.build.preview import stage_preview
-from fabflow.localize.plan import stage_localize
+from fabflow.build.program import stage_program
+from fabflow.build.project import stage_project
 from fabflow.output import atomic_output_dir, write_json
-from fabflow.programs.compile import stage_program
 from fabflow.project import Project
-
-
-@dataclass
-class BuildContext:
-    """What the stages of one build share.
-
-    Attributes
-    ----------
-    project
-        The validated project.
-    out
-        The staging folder stages write into (moved to the real output at the end).
-    results
-        Results of earlier stages by stage name (plain data and numpy arrays).
-    summary
-        Rows ``(stage, item, value)`` for the summary table.
-    """
-
-    project: Project
-    out: Path
-    results: dict[str, Any] = field(default_factory=dict)
-    summary: list[tuple[str, str, str]] = field(default_factory=list)
-
-    def add(self, stage: str, item: str, value: object) -> None:
-        """Add one row to the build summary."""
-        self.summary.append((stage, item, str(value)))
-
-
-Stage = Callable[[BuildContext], None]
-
-
-def stage_project(ctx: BuildContext) -> None:
-    """Write the validated project, defaults filled in, as ``project.json``."""
-    p = ctx.project
-    write_json(
-        ctx.out / "project.json",
-        {"fabflow_version": __version__, "project": p.model_dump(mode="json")},
-    )
-    ctx.add("project", "name", p.name)
-    ctx.add("project", "robot", p.robot.model)
-    ctx.add("project", "localization", p.localization.method)
-    ctx.add("project", "element sources", len(p.elements))
 
 
 def stages() -> list[tuple[str, Stage]]:

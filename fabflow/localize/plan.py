@@ -9,14 +9,13 @@ is what the programs of that station are expressed in.
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from fabflow.design.elements import Element
+from fabflow.localize.methods import LOCALIZERS, LocalizeStation
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project
 from fabflow.robots import platform
@@ -24,34 +23,8 @@ from fabflow.tasks.plan import Plan, Station
 from fabflow.transforms.se3 import compose_covariance
 from fabflow.transforms.so3 import exp_so3
 
-if TYPE_CHECKING:
-    from fabflow.build.runner import BuildContext
-
-METHOD_MODULES = {
-    "uwb": "fabflow.positioning.uwb",
-    "total_station": "fabflow.positioning.total_station",
-    "icp": "fabflow.positioning.scan_matching",
-}
-"""Module holding each method's ``localize_station`` function."""
-
-
-class LocalizeStation(Protocol):
-    """Simulate one method's measurements of a base at ``T_world_base`` and estimate it."""
-
-    def __call__(
-        self,
-        project: Project,
-        T_world_base: np.ndarray,
-        rng: np.random.Generator,
-        station_id: str,
-        built: Sequence[Element] = (),
-    ) -> BasePose: ...
-
-
-def method_function(method: str) -> LocalizeStation:
-    """The ``localize_station`` function of a localization method."""
-    module = importlib.import_module(METHOD_MODULES[method])
-    return module.localize_station
+VisitPoses = dict[int, tuple[BasePose, np.ndarray]]
+"""Per work package index: the estimated base pose and the true ``T_world_base`` (4x4)."""
 
 
 def exact_localizer(method: str) -> LocalizeStation:
@@ -80,7 +53,7 @@ def station_localizer(project: Project, method: str) -> LocalizeStation:
     ``simulation.sensor_noise`` is off."""
     if not project.simulation.sensor_noise:
         return exact_localizer(method)
-    return method_function(method)
+    return LOCALIZERS[method]
 
 
 def localizer_arguments(project: Project, method: str, station: Station) -> dict[str, float]:
@@ -125,7 +98,7 @@ def localize_plan(
     elements: Sequence[Element],
     rng: np.random.Generator,
     method: str | None = None,
-) -> dict[int, tuple[BasePose, np.ndarray]]:
+) -> VisitPoses:
     """Localize every station of a plan.
 
     Parameters
@@ -156,7 +129,7 @@ def localize_plan(
     prebuilt = [e for e in elements if not e.robot_built]
     built_ids: list[str] = []
     T_platform_base = project.robot.platform.T_platform_base.matrix()
-    results: dict[int, tuple[BasePose, np.ndarray]] = {}
+    results: VisitPoses = {}
     previous = None
     for wp in plan.work_packages:
         if previous is not None and previous.station.id == wp.station.id:
@@ -187,50 +160,3 @@ def localize_plan(
         built_ids += list(wp.elements)
         previous = wp
     return results
-
-
-def stage_localize(ctx: BuildContext) -> None:
-    """Build stage: localize every visit of the plan; writes ``localization/visit_NN_S.json``.
-
-    One file per work package (``NN`` its 1-based index, ``S`` its station);
-    packages that continue a visit after a lift move carry the visit's
-    measurement moved by the lift (``quality.measured_in_package``).
-
-    Needs ``ctx.results["plan"]`` and ``ctx.results["elements"]``; sets
-    ``ctx.results["localization"]`` to ``{visit index: (BasePose, true T_world_base)}``.
-    """
-    from fabflow.output import write_json
-    from fabflow.transforms.se3 import pose_error
-
-    project = ctx.project
-    plan: Plan = ctx.results["plan"]
-    rng = np.random.default_rng(project.simulation.seed)
-    results = localize_plan(project, plan, ctx.results["elements"], rng)
-    ctx.results["localization"] = results
-    folder = ctx.out / "localization"
-    folder.mkdir()
-    errors, sigma = [], []
-    for wp in plan.work_packages:
-        estimate, T_true = results[wp.index]
-        error = pose_error(estimate.T_world_base, T_true)
-        if "measured_in_package" not in estimate.quality:
-            errors.append(np.linalg.norm(error[:2]))
-            sigma.append(float(np.sqrt(np.trace(estimate.covariance[:2, :2]))))
-        write_json(
-            folder / f"visit_{wp.index + 1:02d}_{wp.station.id}.json",
-            {
-                **estimate.to_dict(),
-                "visit": wp.index + 1,
-                "simulated": True,
-                "T_world_base_true": T_true,
-                "error": {"xyz_m": error[:3], "rotation_rad": error[3:]},
-            },
-        )
-    ctx.add("localize", "method", project.localization.method)
-    ctx.add("localize", "visits localized", len(errors))
-    ctx.add(
-        "localize",
-        "XY error, simulated (mean / max)",
-        f"{1000 * np.mean(errors):.1f} / {1000 * np.max(errors):.1f} mm",
-    )
-    ctx.add("localize", "XY sigma, predicted (mean)", f"{1000 * np.mean(sigma):.1f} mm")

@@ -11,12 +11,18 @@ from pathlib import Path
 import numpy as np
 
 from fabflow.design.elements import Element
+from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
 from fabflow.positioning.result import BasePose
+from fabflow.preview.app import serve
+from fabflow.preview.export import check_export_target, export_html
 from fabflow.preview.gui import ProgramSource
+from fabflow.preview.inputs import model_for_project, read_build_outputs
 from fabflow.preview.model import COLOUR_MODES, PreviewModel
-from fabflow.project import Project
+from fabflow.programs.compile import WRITERS, work_package_program
+from fabflow.project import Project, load_project
 from fabflow.tasks.plan import Plan
+from fabflow.tasks.planner import plan_project
 
 
 def project_program_source(
@@ -30,7 +36,6 @@ def project_program_source(
     one. A format that writes several files (KRL ``.src`` + ``.dat``) comes as
     a zip.
     """
-    from fabflow.programs.compile import WRITERS, work_package_program
 
     by_id = {e.id: e for e in elements}
 
@@ -96,15 +101,9 @@ def run_preview(
     wait
         Blocks while the live preview runs (default: until Ctrl-C).
     """
-    from fabflow.design.generate import generate_elements
-    from fabflow.preview.inputs import model_for_project, read_build_outputs
-    from fabflow.project import load_project
-    from fabflow.tasks.planner import plan_project
 
     check_colour_mode(colour_by, sim)
     if export is not None:
-        from fabflow.preview.export import check_export_target
-
         check_export_target(export)
     project = load_project(project_path)
     elements, plan = read_build_outputs(sim) if sim is not None else (None, None)
@@ -119,16 +118,12 @@ def run_preview(
             source=sim,
         )
     if export is not None:
-        from fabflow.preview.export import export_html
-
         result = export_html(model, export, project, colour_mode=colour_by or "state")
         say(
             f"wrote {result.path.resolve()} ({result.size_bytes / 1e6:.1f} MB, "
             f"{result.n_steps} steps, plays {result.duration_s:.0f} s)"
         )
         return
-
-    from fabflow.preview.app import serve
 
     live = serve(
         model,

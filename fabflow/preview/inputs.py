@@ -11,13 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
-from fabflow.design.elements import Element
+from fabflow.design.elements import Element, elements_from_json
+from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
 from fabflow.positioning.result import BasePose
 from fabflow.preview.arm import RobotArm
 from fabflow.preview.model import PreviewModel, build_model
 from fabflow.project import Project
+from fabflow.robots import get_robot
 from fabflow.tasks.plan import Plan
+from fabflow.tasks.planner import plan_project
 
 ID_COLUMNS = ("element", "element_id", "id")
 """Column names accepted for the element id in a deviation table."""
@@ -58,19 +61,14 @@ def model_for_project(
         Localization results by work-package index or station id (e.g. from the
         build's ``localize`` stage); they take precedence over ``sim_dir``'s.
     """
-    from fabflow.robots import get_robot
 
     if sim_dir is not None and (elements is None or plan is None):
         built_elements, built_plan = read_build_outputs(sim_dir)
         if elements is None and plan is None and built_plan is not None:
             elements, plan = built_elements, built_plan
     if elements is None:
-        from fabflow.design.generate import generate_elements
-
         elements = generate_elements(project.elements, project.path)
     if plan is None:
-        from fabflow.tasks.planner import plan_project
-
         plan = plan_project(project, elements)
     deviation = None
     results: dict[int | str, BasePose] = {}
@@ -113,7 +111,6 @@ def read_build_outputs(folder: str | Path) -> tuple[list[Element] | None, Plan |
     InputError
         If a file is present but malformed.
     """
-    from fabflow.design.elements import elements_from_json
 
     folder = Path(folder)
     elements = plan = None

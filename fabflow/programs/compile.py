@@ -11,7 +11,6 @@ configuration change inside the line is found. Any failure is an
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,9 +28,6 @@ from fabflow.project import Project
 from fabflow.robots import RobotModel, get_robot
 from fabflow.tasks.plan import Plan, WorkPackage
 from fabflow.transforms.so3 import exp_so3, log_so3
-
-if TYPE_CHECKING:
-    from fabflow.build.runner import BuildContext
 
 STEP_TRANSLATION = 0.02
 """Largest tool translation between two checked samples of a linear move (m)."""
@@ -550,25 +546,3 @@ def write_programs(
         programs.append(program)
         files.update(WRITERS[fmt](program))
     return programs, files
-
-
-def stage_program(ctx: BuildContext) -> None:
-    """Build stage: one program per work package in the project's format, under ``programs/``.
-
-    Needs ``ctx.results["plan"]``, ``["elements"]`` and ``["localization"]``; sets
-    ``ctx.results["programs"]``.
-    """
-    project = ctx.project
-    base_poses = {i: pose for i, (pose, _) in ctx.results["localization"].items()}
-    programs, files = write_programs(
-        ctx.results["plan"], ctx.results["elements"], project, base_poses
-    )
-    folder = ctx.out / "programs"
-    folder.mkdir()
-    for name, text in files.items():
-        (folder / name).write_text(text, encoding="utf-8")
-    ctx.results["programs"] = programs
-    ctx.add("program", "format", project.program.format)
-    ctx.add("program", "programs / files", f"{len(programs)} / {len(files)}")
-    ctx.add("program", "motions", sum(len(p.moves) for p in programs))
-    ctx.add("program", "robot time (planned)", f"{sum(p.duration for p in programs) / 60:.1f} min")

@@ -24,6 +24,7 @@ import numpy as np
 from fabflow.errors import UnsupportedError
 from fabflow.robots.chain import RobotModel, dh_table
 from fabflow.robots.opw import OPWParameters, opw_ik
+from fabflow.robots.ur_ik import ur_ik
 
 _DEG = np.pi / 180.0
 
@@ -123,7 +124,6 @@ UR10E_DH = {
 
 
 def _ur10e() -> RobotModel:
-    from fabflow.robots.ur_ik import ur_ik
 
     p = UR10E_DH
     return RobotModel(

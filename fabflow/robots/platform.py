@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from fabflow.errors import InputError
 from fabflow.robots.chain import RobotModel
 from fabflow.robots.reach import ReachMap
+from fabflow.transforms.se3 import inv_T
 
 FloatArray = NDArray[np.float64]
 
@@ -65,9 +66,7 @@ def T_world_platform_of(
     T_world_base: ArrayLike, lift: ArrayLike, T_platform_base: ArrayLike
 ) -> FloatArray:
     """The platform pose under an arm base pose: the inverse of :func:`T_world_base`."""
-    return np.asarray(T_world_base, dtype=float) @ np.linalg.inv(
-        T_platform_base_at(T_platform_base, lift)
-    )
+    return np.asarray(T_world_base, dtype=float) @ inv_T(T_platform_base_at(T_platform_base, lift))
 
 
 def lift_move(T_platform_base: ArrayLike, lift_from: float, lift_to: float) -> FloatArray:

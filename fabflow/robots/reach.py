@@ -33,6 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 from fabflow.errors import InputError, UnsupportedError
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
+from fabflow.robots.planar_ik import is_pitch_chain, pitch_chain_ik
 
 FloatArray = NDArray[np.float64]
 
@@ -300,7 +301,6 @@ def _any_solution(robot: RobotModel, T_base_flange: FloatArray) -> NDArray[np.bo
     if robot.analytic_ik is not None:
         _, valid = robot.ik_batch(T_base_flange)
         return valid.any(axis=1)
-    from fabflow.robots.planar_ik import is_pitch_chain, pitch_chain_ik
 
     if is_pitch_chain(robot):
         _, valid = pitch_chain_ik(robot, T_base_flange)

@@ -29,7 +29,7 @@ from fabflow.positioning.polar import (
     polar_to_cartesian,
     simulate_polar,
 )
-from fabflow.positioning.total_station import kabsch, refine_registration, register_leveled
+from fabflow.positioning.rigid_fit import kabsch, refine_registration, register_leveled
 from fabflow.transforms.se3 import apply_T, inv_T, make_T
 from fabflow.transforms.so3 import exp_so3
 

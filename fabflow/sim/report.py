@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from fabflow import __version__
+from fabflow.design import generate_elements
 from fabflow.errors import InputError, LocalizationError
 from fabflow.output import write_json
 from fabflow.project import LOCALIZATION_METHODS, Project
@@ -45,6 +46,7 @@ from fabflow.sim.monte_carlo import (
     summarize,
     within_tolerance,
 )
+from fabflow.sim.plots import write_plots
 from fabflow.sim.run import (
     CALIBRATION_RUNS,
     Fidelity,
@@ -52,6 +54,7 @@ from fabflow.sim.run import (
     calibrate_covariance,
     prepare_study,
 )
+from fabflow.tasks.planner import plan_project
 from fabflow.transforms.so3 import abc_from_matrix
 
 if TYPE_CHECKING:
@@ -215,7 +218,6 @@ def write_study(
 
     ``plots=False`` leaves out the PNG plots.
     """
-    from fabflow.sim.plots import write_plots
 
     folder.mkdir(parents=True, exist_ok=True)
     _write_csv(folder / "elements.csv", *element_rows(study, result))
@@ -323,8 +325,6 @@ def simulate_project(
     list of dict
         The comparison rows (one per method).
     """
-    from fabflow.design import generate_elements
-    from fabflow.tasks.planner import plan_project
 
     if fidelity not in ("sensors", "covariance"):
         raise InputError(

@@ -30,6 +30,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from fabflow.design import generate_elements
 from fabflow.design.elements import Element
 from fabflow.errors import InputError
 from fabflow.localize.plan import (
@@ -41,6 +42,7 @@ from fabflow.localize.plan import (
 from fabflow.positioning.result import BasePose
 from fabflow.project import LOCALIZATION_METHODS, Project
 from fabflow.tasks.plan import Plan, Station
+from fabflow.tasks.planner import plan_project
 from fabflow.transforms.se3 import exp_T, inv_T, pose_error
 from fabflow.transforms.so3 import log_so3
 
@@ -168,12 +170,8 @@ def prepare_study(
             "localization.uwb",
         )
     if elements is None:
-        from fabflow.design import generate_elements
-
         elements = generate_elements(project.elements, project.path)
     if plan is None:
-        from fabflow.tasks.planner import plan_project
-
         plan = plan_project(project, elements)
     by_id = {e.id: e for e in elements}
     standing: list[Element] = [e for e in elements if not e.robot_built]

@@ -19,6 +19,7 @@ and position and different ``lift``; the travel between them is 0.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
@@ -55,7 +56,7 @@ from fabflow.tasks.stations import (
     obstacle_polygons,
 )
 from fabflow.tasks.targets import element_tool_frames, tool_frames
-from fabflow.tasks.verify import ik_lift_masks
+from fabflow.tasks.verify import ik_lift_masks, unreachable_targets
 
 SPLIT_FRACTION = 0.35
 """Print paths wider than this fraction of the arm's reach (bounding-box half-diagonal)
@@ -586,3 +587,16 @@ def plan_project(
         summary=summary,
         split_elements=split_elements,
     )
+
+
+def make_plan(project: Project, elements: Sequence[Element]) -> Plan:
+    """Plan the project and record the inverse-kinematics check of every target."""
+    plan = plan_project(project, elements)
+    bad = unreachable_targets(plan, project)
+    notes = plan.notes
+    if bad:
+        notes = (
+            *notes,
+            f"{len(bad)} target(s) fail the inverse-kinematics check: {', '.join(bad[:12])}",
+        )
+    return dataclasses.replace(plan, notes=notes, summary={**plan.summary, "ik_unreachable": bad})

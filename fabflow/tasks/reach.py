@@ -30,6 +30,7 @@ import numpy as np
 from scipy import ndimage
 
 from fabflow.errors import UnsupportedError
+from fabflow.robots import reach_map
 
 # Published dimensions (metres, degrees) for the fallback model: DH d1, a1, a2,
 # a3, d4, d6 and the A5 limit.
@@ -208,10 +209,6 @@ def geometric_table(robot: str, tool_offset: float) -> np.ndarray:
 
 
 def _ik_table(robot: str, T_flange_tool: np.ndarray) -> np.ndarray | None:
-    try:
-        from fabflow.robots import reach_map
-    except ImportError:
-        return None
     try:
         rm = reach_map(robot, T_flange_tool, tool_axis="down")
     except UnsupportedError:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from fabflow.project import Project
-from fabflow.robots import platform
+from fabflow.robots import get_robot, platform
 from fabflow.tasks.plan import Plan
 
 
@@ -32,19 +32,14 @@ def base_targets(plan: Plan, project: Project) -> list[np.ndarray]:
     return out
 
 
-def unreachable_targets(plan: Plan, project: Project) -> list[str] | None:
+def unreachable_targets(plan: Plan, project: Project) -> list[str]:
     """Element ids whose target has no inverse-kinematics solution at its station.
 
     Returns
     -------
-    list of str or None
-        The failing element ids (empty when all pass), or ``None`` when the
-        robots module is not available.
+    list of str
+        The failing element ids (empty when all pass).
     """
-    try:
-        from fabflow.robots import get_robot
-    except ImportError:
-        return None
     robot = get_robot(project.robot.model)
     T_tool_flange = np.linalg.inv(project.robot.tool.T_flange_tool.matrix())
     failed: list[str] = []
@@ -86,12 +81,8 @@ def ik_lift_masks(
     -------
     np.ndarray or None
         (P,) int64 bit masks (bit l: reachable at ``lifts[l]``), or ``None`` when
-        the robots module or a closed-form IK for the robot is not available.
+        the robot has no closed-form IK.
     """
-    try:
-        from fabflow.robots import get_robot
-    except ImportError:
-        return None
     robot = get_robot(project.robot.model)
     if robot.analytic_ik is None:
         return None

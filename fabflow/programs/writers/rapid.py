@@ -14,6 +14,7 @@ import numpy as np
 from fabflow.errors import UnsupportedError
 from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
+from fabflow.robots import get_robot
 from fabflow.robots.catalog import IRB4600_60_205_OPW
 from fabflow.robots.opw import OPWParameters
 from fabflow.transforms.so3 import quat_from_matrix
@@ -134,7 +135,6 @@ def write_rapid(program: Program) -> dict[str, str]:
     dict[str, str]
         ``{"NAME.mod": text}``.
     """
-    from fabflow.robots import get_robot
 
     robot = get_robot(program.robot)
     arm = ARM_GEOMETRY.get(program.robot)

@@ -13,6 +13,7 @@ import numpy as np
 
 from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
+from fabflow.robots import get_robot
 from fabflow.transforms.so3 import log_so3
 
 JOINT_ACCELERATION = 1.4
@@ -49,7 +50,6 @@ def write_urscript(program: Program) -> dict[str, str]:
     dict[str, str]
         ``{"name.script": text}``.
     """
-    from fabflow.robots import get_robot
 
     # movej takes one joint speed: a PTP speed fraction of 1 stands for the
     # slowest joint's limit, as in the program's timing.

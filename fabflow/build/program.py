@@ -1,0 +1,25 @@
+"""The ``program`` stage of ``fabflow build``: one robot program per work package."""
+
+from __future__ import annotations
+
+from fabflow.build.context import BuildContext
+from fabflow.programs.compile import write_programs
+
+
+def stage_program(ctx: BuildContext) -> None:
+    """Build stage: one program per work package in the project's format, under ``programs/``.
+
+    Needs the plan, the elements and the localization; sets ``ctx.programs``.
+    """
+    project = ctx.project
+    base_poses = {i: pose for i, (pose, _) in ctx.need_localization().items()}
+    programs, files = write_programs(ctx.need_plan(), ctx.need_elements(), project, base_poses)
+    folder = ctx.out / "programs"
+    folder.mkdir()
+    for name, text in files.items():
+        (folder / name).write_text(text, encoding="utf-8")
+    ctx.programs = programs
+    ctx.add("program", "format", project.program.format)
+    ctx.add("program", "programs / files", f"{len(programs)} / {len(files)}")
+    ctx.add("program", "motions", sum(len(p.moves) for p in programs))
+    ctx.add("program", "robot time (planned)", f"{sum(p.duration for p in programs) / 60:.1f} min")

@@ -1,0 +1,220 @@
+"""LiDAR scan-to-map localization of the robot base, simulated or from files.
+
+:func:`localize_station` scans the simulated site (:mod:`fabflow.sensors`) from
+the true platform pose and registers the scan to the site map from the planned
+one (``fabflow build`` and the simulator); :func:`localize_files` registers a
+measured scan file to a map file (``fabflow localize icp``). The estimator is
+:func:`fabflow.positioning.scan_matching.localize_scan`.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from fabflow.design.elements import Element
+from fabflow.errors import InputError
+from fabflow.localize.site import site_obstacles
+from fabflow.positioning.pointcloud import (
+    read_point_cloud,
+)
+from fabflow.positioning.result import BasePose
+from fabflow.positioning.scan_matching import ScanMap, load_map, localize_scan, to_base_pose
+from fabflow.project import IcpSetup, Platform, Project
+from fabflow.robots import platform
+from fabflow.sensors.lidar import HESAI_QT64, simulate_scan
+from fabflow.sensors.site_map import simulated_site_map, with_as_built
+from fabflow.sensors.site_scene import site_scene
+from fabflow.transforms.se3 import inv_T, perturb
+
+
+def _project_map(setup: IcpSetup, project: Project) -> ScanMap:
+    if setup.map is not None:
+        return _cached_file_map(str(setup.map), setup.map_voxel_size)
+    boxes, prisms = site_obstacles(project)
+    return simulated_site_map(boxes, setup.map_voxel_size, 0, None, prisms)  # type: ignore[arg-type]
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_file_map(path: str, voxel_size: float) -> ScanMap:
+    return load_map(path, voxel_size)
+
+
+def localize_station(
+    project: Project,
+    T_world_base: ArrayLike,
+    rng: np.random.Generator,
+    station_id: str | None = None,
+    built: Sequence[Element] = (),
+    lift: float = 0.0,
+) -> BasePose:
+    """Simulate LiDAR scan-to-map localization of a parked platform.
+
+    The platform's LiDAR (``localization.icp.T_platform_lidar``) scans the
+    simulated site (ground, landmarks, the project's box and polygon obstacles and
+    the blocks in ``built``) from the true pose; the scan is localized against the map
+    (``localization.icp.map``, or a simulated map of the site without blocks),
+    starting from the true pose perturbed by the driving error
+    (``simulation.driving_error``, ``simulation.driving_heading_error_deg``), i.e.
+    from where the platform was meant to park. With ``localization.icp.map_as_built``
+    (default) the blocks in ``built`` are added to the map at their design poses
+    (:func:`with_as_built`).
+
+    Parameters
+    ----------
+    project
+        The project.
+    T_world_base
+        4x4 true arm base pose (metres).
+    rng
+        Random generator (range noise and the initial-guess error).
+    station_id
+        Stored in the result.
+    built
+        Elements built so far (in the scan, not in the map).
+    lift
+        Lift height of the station (metres): the LiDAR sits on the platform and
+        does not move with the lift.
+
+    Returns
+    -------
+    BasePose
+        The estimated ``T_world_base`` with covariance and quality figures.
+
+    Raises
+    ------
+    LocalizationError
+        When the scan fails the fitness, RMSE or geometry checks.
+    """
+
+    setup = project.localization.icp or IcpSetup()
+    T_platform_base = platform.T_platform_base_at(
+        project.robot.platform.T_platform_base.matrix(), lift
+    )
+    T_platform_lidar = setup.T_platform_lidar.matrix()
+    T_base_lidar = inv_T(T_platform_base) @ T_platform_lidar
+    T_true = np.asarray(T_world_base, dtype=float) @ T_base_lidar
+
+    boxes, prisms = site_obstacles(project)
+    scene = site_scene(built=built, obstacles=boxes, prisms=prisms)
+    scan = simulate_scan(scene, T_true, rng, HESAI_QT64)
+
+    sim = project.simulation
+    err = np.zeros(6)
+    err[:2] = rng.normal(0.0, sim.driving_error, 2)
+    err[5] = rng.normal(0.0, np.radians(sim.driving_heading_error_deg))
+    # the planned pose: a driving error of the platform, seen at the sensor
+    T_world_platform = platform.T_world_platform_of(
+        T_world_base, lift, project.robot.platform.T_platform_base.matrix()
+    )
+    T_init = perturb(T_world_platform, err) @ T_platform_lidar
+
+    scan_map = _project_map(setup, project)
+    if setup.map_as_built:
+        scan_map = with_as_built(scan_map, built, rng)
+    loc = localize_scan(
+        scan.points,
+        scan_map,
+        T_init,
+        voxel_size=setup.voxel_size,
+        min_fitness=setup.min_fitness,
+        max_rmse=setup.max_rmse,
+        min_structure_fitness=setup.min_structure_fitness,
+        coarse_schedule=(
+            4.0 * setup.max_correspondence_distance,
+            setup.max_correspondence_distance,
+        ),
+    )
+    return to_base_pose(
+        loc,
+        T_base_lidar,
+        station=station_id,
+        quality={
+            "n_scan_points": len(scan),
+            "map": str(setup.map) if setup.map else "simulated",
+            "map_as_built_blocks": sum(e.extents is not None for e in built)
+            if setup.map_as_built
+            else 0,
+        },
+    )
+
+
+def parse_init(text: str) -> tuple[float, float, float]:
+    """Parse ``"x,y,yaw"`` (metres, metres, degrees) of the ``--init`` option.
+
+    Raises
+    ------
+    InputError
+        Not exactly three finite numbers.
+    """
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(np.isfinite(values)):
+        raise InputError(
+            f"expected 'x,y,yaw' (metres, metres, degrees), got {text!r}", location="--init"
+        )
+    return values[0], values[1], values[2]
+
+
+def localize_files(
+    scan_path: str | Path,
+    map_path: str | Path,
+    init: tuple[float, float, float],
+    project: Project | None = None,
+    lift: float = 0.0,
+    station: str | None = None,
+) -> BasePose:
+    """Localize a scan file against a map file (the ``fabflow localize icp`` command).
+
+    Parameters
+    ----------
+    scan_path
+        One LiDAR scan in the sensor frame (PLY, XYZ, CSV; metres).
+    map_path
+        The site map in the world frame (PLY, XYZ, CSV; metres).
+    init
+        Planned platform pose ``(x, y, yaw)`` on the ground (metres, metres, degrees).
+    project
+        Takes the LiDAR mounting, arm mounting and thresholds from
+        ``localization.icp`` and ``robot.platform``; defaults when ``None``.
+    lift
+        Lift height of the arm above its lowest position (metres).
+    station
+        Station id stored in the result.
+    """
+
+    setup = (project.localization.icp if project is not None else None) or IcpSetup()
+    mounting = (project.robot.platform if project is not None else Platform()).T_platform_base
+    T_platform_base = platform.T_platform_base_at(mounting.matrix(), lift)
+    T_platform_lidar = setup.T_platform_lidar.matrix()
+    x, y, yaw_deg = init
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    T_world_platform = np.array([[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    scan = read_point_cloud(scan_path).points
+    scan_map = load_map(map_path, setup.map_voxel_size)
+    loc = localize_scan(
+        scan,
+        scan_map,
+        T_world_platform @ T_platform_lidar,
+        voxel_size=setup.voxel_size,
+        min_fitness=setup.min_fitness,
+        max_rmse=setup.max_rmse,
+        min_structure_fitness=setup.min_structure_fitness,
+        coarse_schedule=(
+            4.0 * setup.max_correspondence_distance,
+            setup.max_correspondence_distance,
+        ),
+    )
+    return to_base_pose(
+        loc,
+        inv_T(T_platform_base) @ T_platform_lidar,
+        station=station,
+        quality={"n_scan_points": len(scan), "map": str(map_path), "scan": str(scan_path)},
+    )

@@ -1,0 +1,40 @@
+"""The localization methods a project can choose, each a ``localize_station`` function.
+
+:data:`LOCALIZERS` maps the method names of the project schema
+(:data:`fabflow.project.LOCALIZATION_METHODS`) to the function that measures
+and estimates the robot base at one station: with simulated sensors, or from
+the measured files the project names.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol
+
+import numpy as np
+
+from fabflow.design.elements import Element
+from fabflow.localize import icp, total_station, uwb
+from fabflow.positioning.result import BasePose
+from fabflow.project import Project
+
+
+class LocalizeStation(Protocol):
+    """Measure a base standing at ``T_world_base`` with one method and estimate its pose."""
+
+    def __call__(
+        self,
+        project: Project,
+        T_world_base: np.ndarray,
+        rng: np.random.Generator,
+        station_id: str,
+        built: Sequence[Element] = (),
+    ) -> BasePose: ...
+
+
+LOCALIZERS: dict[str, LocalizeStation] = {
+    "uwb": uwb.localize_station,
+    "total_station": total_station.localize_station,
+    "icp": icp.localize_station,
+}
+"""Method name (``localization.method``) to its ``localize_station`` function."""

@@ -1,0 +1,379 @@
+"""TODO: docstring."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from scipy import special
+
+from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.result import BasePose
+from fabflow.positioning.rigid_fit import (
+    _jacobians,
+    _normal_matrices,
+    _scatter,
+    _spans_plane,
+    kabsch,
+    optimize_registration,
+    refine_registration,
+)
+from fabflow.transforms.se3 import make_T
+
+COLLINEAR_RATIO = 1e-3
+"""Smallest accepted ratio of the second to the first principal spread of the points."""
+MIN_SPREAD = 1e-4
+"""Smallest accepted second principal spread (RMS, metres) of the points."""
+
+
+@dataclass(frozen=True, eq=False)
+class OutlierTest:
+    """Leave-one-out test for one bad prism reading.
+
+    Each point is predicted from the fit to all the others; the prediction error
+    is normalised by its predicted covariance. With known measurement
+    covariances the statistic is chi-square with 3 degrees of freedom; with the
+    noise level estimated from the residuals it is F(3, 3(n-1)-6).
+
+    Attributes
+    ----------
+    index
+        The most suspicious point (largest statistic).
+    flagged
+        Whether that point fails the test at level ``alpha / n``.
+    statistics
+        ``(n,)`` test statistic per point.
+    threshold
+        Critical value the statistics are compared to.
+    p_value
+        p-value of the most suspicious point.
+    loo_residuals
+        ``(n, 3)`` measured minus predicted position of each point from the fit
+        without it (world frame, metres).
+    known_sigma
+        True when the statistic used the given covariances (chi-square), False
+        when the noise level came from the residuals (F).
+    """
+
+    index: int
+    flagged: bool
+    statistics: np.ndarray
+    threshold: float
+    p_value: float
+    loo_residuals: np.ndarray
+    known_sigma: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-compatible data."""
+        return {
+            "index": self.index,
+            "flagged": self.flagged,
+            "statistics": self.statistics.tolist(),
+            "threshold": self.threshold,
+            "p_value": self.p_value,
+            "loo_residuals": self.loo_residuals.tolist(),
+            "test": "chi2(3)" if self.known_sigma else "F(3, 3n-9)",
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class Registration:
+    """Result of a point registration.
+
+    Attributes
+    ----------
+    T_world_base
+        4x4 estimated pose of the robot base in the world (metres).
+    covariance
+        6x6 covariance over ``[dx, dy, dz, rx, ry, rz]`` (fabflow convention).
+    residuals
+        ``(n, 3)`` measured minus fitted world positions of every point (metres),
+        including a rejected one.
+    rmse
+        RMS of the 3D residual lengths of the points used in the fit (metres).
+    method
+        ``"closed_form"``, ``"optimize"`` or ``"three_point"``.
+    variance_factor
+        Weighted residual sum of squares over its degrees of freedom; about 1
+        when the given covariances are right (NaN without redundancy).
+    outlier_test
+        The leave-one-out test, or None with fewer than 4 points.
+    rejected
+        Indices of points left out of the final fit.
+    iterations
+        Gauss-Newton or optimizer iterations.
+    """
+
+    T_world_base: np.ndarray
+    covariance: np.ndarray
+    residuals: np.ndarray
+    rmse: float
+    method: str
+    variance_factor: float = float("nan")
+    outlier_test: OutlierTest | None = None
+    rejected: tuple[int, ...] = ()
+    iterations: int = 0
+
+    @property
+    def n_points(self) -> int:
+        """Number of points given (including rejected ones)."""
+        return int(self.residuals.shape[0])
+
+    def quality(self) -> dict[str, Any]:
+        """Quality figures for :attr:`BasePose.quality`."""
+        q: dict[str, Any] = {
+            "solver": self.method,
+            "n_points": self.n_points,
+            "n_inliers": self.n_points - len(self.rejected),
+            "rejected": list(self.rejected),
+            "variance_factor": None
+            if not np.isfinite(self.variance_factor)
+            else float(self.variance_factor),
+            "iterations": self.iterations,
+        }
+        if self.outlier_test is not None:
+            q["outlier_test"] = self.outlier_test.to_dict()
+        return q
+
+    def to_base_pose(
+        self, station: str | None = None, quality: dict[str, Any] | None = None
+    ) -> BasePose:
+        """The result as a :class:`~fabflow.positioning.result.BasePose` (``total_station``)."""
+        return BasePose(
+            T_world_base=self.T_world_base.copy(),
+            covariance=self.covariance.copy(),
+            method="total_station",
+            residuals=self.residuals.copy(),
+            rmse=self.rmse,
+            station=station,
+            quality={**self.quality(), **(quality or {})},
+        )
+
+
+# ------------------------------------------------------------------ validation
+
+
+def _as_points(a: Any, name: str, n: int | None = None) -> np.ndarray:
+    try:
+        p = np.asarray(a, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be an (n, 3) array of numbers") from None
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise InputError(f"{name} must have shape (n, 3), got {p.shape}")
+    if n is not None and p.shape[0] != n:
+        raise InputError(f"{name} has {p.shape[0]} points, expected {n} (one per base point)")
+    if not np.all(np.isfinite(p)):
+        row = int(np.flatnonzero(~np.all(np.isfinite(p), axis=1))[0])
+        raise InputError(f"{name} row {row} is not finite")
+    return p
+
+
+def check_geometry(points: np.ndarray, name: str = "points") -> None:
+    """Refuse point sets that cannot fix a rigid pose: fewer than 3, or (nearly) collinear.
+
+    Raises
+    ------
+    LocalizationError
+        When the second principal spread of ``points`` ((n, 3), metres) is below
+        :data:`MIN_SPREAD` or below :data:`COLLINEAR_RATIO` times the first.
+    """
+    n = points.shape[0]
+    if n < 3:
+        raise LocalizationError(f"{name}: need at least 3 points to fix a pose, got {n}")
+    centred = points - points.mean(axis=0)
+    s = np.linalg.svd(centred, compute_uv=False) / np.sqrt(n)
+    if s[1] < MIN_SPREAD or s[1] < COLLINEAR_RATIO * s[0]:
+        raise LocalizationError(
+            f"{name}: the {n} points are (nearly) collinear or coincident "
+            f"(principal spreads {s[0]:.4g} m, {s[1]:.3g} m); the rotation about their "
+            "line is undetermined. Use points that span a plane."
+        )
+
+
+# --------------------------------------------------------------- registration
+
+
+def _loo_test(
+    P: np.ndarray,
+    M: np.ndarray,
+    W: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    known_sigma: bool,
+    alpha: float,
+) -> OutlierTest | None:
+    """Leave-one-out prediction test over all points at once (see :class:`OutlierTest`)."""
+    n = P.shape[0]
+    if n < 4:
+        return None
+    idx = np.nonzero(~np.eye(n, dtype=bool))[1].reshape(n, n - 1)
+    # each leave-one-out fit starts from the full fit: a few Gauss-Newton steps
+    # reach its own optimum (the weighted Kabsch one when W is isotropic)
+    Rs, ts, _ = refine_registration(
+        np.broadcast_to(R, (n, 3, 3)), np.broadcast_to(t, (n, 3)), P[idx], M[idx], W[idx], 3
+    )
+    d = M - (np.einsum("nij,nj->ni", Rs, P) + ts)
+    J = _jacobians(R, P)
+    N = _normal_matrices(J, W)
+    cov_without = np.linalg.inv(N.sum(axis=0) - N)
+    C = np.linalg.inv(W) + np.einsum("nij,njk,nlk->nil", J, cov_without, J)
+    stat = np.einsum("ni,ni->n", d, np.linalg.solve(C, d[..., None])[..., 0])
+    level = alpha / n
+    if known_sigma:
+        threshold = float(special.chdtri(3, level))
+        k = int(np.argmax(stat))
+        p_value = float(special.chdtrc(3, stat[k]))
+    else:
+        dof = 3 * (n - 1) - 6
+        e = np.einsum("nij,nkj->nki", Rs, P[idx]) + ts[:, None, :] - M[idx]
+        ssr = np.einsum("nkij,nki,nkj->n", W[idx], e, e)
+        stat = stat / (3.0 * np.maximum(ssr / dof, 1e-24))
+        threshold = float(special.fdtri(3, dof, 1.0 - level))
+        k = int(np.argmax(stat))
+        p_value = float(special.fdtrc(3, dof, stat[k]))
+    return OutlierTest(
+        index=k,
+        flagged=bool(stat[k] > threshold),
+        statistics=stat,
+        threshold=threshold,
+        p_value=p_value,
+        loo_residuals=d,
+        known_sigma=known_sigma,
+    )
+
+
+def register_points(
+    points_base: Any,
+    points_world: Any,
+    weights: Any = None,
+    *,
+    point_cov: Any = None,
+    sigma: float | None = None,
+    base_sigma: float = 0.0,
+    method: Literal["closed_form", "optimize"] = "closed_form",
+    reject_outlier: bool = False,
+    alpha: float = 1e-3,
+) -> Registration:
+    """Localize the robot base from prism points known in the base frame and measured in the world.
+
+    Parameters
+    ----------
+    points_base
+        ``(n, 3)`` prism positions in the robot base frame (metres), n >= 3.
+    points_world
+        ``(n, 3)`` the same prisms measured in the world frame (metres).
+    weights
+        ``(n,)`` relative weights (used when ``point_cov`` is not given).
+    point_cov
+        ``(n, 3, 3)`` covariance of each measured point (m^2, world frame), e.g.
+        from :func:`fabflow.positioning.polar.polar_covariance`. Makes the fit
+        minimise the Mahalanobis cost and the covariance absolute.
+    sigma
+        Isotropic standard deviation of the measured points (metres) when
+        ``point_cov`` is not given. Without either, the noise level is
+        estimated from the residuals.
+    base_sigma
+        Isotropic standard deviation of the base-frame points (robot
+        positioning error, metres), added to every point's covariance.
+    method
+        ``"closed_form"`` (weighted Kabsch, then Gauss-Newton on the full
+        covariances) or ``"optimize"`` (the paper's SLSQP problem, eqs 7-8).
+    reject_outlier
+        Refit without the point the leave-one-out test flags (needs n >= 4, and
+        the other points must not be collinear; otherwise it is only reported).
+    alpha
+        Significance level of the outlier test (Bonferroni-corrected over n).
+
+    Returns
+    -------
+    Registration
+        ``T_world_base``, ``covariance`` (6x6), ``residuals`` (n x 3), ``rmse``, ...
+
+    Raises
+    ------
+    InputError
+        Arrays of the wrong shape, non-finite values, bad weights.
+    LocalizationError
+        Fewer than 3 points, or collinear/coincident points.
+    """
+    P = _as_points(points_base, "points_base")
+    M = _as_points(points_world, "points_world", n=P.shape[0])
+    n = P.shape[0]
+    check_geometry(P, "points_base")
+    check_geometry(M, "points_world")
+    if method not in ("closed_form", "optimize"):
+        raise InputError(f"unknown method {method!r}; expected 'closed_form' or 'optimize'")
+    known_sigma = point_cov is not None or sigma is not None
+    if point_cov is not None:
+        C = np.asarray(point_cov, dtype=float)
+        if C.shape != (n, 3, 3) or not np.all(np.isfinite(C)):
+            raise InputError(f"point_cov must be a finite ({n}, 3, 3) array, got {C.shape}")
+        C = C + base_sigma**2 * np.eye(3)
+        if np.any(np.linalg.eigvalsh(C)[:, 0] <= 0):
+            raise InputError("point_cov must be positive definite for every point")
+        w = 3.0 / np.trace(C, axis1=1, axis2=2)
+    else:
+        w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
+        if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+            raise InputError(f"weights must be {n} non-negative finite numbers, not all zero")
+        s2 = (1.0 if sigma is None else sigma**2) + base_sigma**2
+        # zero-weight points get a placeholder: they never enter the fit
+        C = (s2 / np.where(w > 0, w, 1.0))[:, None, None] * np.eye(3)
+    keep = w > 0
+    if not keep.all():
+        check_geometry(P[keep], "points_base with positive weight")
+    W = np.zeros_like(C)
+    W[keep] = np.linalg.inv(C[keep])
+
+    def solve(sel: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        if method == "optimize":
+            return optimize_registration(P[sel], M[sel], w[sel])
+        R, t = kabsch(P[sel], M[sel], w[sel])
+        if point_cov is not None:
+            return refine_registration(R, t, P[sel], M[sel], W[sel])
+        return R, t, 0
+
+    R, t, iters = solve(keep)
+    sel_idx = np.flatnonzero(keep)
+    test = _loo_test(P[keep], M[keep], W[keep], R, t, known_sigma, alpha)
+    rejected: tuple[int, ...] = tuple(int(i) for i in np.flatnonzero(~keep))
+    if test is not None:
+        test = OutlierTest(
+            index=int(sel_idx[test.index]),
+            flagged=test.flagged,
+            statistics=_scatter(test.statistics, sel_idx, n, np.nan),
+            threshold=test.threshold,
+            p_value=test.p_value,
+            loo_residuals=_scatter(test.loo_residuals, sel_idx, n, np.nan),
+            known_sigma=test.known_sigma,
+        )
+        trial = keep.copy()
+        trial[test.index] = False
+        if reject_outlier and test.flagged and _spans_plane(P[trial]):
+            keep = trial
+            R, t, iters = solve(keep)
+            rejected = tuple(int(i) for i in np.flatnonzero(~keep))
+
+    J = _jacobians(R, P[keep])
+    info = _normal_matrices(J, W[keep]).sum(axis=0)
+    cov = np.linalg.inv(info)
+    residuals = M - (P @ R.T + t)
+    r_in = residuals[keep]
+    dof = 3 * int(keep.sum()) - 6
+    chi2 = float(np.einsum("ni,nij,nj->", r_in, W[keep], r_in))
+    vf = chi2 / dof if dof > 0 else float("nan")
+    if not known_sigma:
+        # relative weights only: scale the covariance by the estimated variance
+        cov = cov * (vf if dof > 0 else 0.0)
+    return Registration(
+        T_world_base=make_T(R, t),
+        covariance=0.5 * (cov + cov.T),
+        residuals=residuals,
+        rmse=float(np.sqrt(np.mean(np.einsum("ni,ni->n", r_in, r_in)))),
+        method=method,
+        variance_factor=vf,
+        outlier_test=test,
+        rejected=rejected,
+        iterations=iters,
+    )

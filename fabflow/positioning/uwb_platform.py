@@ -1,0 +1,301 @@
+"""TODO: docstring."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.uwb import (
+    _COND_LIMIT,
+    _MIN_RANGE_FOR_WEIGHT,
+    UNOBSERVED_VARIANCE,
+    Method,
+    Sigma,
+    _sigma_of,
+    locate,
+)
+
+# ------------------------------------------------------------------ platform pose
+
+
+def _rotz(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class PlatformFix:
+    """A static platform pose (level platform) from the ranges of one or more tags.
+
+    Attributes
+    ----------
+    state
+        ``[x, y, z, yaw]`` of the platform frame in the anchors' frame (metres, rad).
+    covariance
+        4x4 covariance of ``state`` (yaw variance is ``UNOBSERVED_VARIANCE`` when no
+        tag pair or prior fixes it).
+    residuals
+        (n_used,) range residuals of the measurements used (metres).
+    n_ranges, n_used
+        Ranges given (finite) and used after the residual test.
+    iterations
+        Gauss-Newton iterations of the final solve.
+    heading_observed
+        Whether the yaw is determined by the measurements (or a prior).
+    per_anchor_rms
+        (n_anchors,) RMS residual of the used ranges per anchor (metres).
+    """
+
+    state: np.ndarray
+    covariance: np.ndarray
+    residuals: np.ndarray
+    n_ranges: int
+    n_used: int
+    iterations: int
+    heading_observed: bool
+    per_anchor_rms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def T(self) -> np.ndarray:
+        """4x4 platform pose (``T_frame_platform``)."""
+        T = np.eye(4)
+        T[:3, :3] = _rotz(float(self.state[3]))
+        T[:3, 3] = self.state[:3]
+        return T
+
+
+def locate_platform(
+    anchors: np.ndarray,
+    ranges: np.ndarray,
+    lever_arms: np.ndarray,
+    sigma: Sigma,
+    method: Method = "wls-t",
+    heading_prior: tuple[float, float] | None = None,
+    outlier_k: float = 4.0,
+    max_iter: int = 20,
+    anchor_bias_sigma: np.ndarray | None = None,
+) -> PlatformFix:
+    """Estimate a standing platform's ``x, y, z, yaw`` from the ranges of its tags.
+
+    Every tag's epochs are first multilaterated with ``method``; the median tag
+    positions give the initial pose (2D Procrustes fit of the lever arms). For
+    ``wls-t`` the pose is then refined by Gauss-Newton on all ranges of all tags
+    and epochs jointly, ranges with ``|residual| > outlier_k * sigma`` are dropped
+    once and the solve repeated. Roll and pitch are taken as zero (a level
+    platform); they are not observed.
+
+    Parameters
+    ----------
+    anchors
+        (n_anchors, 3) anchor positions (metres).
+    ranges
+        (N, n_tags, n_anchors) calibrated ranges (metres), NaN where missing.
+    lever_arms
+        (n_tags, 3) tag positions in the platform frame (metres).
+    sigma
+        Range noise standard deviation (constant or function of range).
+    method
+        Estimator for the per-epoch tag fixes; ``wls-t`` also refines jointly.
+    heading_prior
+        ``(yaw, sigma_yaw)`` in radians; required with a single tag, optional otherwise.
+    outlier_k
+        Residual test threshold in standard deviations.
+    max_iter
+        Gauss-Newton iteration cap.
+    anchor_bias_sigma
+        (n_anchors,) standard deviation (metres) of a range error shared by every
+        range to an anchor (what the calibration leaves); added to the covariance,
+        since averaging over epochs does not reduce it.
+
+    Raises
+    ------
+    LocalizationError
+        Too few valid fixes, or a single tag without a heading prior.
+    """
+    A = np.asarray(anchors, dtype=float)
+    R = np.asarray(ranges, dtype=float)
+    L = np.asarray(lever_arms, dtype=float)
+    if A.ndim != 2 or A.shape[1] != 3:
+        raise InputError(f"platform localization needs 3D anchors, got {A.shape}")
+    if R.ndim != 3 or R.shape[1:] != (L.shape[0], A.shape[0]):
+        raise InputError(
+            f"ranges must be (N, {L.shape[0]} tags, {A.shape[0]} anchors), got {R.shape}"
+        )
+    n_tags = L.shape[0]
+    if n_tags == 1 and heading_prior is None:
+        raise LocalizationError(
+            "one UWB tag cannot observe the heading of a standing platform; add a second "
+            "tag or give a heading prior (from the motion or the IMU)"
+        )
+    tag_pos = np.empty((n_tags, 3))
+    for k in range(n_tags):
+        fix = locate(A, R[:, k, :], method=method, sigma=sigma)
+        if not fix.valid.any():
+            raise LocalizationError(
+                f"tag {k}: no epoch has enough usable ranges ({int((~fix.too_few).sum())} of "
+                f"{len(fix.valid)} epochs with >= 4 ranges, {int(fix.degenerate.sum())} degenerate)"
+            )
+        tag_pos[k] = np.nanmedian(fix.positions[fix.valid], axis=0)
+    if n_tags >= 2:
+        lc = L[:, :2] - L[:, :2].mean(axis=0)
+        mc = tag_pos[:, :2] - tag_pos[:, :2].mean(axis=0)
+        yaw0 = np.arctan2(np.sum(lc[:, 0] * mc[:, 1] - lc[:, 1] * mc[:, 0]), np.sum(lc * mc))
+        spread = np.linalg.norm(lc, axis=1).max()
+        heading_observed = spread > 0.05
+    else:
+        yaw0 = float(heading_prior[0])  # type: ignore[index]
+        heading_observed = False
+    if heading_prior is not None:
+        heading_observed = True
+        if n_tags >= 2 and not np.isfinite(yaw0):
+            yaw0 = heading_prior[0]
+    p0 = tag_pos.mean(axis=0) - _rotz(yaw0) @ L.mean(axis=0)
+    state = np.array([*p0, yaw0])
+
+    finite = np.isfinite(R)
+    tag_idx = np.broadcast_to(np.arange(n_tags)[None, :, None], R.shape)[finite]
+    anc_idx = np.broadcast_to(np.arange(A.shape[0])[None, None, :], R.shape)[finite]
+    d = R[finite]
+    s = _sigma_of(sigma, np.maximum(d, _MIN_RANGE_FOR_WEIGHT))
+    use = np.ones(d.size, dtype=bool)
+    iterations = 0
+    if method == "wls-t" or not heading_observed or n_tags == 1:
+        for _pass in range(2):
+            state, iterations = _platform_gn(
+                A, L, d[use], s[use], tag_idx[use], anc_idx[use], state, heading_prior, max_iter
+            )
+            res = d - _platform_h(A, L, state, tag_idx, anc_idx)
+            keep = np.abs(res) <= outlier_k * s
+            if np.array_equal(keep, use):
+                break
+            use = keep
+    info = _platform_info(A, L, s[use], tag_idx[use], anc_idx[use], state, heading_prior)
+    yaw_fixed = heading_observed
+    if not yaw_fixed:
+        info[3, :] = 0.0
+        info[:, 3] = 0.0
+        info[3, 3] = 1.0 / UNOBSERVED_VARIANCE
+    ev = np.linalg.eigvalsh(info)
+    if ev[0] <= ev[-1] / _COND_LIMIT:
+        raise LocalizationError("the tag and anchor geometry does not determine the platform pose")
+    cov = np.linalg.inv(info)
+    if anchor_bias_sigma is not None:
+        J = _platform_jac(A, L, state, tag_idx[use], anc_idx[use])
+        if not yaw_fixed:
+            J[:, 3] = 0.0
+        G = cov @ (J / s[use][:, None] ** 2).T
+        for j, sb in enumerate(np.asarray(anchor_bias_sigma, dtype=float)):
+            g = G[:, anc_idx[use] == j].sum(axis=1)
+            cov = cov + sb**2 * np.outer(g, g)
+    res = d - _platform_h(A, L, state, tag_idx, anc_idx)
+    per_anchor = np.array(
+        [
+            np.sqrt(np.mean(res[use & (anc_idx == j)] ** 2))
+            if np.any(use & (anc_idx == j))
+            else np.nan
+            for j in range(A.shape[0])
+        ]
+    )
+    state[3] = (state[3] + np.pi) % (2 * np.pi) - np.pi
+    return PlatformFix(
+        state=state,
+        covariance=cov,
+        residuals=res[use],
+        n_ranges=int(d.size),
+        n_used=int(use.sum()),
+        iterations=iterations,
+        heading_observed=yaw_fixed,
+        per_anchor_rms=per_anchor,
+    )
+
+
+def _platform_h(
+    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
+) -> np.ndarray:
+    tags = state[:3] + L @ _rotz(state[3]).T
+    return np.linalg.norm(tags[tag_idx] - A[anc_idx], axis=1)
+
+
+def _platform_jac(
+    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
+) -> np.ndarray:
+    Rl = L @ _rotz(state[3]).T
+    tags = state[:3] + Rl
+    diff = tags[tag_idx] - A[anc_idx]
+    u = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]
+    dyaw = np.column_stack([-Rl[:, 1], Rl[:, 0]])[tag_idx]
+    return np.column_stack([u, np.sum(u[:, :2] * dyaw, axis=1)])
+
+
+def _platform_info(
+    A: np.ndarray,
+    L: np.ndarray,
+    s: np.ndarray,
+    tag_idx: np.ndarray,
+    anc_idx: np.ndarray,
+    state: np.ndarray,
+    heading_prior: tuple[float, float] | None,
+) -> np.ndarray:
+    J = _platform_jac(A, L, state, tag_idx, anc_idx)
+    info = J.T @ (J / s[:, None] ** 2)
+    if heading_prior is not None:
+        info[3, 3] += 1.0 / heading_prior[1] ** 2
+    return info
+
+
+def _platform_gn(
+    A: np.ndarray,
+    L: np.ndarray,
+    d: np.ndarray,
+    s: np.ndarray,
+    tag_idx: np.ndarray,
+    anc_idx: np.ndarray,
+    state: np.ndarray,
+    heading_prior: tuple[float, float] | None,
+    max_iter: int,
+) -> tuple[np.ndarray, int]:
+    state = state.copy()
+    iterations = 0
+    while iterations < max_iter:
+        iterations += 1
+        J = _platform_jac(A, L, state, tag_idx, anc_idx)
+        r = d - _platform_h(A, L, state, tag_idx, anc_idx)
+        Wj = J / s[:, None] ** 2
+        M = J.T @ Wj
+        g = Wj.T @ r
+        if heading_prior is not None:
+            w = 1.0 / heading_prior[1] ** 2
+            M[3, 3] += w
+            g[3] += w * (np.angle(np.exp(1j * (heading_prior[0] - state[3]))))
+        try:
+            step = np.linalg.solve(M, g)
+        except np.linalg.LinAlgError:
+            raise LocalizationError(
+                "the tag and anchor geometry does not determine the platform pose"
+            ) from None
+        state += step
+        if np.linalg.norm(step) < 1e-8:
+            break
+    return state, iterations
+
+
+def platform_to_base_covariance(
+    T_world_platform: np.ndarray, T_platform_base: np.ndarray, cov_state: np.ndarray
+) -> np.ndarray:
+    """Map the 4x4 ``[x, y, z, yaw]`` covariance to the 6x6 base pose covariance.
+
+    Follows the convention of :mod:`fabflow.positioning.result`: the yaw error is a
+    rotation about the world z axis and moves the base origin by
+    ``e_z x (t_base - t_platform)``. Roll and pitch get ``UNOBSERVED_VARIANCE``.
+    """
+    lever = T_world_platform[:3, :3] @ T_platform_base[:3, 3]
+    J = np.zeros((6, 4))
+    J[:3, :3] = np.eye(3)
+    J[:3, 3] = np.cross([0.0, 0.0, 1.0], lever)
+    J[5, 3] = 1.0
+    cov = J @ cov_state @ J.T
+    cov[3, 3] += UNOBSERVED_VARIANCE
+    cov[4, 4] += UNOBSERVED_VARIANCE
+    return 0.5 * (cov + cov.T)

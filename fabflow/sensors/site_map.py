@@ -1,0 +1,106 @@
+"""TODO: docstring."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import numpy as np
+import trimesh
+
+from fabflow.design.elements import Element
+from fabflow.positioning.scan_matching import FloatArray, ScanMap, map_from_points
+from fabflow.sensors.lidar import HESAI_QT64, LidarModel, simulate_scan
+from fabflow.sensors.site_scene import boxes_mesh, site_scene
+from fabflow.transforms.se3 import apply_T
+
+# ------------------------------------------------------------------- simulation
+
+
+def mapping_poses(center: Sequence[float] = (2.0, 1.65), height: float = 1.8) -> FloatArray:
+    """Sensor poses of the simulated offline mapping run: a ring around ``center``."""
+    angles = np.radians(np.arange(0, 360, 45))
+    poses = np.tile(np.eye(4), (len(angles) + 1, 1, 1))
+    poses[0, :3, 3] = [center[0], center[1] - 4.5, height]
+    for i, a in enumerate(angles, start=1):
+        c, s = np.cos(a), np.sin(a)
+        poses[i, :3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+        poses[i, :3, 3] = [center[0] + 5.0 * c, center[1] + 5.0 * s, height]
+    return poses
+
+
+@functools.lru_cache(maxsize=4)
+def simulated_site_map(
+    obstacles: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = (),
+    voxel_size: float = 0.03,
+    seed: int = 0,
+    model: LidarModel | None = None,
+    prisms: tuple[tuple[tuple[tuple[float, float], ...], float, float], ...] = (),
+) -> ScanMap:
+    """A map of the simulated site built from nine simulated scans (cached).
+
+    The scans are taken on a ring around the cabin before construction starts, so
+    the map holds the ground, the landmarks and the given box obstacles, but no
+    blocks. Poses are the true ones (as after an offline SLAM run), and the
+    normals are those of the scene triangles hit (as a SLAM map with surface
+    normals would carry), which saves the PCA over 160k points.
+
+    Parameters
+    ----------
+    obstacles
+        Box obstacles ``((lower), (upper))`` of the site (metres).
+    voxel_size
+        Map voxel grid (metres).
+    seed
+        Seed of the range noise of the mapping scans.
+    model
+        The mapping LiDAR (default: the Hesai QT64 model).
+    prisms
+        Polygon obstacles ``(plan polygon, z_min, z_max)`` of the site (metres).
+    """
+
+    rng = np.random.default_rng(seed)
+    scene = site_scene(obstacles=obstacles, prisms=prisms)
+    poses = mapping_poses()
+    scans = [simulate_scan(scene, T, rng, model or HESAI_QT64) for T in poses]
+    points = np.vstack([apply_T(s.T_world_lidar, s.points) for s in scans])
+    normals = np.vstack([scene.face_normals[s.face_index] for s in scans])
+    result = map_from_points(points, voxel_size, normals)
+    return ScanMap(
+        target=result.target,
+        coarse=result.coarse,
+        voxel_size=voxel_size,
+        T_world_scans=tuple(poses),
+    )
+
+
+def with_as_built(scan_map: ScanMap, built: Sequence[Element], rng: np.random.Generator) -> ScanMap:
+    """The map plus the surfaces of the blocks built so far, at their design poses.
+
+    From inside a growing structure most of a scan sees new blocks, which the site
+    map does not hold; adding them (sampled on the map's voxel grid, with their
+    face normals) keeps the fitness up and removes the pull of unmatched block
+    points on nearby map surfaces. The blocks stand where the design puts them:
+    placement errors of real blocks (within tolerance) become map errors.
+    """
+
+    blocks = [e for e in built if e.extents is not None]
+    if not blocks:
+        return scan_map
+    mesh = boxes_mesh(
+        np.stack([e.T_world_element for e in blocks]),
+        np.stack([np.asarray(e.extents, dtype=float) for e in blocks]),
+    )
+    n = int(np.ceil(mesh.area / scan_map.voxel_size**2))
+    pts, face = trimesh.sample.sample_surface(mesh, n, seed=int(rng.integers(2**31)))
+    merged = map_from_points(
+        np.vstack([scan_map.points, np.asarray(pts, dtype=float)]),
+        scan_map.voxel_size,
+        np.vstack([scan_map.normals, mesh.face_normals[face]]),
+    )
+    return ScanMap(
+        target=merged.target,
+        coarse=merged.coarse,
+        voxel_size=scan_map.voxel_size,
+        T_world_scans=scan_map.T_world_scans,
+    )

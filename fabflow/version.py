@@ -1,0 +1,3 @@
+"""The fabflow version: one literal, read by the package metadata and by the outputs."""
+
+__version__ = "0.1.0"
