@@ -25,10 +25,11 @@ from collections.abc import Callable
 import numpy as np
 
 from fabflow.positioning.point_selection import Workspace, optimal_points, sample_workspace
-from fabflow.positioning.polar import INSTRUMENTS, Instrument, measure_points, to_world
+from fabflow.positioning.polar import INSTRUMENTS, Instrument, to_world
 from fabflow.positioning.registration import register_points
 from fabflow.positioning.rigid_fit import kabsch, optimize_registration, refine_registration
 from fabflow.positioning.three_point import three_point_base_points, three_point_localization
+from fabflow.sensors.total_station import measure_points
 from fabflow.sensors.ts_procedures import simulate_procedures
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, pose_error
 from fabflow.transforms.so3 import exp_so3

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -18,8 +19,8 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from fabflow import __version__
 from fabflow.errors import FabflowError
+from fabflow.version import __version__
 
 if TYPE_CHECKING:
     from fabflow.positioning.result import BasePose
@@ -180,6 +181,41 @@ def program(
     run_stages(p, out, "program", until="program")
 
 
+def parse_numbers(text: str, option: str, names: str, units: str = "") -> tuple[float, ...]:
+    """Comma-separated finite numbers given to ``option``, one per name in ``names``.
+
+    Parameters
+    ----------
+    text
+        What the user typed, e.g. ``"1, -2.5,30"`` (``;`` also separates).
+    option
+        The option, named in the error (``--init``).
+    names
+        What the numbers are, comma-separated (``"x,y,yaw"``).
+    units
+        Their units, shown in the error (``" (metres, metres, degrees)"``).
+
+    Raises
+    ------
+    InputError
+        Not exactly that many finite numbers.
+    """
+    from fabflow.errors import InputError
+
+    expected = len(names.split(","))
+    try:
+        values = [float(v) for v in text.replace(";", ",").split(",")]
+    except ValueError:
+        values = []
+    if len(values) != expected or not all(math.isfinite(v) for v in values):
+        raise InputError(f"expected '{names}'{units}, got {text!r}", location=option)
+    return tuple(values)
+
+
+def _optional_numbers(text: str | None, option: str, names: str) -> tuple[float, ...] | None:
+    return None if text is None else parse_numbers(text, option, names)
+
+
 def report_base_pose(pose: BasePose, out: Path, method: str, rows: list[tuple[str, str]]) -> None:
     """Write ``OUT/base_pose.json`` atomically and print the pose with its uncertainty.
 
@@ -271,15 +307,15 @@ def localize_total_station(
         distance_sigma_mm=distance_sigma_mm,
         distance_ppm=distance_ppm,
         angle_sigma_arcsec=angle_sigma_arcsec,
-        instrument_xyz=instrument_xyz,
-        instrument_abc_deg=instrument_abc_deg,
+        instrument_xyz=_optional_numbers(instrument_xyz, "--instrument-xyz", "x,y,z"),
+        instrument_abc_deg=_optional_numbers(instrument_abc_deg, "--instrument-abc-deg", "A,B,C"),
         instrument_height=instrument_height,
         robot_sigma=robot_sigma,
         method="optimize" if optimize else "closed_form",
         reject_outlier=not keep_outliers,
         station=station,
         robot=robot,
-        tcp_xyz=tcp_xyz,
+        tcp_xyz=_optional_numbers(tcp_xyz, "--tcp-xyz", "x,y,z"),
     )
     q = pose.quality
     rows = [("points used", f"{q['n_inliers']} of {q['n_points']}")]
@@ -335,13 +371,13 @@ def localize_icp(
 ) -> None:
     """Localize the robot base by ICP of a LiDAR scan against a map; writes OUT/base_pose.json."""
 
-    from fabflow.localize.icp import localize_files, parse_init
+    from fabflow.localize.icp import localize_files
     from fabflow.project import load_project
 
     pose = localize_files(
         scan,
         map_file,
-        parse_init(init),
+        parse_numbers(init, "--init", "x,y,yaw", " (metres, metres, degrees)"),
         project=None if project is None else load_project(project),
         lift=lift,
         station=station,

@@ -12,8 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fabflow.build.design import stage_design
 from fabflow.build.context import BuildContext
+from fabflow.build.design import stage_design
 from fabflow.design import (
     Element,
     cabin_blocks,
@@ -279,7 +279,7 @@ def test_design_stage_writes_elements_and_site_plan(mixed_project, tmp_path) -> 
     ctx = BuildContext(project=mixed_project, out=tmp_path)
     stage_design(ctx)
     data = json.loads((tmp_path / "elements.json").read_text())
-    assert data["count"] == len(ctx.results["elements"]) == len(data["elements"])
+    assert data["count"] == len(ctx.elements) == len(data["elements"])
     for d in data["elements"][:: max(1, len(data["elements"]) // 50)]:
         assert {"id", "type", "T_world_element", "layer", "supports", "part"} <= d.keys()
         assert np.asarray(d["T_world_element"]).shape == (4, 4)

@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fabflow.cli import parse_numbers
 from fabflow.design.elements import Element
 from fabflow.errors import InputError, LocalizationError
-from fabflow.localize.icp import localize_station, parse_init
+from fabflow.localize.icp import localize_station
 from fabflow.positioning.pointcloud import write_point_cloud
 from fabflow.positioning.scan_matching import ScanMap, build_map, localize_scan, to_base_pose
 from fabflow.project import parse_project
@@ -169,10 +170,10 @@ def test_localize_station_on_the_simulated_site() -> None:
 
 
 def test_parse_init() -> None:
-    assert parse_init("1, -2.5,30") == (1.0, -2.5, 30.0)
+    assert parse_numbers("1, -2.5,30", "--init", "x,y,yaw") == (1.0, -2.5, 30.0)
     for bad in ("1,2", "a,b,c", "1,2,3,4", "1,2,nan"):
         with pytest.raises(InputError, match="--init"):
-            parse_init(bad)
+            parse_numbers(bad, "--init", "x,y,yaw")
 
 
 def test_cli_localize_icp(tmp_path: Path, cli, site_map: ScanMap) -> None:

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from fabflow.build.preview import stage_preview
 from fabflow.build.context import BuildContext
+from fabflow.build.preview import stage_preview
 from fabflow.cli import app
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
@@ -166,9 +166,9 @@ def test_download_gives_the_projects_program(planned) -> None:
 def test_build_stage_writes_preview_html(planned, tmp_path: Path) -> None:
     project, elements, plan = planned
     ctx = BuildContext(project=project, out=tmp_path)
-    ctx.results.update(elements=elements, plan=plan)
+    ctx.elements, ctx.plan = elements, plan
     stage_preview(ctx)
-    assert (tmp_path / "preview.html").stat().st_size == ctx.results["preview"].size_bytes
+    assert (tmp_path / "preview.html").stat().st_size == ctx.preview.size_bytes
     assert any(stage == "preview" for stage, _, _ in ctx.summary)
 
 

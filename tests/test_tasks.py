@@ -487,15 +487,15 @@ def test_thin_frames_keeps_ends_and_spacing():
 
 
 def test_plan_stage_hands_the_pieces_to_later_stages(tmp_path):
-    from fabflow.build.plan import stage_plan
     from fabflow.build.context import BuildContext
+    from fabflow.build.plan import stage_plan
 
     ctx = BuildContext(project=small_project(), out=tmp_path)
-    ctx.results["elements"] = print_layers(5.0, 2)
+    ctx.elements = print_layers(5.0, 2)
     stage_plan(ctx)
-    plan = ctx.results["plan"]
+    plan = ctx.plan
     assert plan.split_elements
-    ids = {e.id for e in ctx.results["elements"]}
+    ids = {e.id for e in ctx.elements}
     assert ids == {e.id for e in plan.split_elements}
     assert all(e in ids for wp in plan.work_packages for e in wp.elements)
     data = json.loads((tmp_path / "plan.json").read_text())

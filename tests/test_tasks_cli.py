@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 from conftest import PROJECTS
 
-from fabflow.build.plan import stage_plan
 from fabflow.build.context import BuildContext
+from fabflow.build.plan import stage_plan
 from fabflow.build.runner import stages
 from fabflow.design.generate import generate_elements
 from fabflow.output import MARKER
@@ -66,9 +66,9 @@ def test_plan_stage_sets_result_and_summary_rows(tmp_path: Path):
     tmp_path = tmp_path / "out"
     tmp_path.mkdir()
     ctx = BuildContext(project=project, out=tmp_path)
-    ctx.results["elements"] = generate_elements(project.elements, project.path)
+    ctx.elements = generate_elements(project.elements, project.path)
     stage_plan(ctx)
-    plan = ctx.results["plan"]
+    plan = ctx.plan
     assert isinstance(plan, Plan)
     assert sorted(e for wp in plan.work_packages for e in wp.elements) == ["far_away", "near"]
     items = {item for stage, item, _ in ctx.summary if stage == "plan"}

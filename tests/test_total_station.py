@@ -14,7 +14,6 @@ from fabflow.positioning.polar import (
     INSTRUMENTS,
     cartesian_to_polar,
     make_instrument,
-    measure_points,
     polar_covariance,
     polar_jacobian,
     polar_to_cartesian,
@@ -28,6 +27,7 @@ from fabflow.positioning.three_point import (
     three_point_base_points,
     three_point_localization,
 )
+from fabflow.sensors.total_station import measure_points
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, pose_error
 from fabflow.transforms.so3 import exp_so3
 

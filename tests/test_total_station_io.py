@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from fabflow.cli import app
+from fabflow.cli import app, parse_numbers
 from fabflow.errors import InputError, LocalizationError, UnsupportedError
 from fabflow.localize.total_station import localize_files
 from fabflow.positioning.gsi import parse_gsi, read_gsi
@@ -146,16 +146,16 @@ def test_localize_files_with_instrument_pose() -> None:
     pose = localize_files(
         DATA / "obs.csv",
         DATA / "robot_points.csv",
-        instrument_xyz="1,2,0",
-        instrument_abc_deg="90,0,0",
+        instrument_xyz=(1.0, 2.0, 0.0),
+        instrument_abc_deg=(90.0, 0.0, 0.0),
         station="S1",
     )
     T_wi = make_T(exp_so3([0, 0, np.pi / 2]), [1.0, 2.0, 0.0])
     err = pose_error(pose.T_world_base, T_wi @ T_TRUE)
     assert np.linalg.norm(err[:3]) < 1e-3
     assert pose.station == "S1" and pose.quality["point_ids"][0] == "P1"
-    with pytest.raises(InputError, match="three numbers"):
-        localize_files(DATA / "obs.csv", DATA / "robot_points.csv", instrument_xyz="1,2")
+    with pytest.raises(InputError, match="--instrument-xyz"):
+        parse_numbers("1,2", "--instrument-xyz", "x,y,z")
 
 
 def test_robot_points_as_joint_values(tmp_path: Path) -> None:
@@ -188,7 +188,7 @@ def test_robot_points_as_joint_values(tmp_path: Path) -> None:
     )
     rp = read_robot_points(pts)
     assert rp.xyz is None and rp.joints is not None and rp.joints.shape == (5, 6)
-    pose = localize_files(obs, pts, robot="kuka_kr60_3", tcp_xyz="0,0,0.2")
+    pose = localize_files(obs, pts, robot="kuka_kr60_3", tcp_xyz=(0.0, 0.0, 0.2))
     assert np.linalg.norm(pose_error(pose.T_world_base, T_TRUE)[:3]) < 2e-4
     with pytest.raises(InputError, match="name the robot"):
         localize_files(obs, pts)

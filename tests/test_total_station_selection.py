@@ -7,13 +7,12 @@ import pytest
 
 from fabflow.design.elements import Element
 from fabflow.errors import InputError, LocalizationError
-from fabflow.localize.total_station import localize_station
+from fabflow.localize.total_station import boxes_in_base, localize_station
 from fabflow.positioning.point_selection import (
     Boxes,
     ClearanceRules,
     Workspace,
     avoid_obstacles,
-    boxes_from_elements,
     boxes_overlap,
     clear_mask,
     optimal_points,
@@ -128,13 +127,13 @@ def test_avoid_obstacles_refills_hopeless_points_from_the_workspace() -> None:
     assert not segments_hit(np.array([8.0, 0.0, 1.0]), clear.points, screen).any()
 
 
-def test_boxes_from_elements_in_base_frame() -> None:
+def test_boxes_in_base_frame() -> None:
     T_world_base = make_T(exp_so3([0, 0, np.pi / 2]), [5.0, 0.0, 0.5])
     block = Element(
         "B1", "block", make_T(np.eye(3), [5.0, 2.0, 0.5]), extents=np.array([0.6, 0.1, 0.1])
     )
     point = Element("T1", "task_point", np.eye(4))
-    boxes = boxes_from_elements([block, point], T_world_base)
+    boxes = boxes_in_base([block, point], T_world_base)
     assert len(boxes) == 1
     np.testing.assert_allclose(boxes.T_base_box[0, :3, 3], [2.0, 0.0, 0.0], atol=1e-12)
 
@@ -184,7 +183,7 @@ def test_localize_station_three_point_and_obstacles() -> None:
     blocked = localize_station(p5, T, np.random.default_rng(1), "S1", built=[block])
     assert blocked.quality["moved_for_obstacles"][0] > 0
     P = np.asarray(blocked.quality["points_base"])
-    boxes = boxes_from_elements([block], T)
+    boxes = boxes_in_base([block], T)
     assert not boxes_overlap(P, np.array([0.15, 0.15, 0.2]), boxes).any()
 
 

@@ -101,6 +101,22 @@ def element_poses(elements: Sequence[Element]) -> np.ndarray:
     return np.stack([e.T_world_element for e in elements])
 
 
+def element_boxes(elements: Sequence[Element]) -> tuple[np.ndarray, np.ndarray]:
+    """The box-shaped elements (those with ``extents``) as arrays.
+
+    Returns
+    -------
+    T_world_box, extents
+        ``(k, 4, 4)`` box centre frames (world, metres) and ``(k, 3)`` full side
+        lengths along the box axes (metres).
+    """
+    boxed = [e for e in elements if e.extents is not None]
+    if not boxed:
+        return np.zeros((0, 4, 4)), np.zeros((0, 3))
+    T = np.stack([np.asarray(e.T_world_element, dtype=float) for e in boxed])
+    return T, np.stack([np.asarray(e.extents, dtype=float) for e in boxed])
+
+
 def elements_to_json(elements: Iterable[Element]) -> list[dict[str, Any]]:
     """Serialize elements to a JSON-compatible list."""
     return [e.to_dict() for e in elements]

@@ -17,7 +17,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from fabflow.design.elements import Element
-from fabflow.errors import InputError
 from fabflow.localize.site import site_obstacles
 from fabflow.positioning.pointcloud import (
     read_point_cloud,
@@ -141,26 +140,6 @@ def localize_station(
             else 0,
         },
     )
-
-
-def parse_init(text: str) -> tuple[float, float, float]:
-    """Parse ``"x,y,yaw"`` (metres, metres, degrees) of the ``--init`` option.
-
-    Raises
-    ------
-    InputError
-        Not exactly three finite numbers.
-    """
-    parts = [p.strip() for p in text.split(",")]
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        values = []
-    if len(values) != 3 or not all(np.isfinite(values)):
-        raise InputError(
-            f"expected 'x,y,yaw' (metres, metres, degrees), got {text!r}", location="--init"
-        )
-    return values[0], values[1], values[2]
 
 
 def localize_files(

@@ -12,14 +12,23 @@ from typing import Any
 import numpy as np
 
 from fabflow.project import Project, TotalStationSetup, UwbSetup
-from fabflow.transforms.se3 import apply_T
+
+
+def points_in_world(T_world_frame: np.ndarray, p_frame: np.ndarray) -> np.ndarray:
+    """``(n, 3)`` points of a frame in the world: ``p @ R.T + t`` (metres).
+
+    The UWB geometry is evaluated in this row-vector order (not
+    :func:`~fabflow.transforms.se3.apply_T`'s ``R @ p.T``, which rounds the last
+    bit differently), so that the seeded simulated ranges stay reproducible.
+    """
+    return p_frame @ T_world_frame[:3, :3].T + T_world_frame[:3, 3]
 
 
 def anchors_world(setup: UwbSetup) -> tuple[list[str], np.ndarray]:
     """Anchor ids and their ``(n, 3)`` positions in the world (metres, ``T_world_uwb`` applied)."""
     ids = list(setup.anchors)
     A = np.array([setup.anchors[k] for k in ids], dtype=float)
-    return ids, apply_T(setup.T_world_uwb.matrix(), A)
+    return ids, points_in_world(setup.T_world_uwb.matrix(), A)
 
 
 def site_sensors(project: Project) -> tuple[dict[str, np.ndarray] | None, np.ndarray | None]:

@@ -1,23 +1,32 @@
-"""TODO: docstring."""
+"""Total station localization of the robot base: simulated at a station, or from files.
+
+:func:`localize_station` chooses prism points in the base frame (eqs 9-11 of
+paper 001, moved clear of the structure and the line of sight; or the
+three-point procedure), reaches them with the project's robot
+(:mod:`fabflow.robots.prism`), observes them with a simulated instrument
+(:mod:`fabflow.sensors.total_station`) and registers the readings
+(:mod:`fabflow.positioning.registration`). :func:`localize_files` registers
+measured readings (CSV or Leica GSI) against robot points (``fabflow localize
+total-station``).
+"""
 
 from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from fabflow.design.elements import Element
+from fabflow.design.elements import Element, element_boxes
 from fabflow.errors import InputError, LocalizationError
 from fabflow.positioning.point_selection import (
+    Boxes,
     ClearanceRules,
     Workspace,
     avoid_obstacles,
-    boxes_from_elements,
     clear_mask,
     optimal_points,
 )
@@ -26,7 +35,6 @@ from fabflow.positioning.polar import (
     make_instrument,
     polar_covariance,
     polar_to_cartesian,
-    simulate_polar,
     to_world,
 )
 from fabflow.positioning.registration import register_points
@@ -39,97 +47,34 @@ from fabflow.positioning.total_station import (
 )
 from fabflow.positioning.ts_io import read_observations, read_robot_points
 from fabflow.project import Project, TotalStationSetup
-from fabflow.robots import get_robot
+from fabflow.robots.prism import PrismReach, prism_points_from_joints, prism_reach
+from fabflow.schema import PoseSpec
+from fabflow.sensors.total_station import simulate_polar
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, perturb
-from fabflow.transforms.so3 import matrix_from_abc
-
-# ------------------------------------------------------------------ simulator
 
 
-SAMPLE_TOLERANCE = 0.03
-"""Largest distance (m) to a sampled prism position that counts as reachable (no closed-form IK)."""
+def prism_workspace(
+    model: str, T_flange_tool: np.ndarray, z_min: float
+) -> tuple[PrismReach, Workspace]:
+    """The robot's prism reach and the workspace the prism points are chosen in.
 
-
-@dataclass(frozen=True, eq=False)
-class _Kinematics:
-    """Reach test and forward kinematics of the prism for one robot and tool.
-
-    Arms with closed-form IK reach a point with the tool pointing down (as in
-    the reach maps). Machines without one (the 5-DOF BROKK) cannot choose the
-    tool orientation, and a 360-degree prism does not need it: their reachable
-    prism positions are a dense cloud of forward-kinematics samples of the
-    joint space, and a point is reached by the nearest sample.
+    The workspace is the reach sphere about the shoulder, above ``z_min`` (base
+    frame, metres), with the robot's exact reach test; its top is capped at the
+    highest reachable point in front of the robot (5 cm margin), because the top
+    of the sphere is out of reach with the tool held down.
     """
-
-    workspace: Workspace
-    robot: Any
-    T_flange_tool: np.ndarray
-    samples_q: np.ndarray | None = None
-    samples_tree: cKDTree | None = None
-
-    def reachable(self, points: np.ndarray) -> np.ndarray:
-        if self.samples_tree is not None:
-            d, _ = self.samples_tree.query(points)
-            return d <= SAMPLE_TOLERANCE
-        T = self._tool_poses(points)
-        _, valid = self.robot.ik_batch(T @ inv_T(self.T_flange_tool))
-        return valid.any(axis=1)
-
-    def _tool_poses(self, points: np.ndarray) -> np.ndarray:
-        R_down = np.diag([1.0, -1.0, -1.0])
-        return make_T(np.broadcast_to(R_down, (len(points), 3, 3)), points)
-
-    def prism_points(self, points: np.ndarray) -> np.ndarray:
-        """Joint values for the desired points, then the prism positions by FK."""
-        if self.samples_tree is not None and self.samples_q is not None:
-            d, k = self.samples_tree.query(points)
-            bad = d > SAMPLE_TOLERANCE
-            q = self.samples_q[k]
-        else:
-            T_base_flange = self._tool_poses(points) @ inv_T(self.T_flange_tool)
-            q, valid = self.robot.ik_batch(T_base_flange)
-            bad = ~valid.any(axis=1)
-            q = q[np.arange(len(points)), np.argmax(valid, axis=1)]
-        if bad.any():
-            p = points[int(np.argmax(bad))]
-            raise LocalizationError(
-                f"{self.robot.name} cannot reach the localization point "
-                f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})"
-            )
-        return (self.robot.fk(q) @ self.T_flange_tool)[:, :3, 3]
-
-
-@functools.lru_cache(maxsize=16)
-def _joint_samples(model: str, T_flange_tool: tuple[float, ...]) -> tuple[np.ndarray, cKDTree]:
-
-    robot = get_robot(model)
-    lo, hi = robot.joint_limits[:, 0], robot.joint_limits[:, 1]
-    q = np.random.default_rng(0).uniform(lo, hi, (40000, robot.dof))
-    p = (robot.fk(q) @ np.asarray(T_flange_tool).reshape(4, 4))[:, :3, 3]
-    return q, cKDTree(p)
-
-
-def _kinematics(model: str, T_flange_tool: np.ndarray, z_min: float) -> _Kinematics:
-    """Workspace (reach sphere about the shoulder) with the robot's exact reach test."""
-
-    robot = get_robot(model)
+    reach = prism_reach(model, T_flange_tool)
+    robot = reach.robot
     shoulder = robot.frames(np.zeros(robot.dof))[1][:3, 3]
     ws = Workspace(center=(0.0, 0.0, float(shoulder[2])), reach=float(robot.reach), z_min=z_min)
-    if robot.analytic_ik is None:
-        q, tree = _joint_samples(model, tuple(np.asarray(T_flange_tool, float).ravel()))
-        kin = _Kinematics(ws, robot, T_flange_tool, q, tree)
-    else:
-        kin = _Kinematics(ws, robot, T_flange_tool)
-    # the top of the reach sphere is out of reach with the tool held down: cap the
-    # workspace at the highest reachable point (in front of the robot, 5 cm margin)
     x = np.arange(0.1, ws.radius, 0.05)
     z = np.arange(z_min, ws.center[2] + ws.radius, 0.05)
     grid = np.stack(np.meshgrid(x, [0.0], z, indexing="ij"), axis=-1).reshape(-1, 3)
-    ok = kin.reachable(grid)
+    ok = reach.reachable(grid)
     if not ok.any():
         raise LocalizationError(f"{model}: no prism position above z = {z_min} m is reachable")
     z_max = float(grid[ok, 2].max()) - 0.05
-    return replace(kin, workspace=replace(ws, reachable=kin.reachable, z_max=z_max))
+    return reach, replace(ws, reachable=reach.reachable, z_max=z_max)
 
 
 @functools.lru_cache(maxsize=64)
@@ -138,11 +83,31 @@ def _cached_optimal_points(n: int, workspace: Workspace) -> np.ndarray:
     return optimal_points(n, replace(workspace, reachable=None), np.random.default_rng(0))
 
 
+def boxes_in_base(elements: Sequence[Element], T_world_base: np.ndarray) -> Boxes:
+    """The box-shaped elements (blocks with ``extents``) as :class:`Boxes` in the base frame."""
+    T_world_box, extents = element_boxes(elements)
+    if len(extents) == 0:
+        return Boxes.empty()
+    return Boxes(np.linalg.inv(np.asarray(T_world_base, dtype=float)) @ T_world_box, extents)
+
+
 def instrument_for(setup: TotalStationSetup) -> Instrument:
     """The accuracy model of a project's total station setup."""
     return make_instrument(
         setup.instrument, setup.distance_sigma_mm, setup.distance_ppm, setup.angle_sigma_arcsec
     )
+
+
+def trunnion_pose(T_world_instrument: np.ndarray, instrument_height: float) -> np.ndarray:
+    """The set-up pose raised by the instrument height along its z axis (4x4, metres)."""
+    T = np.array(T_world_instrument, dtype=float)
+    T[:3, 3] += T[:3, 2] * instrument_height
+    return T
+
+
+def instrument_covariance(setup: TotalStationSetup) -> np.ndarray:
+    """6x6 covariance of the set-up pose from the project's set-up uncertainty fields."""
+    return setup_covariance(setup.setup_sigma_mm, setup.setup_sigma_arcsec)
 
 
 def localize_station(
@@ -195,14 +160,12 @@ def localize_station(
             station=station_id,
         )
     instrument = instrument_for(setup)
-    T_world_instrument = setup.T_world_instrument.matrix()
-    T_world_instrument[:3, 3] += T_world_instrument[:3, 2] * setup.instrument_height
+    T_world_instrument = trunnion_pose(setup.T_world_instrument.matrix(), setup.instrument_height)
     T_world_base = np.asarray(T_world_base, dtype=float)
     T_base_world = inv_T(T_world_base)
     T_flange_tool = project.robot.tool.T_flange_tool.matrix()
-    kin = _kinematics(project.robot.model, T_flange_tool, setup.z_min)
-    ws = kin.workspace
-    boxes = boxes_from_elements(built, T_world_base)
+    reach, ws = prism_workspace(project.robot.model, T_flange_tool, setup.z_min)
+    boxes = boxes_in_base(built, T_world_base)
     rules = ClearanceRules(
         tool_half_extents=setup.tool_half_extents,
         sight_from=tuple(float(v) for v in apply_T(T_base_world, T_world_instrument[:3, 3])),
@@ -225,11 +188,11 @@ def localize_station(
             _cached_optimal_points(setup.n_points, ws), ws, boxes, rules, min_points=3
         )
         P_des, moved, dropped = clear.points, clear.moved, clear.dropped
-    P_base = kin.prism_points(P_des)
+    P_base = reach.prism_points(P_des)
     sigma_robot = project.simulation.robot_repeatability
     P_true = P_base + rng.normal(0.0, 1.0, P_base.shape) * sigma_robot
     # the instrument really stands where its (uncertain) set-up puts it, off by a draw
-    C_setup = setup_covariance(setup)
+    C_setup = instrument_covariance(setup)
     T_world_instrument_true = perturb(
         T_world_instrument, rng.normal(0.0, 1.0, 6) * np.sqrt(np.diag(C_setup))
     )
@@ -258,48 +221,6 @@ def localize_station(
     return reg.to_base_pose(station=station_id, quality=quality)
 
 
-def prism_points_from_joints(
-    model: str,
-    joints: np.ndarray,
-    T_flange_prism: np.ndarray,
-    source: str | None = None,
-    lines: Sequence[int] = (),
-) -> np.ndarray:
-    """Prism positions ``(n, 3)`` in the base frame from joint values ``(n, dof)`` (radians).
-
-    Raises
-    ------
-    InputError
-        When the number of joints does not match the robot or a configuration
-        lies outside the joint limits (the robot cannot have stood there).
-    """
-
-    rob = get_robot(model)
-    q = np.asarray(joints, dtype=float)
-    if q.shape[1] != rob.dof:
-        raise InputError(
-            f"{model} has {rob.dof} joints but the file gives {q.shape[1]} (q1_deg..)", source
-        )
-    ok = rob.within_limits(q)
-    if not ok.all():
-        k = int(np.argmin(ok))
-        where = f"line {lines[k]}" if lines else None
-        raise InputError(f"joint values outside the limits of {model}", source, where)
-    return (rob.fk(q) @ np.asarray(T_flange_prism, dtype=float))[:, :3, 3]
-
-
-def _triple(text: str | None, name: str, default: tuple[float, float, float]) -> np.ndarray:
-    if text is None:
-        return np.asarray(default, dtype=float)
-    try:
-        values = [float(v) for v in text.replace(";", ",").split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3 or not all(np.isfinite(values)):
-        raise InputError(f"{name} must be three numbers 'a,b,c', got {text!r}")
-    return np.asarray(values, dtype=float)
-
-
 def localize_files(
     observations_path: str | Path,
     robot_points_path: str | Path,
@@ -309,23 +230,23 @@ def localize_files(
     distance_sigma_mm: float | None = None,
     distance_ppm: float | None = None,
     angle_sigma_arcsec: float | None = None,
-    instrument_xyz: str | None = None,
-    instrument_abc_deg: str | None = None,
+    instrument_xyz: Sequence[float] | None = None,
+    instrument_abc_deg: Sequence[float] | None = None,
     instrument_height: float | None = None,
     robot_sigma: float = 0.0,
     method: Literal["closed_form", "optimize"] = "closed_form",
     reject_outlier: bool = True,
     station: str | None = None,
     robot: str | None = None,
-    tcp_xyz: str | None = None,
+    tcp_xyz: Sequence[float] | None = None,
 ) -> BasePose:
     """Localize from an observation file and a robot point file (CLI ``localize total-station``).
 
     The instrument and its pose come from the project's
     ``localization.total_station`` section when ``project`` is given, else from
     the defaults (Leica MS50, instrument frame = world); the keyword arguments
-    override either. Pose strings are ``"x,y,z"`` (metres) and ``"A,B,C"``
-    (degrees, R = Rz(A) Ry(B) Rx(C)). A robot point file of joint values is
+    override either: ``instrument_xyz`` in metres, ``instrument_abc_deg`` in
+    degrees (R = Rz(A) Ry(B) Rx(C)). A robot point file of joint values is
     turned into prism positions by forward kinematics of ``robot`` (else the
     project's robot) with the prism at the project's TCP, or at ``tcp_xyz``
     (metres, flange frame).
@@ -333,18 +254,20 @@ def localize_files(
     setup = TotalStationSetup()
     if project is not None and project.localization.total_station is not None:
         setup = project.localization.total_station
-    T0 = setup.T_world_instrument if project is not None else None
+    pose = setup.T_world_instrument if project is not None else PoseSpec()
     inst = make_instrument(
         instrument or setup.instrument,
         distance_sigma_mm if distance_sigma_mm is not None else setup.distance_sigma_mm,
         distance_ppm if distance_ppm is not None else setup.distance_ppm,
         angle_sigma_arcsec if angle_sigma_arcsec is not None else setup.angle_sigma_arcsec,
     )
-    xyz = _triple(instrument_xyz, "--instrument-xyz", T0.xyz if T0 else (0.0, 0.0, 0.0))
-    abc = _triple(instrument_abc_deg, "--instrument-abc-deg", T0.abc_deg if T0 else (0.0, 0.0, 0.0))
-    T_world_instrument = make_T(matrix_from_abc(*np.radians(abc)), xyz)
+    if instrument_xyz is not None or instrument_abc_deg is not None:
+        pose = PoseSpec(
+            xyz=tuple(instrument_xyz) if instrument_xyz is not None else pose.xyz,
+            abc_deg=tuple(instrument_abc_deg) if instrument_abc_deg is not None else pose.abc_deg,
+        )
     hi = setup.instrument_height if instrument_height is None else instrument_height
-    T_world_instrument[:3, 3] += T_world_instrument[:3, 2] * hi
+    T_world_instrument = trunnion_pose(pose.matrix(), hi)
     obs = read_observations(observations_path)
     rp = read_robot_points(robot_points_path)
     if rp.xyz is not None:
@@ -361,13 +284,13 @@ def localize_files(
             project.robot.tool.T_flange_tool.matrix() if project is not None else np.eye(4)
         )
         if tcp_xyz is not None:
-            T_flange_tool = make_T(T_flange_tool[:3, :3], _triple(tcp_xyz, "--tcp-xyz", (0, 0, 0)))
+            T_flange_tool = make_T(T_flange_tool[:3, :3], np.asarray(tcp_xyz, dtype=float))
         pts = prism_points_from_joints(model, rp.joints, T_flange_tool, rp.source, rp.lines)
     reg, matched = localize_observations(
         obs, rp.point_ids, pts, inst, T_world_instrument, robot_sigma, method, reject_outlier
     )
     if project is not None:
-        reg = add_instrument_uncertainty(reg, T_world_instrument, setup_covariance(setup))
+        reg = add_instrument_uncertainty(reg, T_world_instrument, instrument_covariance(setup))
     quality = {
         "instrument": inst.name,
         "point_ids": list(matched),

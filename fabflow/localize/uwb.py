@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from fabflow.design.elements import Element
+from fabflow.design.elements import Element, element_boxes
 from fabflow.errors import InputError
-from fabflow.localize.site import anchors_world
+from fabflow.localize.site import anchors_world, points_in_world
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Method
 from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers_static
@@ -29,7 +29,6 @@ from fabflow.sensors.uwb import (
     segments_occluded,
     simulate_ranges,
 )
-from fabflow.transforms.se3 import apply_T
 
 
 def localize_station(
@@ -84,17 +83,15 @@ def localize_station(
     # the tags are placed from the base pose as given, without the station's lift
     T_world_platform = platform.T_world_platform_of(T_world_base, 0.0, T_platform_base)
     L = np.asarray(setup.tags, dtype=float)
-    tags_world = apply_T(T_world_platform, L)
+    tags_world = points_in_world(T_world_platform, L)
 
     model = UwbErrorModel(sigma_1m=setup.sigma)
     bias = draw_bias(len(ids), model, rng)
     cal = RangeCalibration.fit(*calibration_campaign(model, bias, rng))
 
-    blocks = [e for e in built if e.extents is not None]
+    T_boxes, ext = element_boxes(built)
     occluded = None
-    if blocks:
-        T_boxes = np.stack([e.T_world_element for e in blocks])
-        ext = np.stack([np.asarray(e.extents, dtype=float) for e in blocks])
+    if len(ext):
         starts = np.repeat(tags_world, len(ids), axis=0)
         ends = np.tile(A, (len(L), 1))
         occluded = segments_occluded(starts, ends, T_boxes, ext).reshape(len(L), len(ids))

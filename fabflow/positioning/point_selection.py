@@ -19,13 +19,12 @@ All coordinates are in the robot base frame, metres.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import optimize
 
-from fabflow.design.elements import Element
 from fabflow.errors import InputError, LocalizationError
 
 
@@ -223,17 +222,6 @@ class Boxes:
 
     def __len__(self) -> int:
         return int(self.extents.shape[0])
-
-
-def boxes_from_elements(elements: Sequence[Element], T_world_base: np.ndarray) -> Boxes:
-    """The box-shaped elements (blocks with ``extents``) as :class:`Boxes` in the base frame."""
-    boxed = [e for e in elements if getattr(e, "extents", None) is not None]
-    if not boxed:
-        return Boxes.empty()
-    frames = np.stack([np.asarray(e.T_world_element, float) for e in boxed])
-    ext = np.stack([np.asarray(e.extents, float) for e in boxed])
-    T_base_world = np.linalg.inv(np.asarray(T_world_base, dtype=float))
-    return Boxes(T_base_world @ frames, ext)
 
 
 def boxes_overlap(centers: np.ndarray, half_extents: np.ndarray, boxes: Boxes) -> np.ndarray:

@@ -203,51 +203,6 @@ def polar_covariance(
     return np.einsum("...ik,...k,...jk->...ij", J, var, J)
 
 
-def simulate_polar(
-    points: np.ndarray,
-    instrument: Instrument,
-    rng: np.random.Generator,
-    instrument_height: float = 0.0,
-    prism_height: float | np.ndarray = 0.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Noisy ``(hz, v, sd)`` readings of true target ``points`` (``(..., 3)``, instrument frame).
-
-    Angle and distance errors are drawn independently from zero-mean normals
-    with the instrument's stated standard deviations.
-    """
-    hz, v, sd = cartesian_to_polar(points, instrument_height, prism_height)
-    hz = hz + rng.normal(0.0, instrument.angle_sigma, np.shape(hz))
-    v = v + rng.normal(0.0, instrument.angle_sigma, np.shape(v))
-    sd = sd + rng.normal(0.0, 1.0, np.shape(sd)) * instrument.sigma_distance(sd)
-    return np.mod(hz, 2.0 * np.pi), v, sd
-
-
-def measure_points(
-    points_instrument: np.ndarray,
-    instrument: Instrument,
-    rng: np.random.Generator,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Simulate measuring ``points_instrument`` and return the measured points and covariances.
-
-    Parameters
-    ----------
-    points_instrument
-        ``(..., 3)`` true prism positions in the instrument frame (metres).
-    instrument
-        The accuracy model.
-    rng
-        Source of the measurement noise.
-
-    Returns
-    -------
-    points, cov
-        ``(..., 3)`` measured points and ``(..., 3, 3)`` their covariances from
-        the readings (instrument frame).
-    """
-    hz, v, sd = simulate_polar(points_instrument, instrument, rng)
-    return polar_to_cartesian(hz, v, sd), polar_covariance(hz, v, sd, instrument)
-
-
 def to_world(
     T_world_instrument: np.ndarray, points: np.ndarray, cov: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray | None]:

@@ -11,20 +11,15 @@ from scipy import special
 from fabflow.errors import InputError, LocalizationError
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.rigid_fit import (
-    _jacobians,
-    _normal_matrices,
-    _scatter,
-    _spans_plane,
+    as_points,
+    check_geometry,
     kabsch,
+    normal_matrices,
     optimize_registration,
+    point_jacobians,
     refine_registration,
 )
 from fabflow.transforms.se3 import make_T
-
-COLLINEAR_RATIO = 1e-3
-"""Smallest accepted ratio of the second to the first principal spread of the points."""
-MIN_SPREAD = 1e-4
-"""Smallest accepted second principal spread (RMS, metres) of the points."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,46 +149,6 @@ class Registration:
 # ------------------------------------------------------------------ validation
 
 
-def _as_points(a: Any, name: str, n: int | None = None) -> np.ndarray:
-    try:
-        p = np.asarray(a, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be an (n, 3) array of numbers") from None
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise InputError(f"{name} must have shape (n, 3), got {p.shape}")
-    if n is not None and p.shape[0] != n:
-        raise InputError(f"{name} has {p.shape[0]} points, expected {n} (one per base point)")
-    if not np.all(np.isfinite(p)):
-        row = int(np.flatnonzero(~np.all(np.isfinite(p), axis=1))[0])
-        raise InputError(f"{name} row {row} is not finite")
-    return p
-
-
-def check_geometry(points: np.ndarray, name: str = "points") -> None:
-    """Refuse point sets that cannot fix a rigid pose: fewer than 3, or (nearly) collinear.
-
-    Raises
-    ------
-    LocalizationError
-        When the second principal spread of ``points`` ((n, 3), metres) is below
-        :data:`MIN_SPREAD` or below :data:`COLLINEAR_RATIO` times the first.
-    """
-    n = points.shape[0]
-    if n < 3:
-        raise LocalizationError(f"{name}: need at least 3 points to fix a pose, got {n}")
-    centred = points - points.mean(axis=0)
-    s = np.linalg.svd(centred, compute_uv=False) / np.sqrt(n)
-    if s[1] < MIN_SPREAD or s[1] < COLLINEAR_RATIO * s[0]:
-        raise LocalizationError(
-            f"{name}: the {n} points are (nearly) collinear or coincident "
-            f"(principal spreads {s[0]:.4g} m, {s[1]:.3g} m); the rotation about their "
-            "line is undetermined. Use points that span a plane."
-        )
-
-
-# --------------------------------------------------------------- registration
-
-
 def _loo_test(
     P: np.ndarray,
     M: np.ndarray,
@@ -214,8 +169,8 @@ def _loo_test(
         np.broadcast_to(R, (n, 3, 3)), np.broadcast_to(t, (n, 3)), P[idx], M[idx], W[idx], 3
     )
     d = M - (np.einsum("nij,nj->ni", Rs, P) + ts)
-    J = _jacobians(R, P)
-    N = _normal_matrices(J, W)
+    J = point_jacobians(R, P)
+    N = normal_matrices(J, W)
     cov_without = np.linalg.inv(N.sum(axis=0) - N)
     C = np.linalg.inv(W) + np.einsum("nij,njk,nlk->nil", J, cov_without, J)
     stat = np.einsum("ni,ni->n", d, np.linalg.solve(C, d[..., None])[..., 0])
@@ -241,6 +196,20 @@ def _loo_test(
         loo_residuals=d,
         known_sigma=known_sigma,
     )
+
+
+def _spans_plane(points: np.ndarray) -> bool:
+    try:
+        check_geometry(points)
+    except LocalizationError:
+        return False
+    return True
+
+
+def _scatter(values: np.ndarray, idx: np.ndarray, n: int, fill: float) -> np.ndarray:
+    out = np.full((n, *values.shape[1:]), fill)
+    out[idx] = values
+    return out
 
 
 def register_points(
@@ -297,8 +266,8 @@ def register_points(
     LocalizationError
         Fewer than 3 points, or collinear/coincident points.
     """
-    P = _as_points(points_base, "points_base")
-    M = _as_points(points_world, "points_world", n=P.shape[0])
+    P = as_points(points_base, "points_base")
+    M = as_points(points_world, "points_world", n=P.shape[0])
     n = P.shape[0]
     check_geometry(P, "points_base")
     check_geometry(M, "points_world")
@@ -355,8 +324,8 @@ def register_points(
             R, t, iters = solve(keep)
             rejected = tuple(int(i) for i in np.flatnonzero(~keep))
 
-    J = _jacobians(R, P[keep])
-    info = _normal_matrices(J, W[keep]).sum(axis=0)
+    J = point_jacobians(R, P[keep])
+    info = normal_matrices(J, W[keep]).sum(axis=0)
     cov = np.linalg.inv(info)
     residuals = M - (P @ R.T + t)
     r_in = residuals[keep]

@@ -2,12 +2,59 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy import optimize
 
-from fabflow.errors import LocalizationError
-from fabflow.positioning.registration import check_geometry
+from fabflow.errors import InputError, LocalizationError
 from fabflow.transforms.so3 import exp_so3
+
+COLLINEAR_RATIO = 1e-3
+"""Smallest accepted ratio of the second to the first principal spread of the points."""
+MIN_SPREAD = 1e-4
+"""Smallest accepted second principal spread (RMS, metres) of the points."""
+
+
+def as_points(a: Any, name: str, n: int | None = None) -> np.ndarray:
+    try:
+        p = np.asarray(a, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be an (n, 3) array of numbers") from None
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise InputError(f"{name} must have shape (n, 3), got {p.shape}")
+    if n is not None and p.shape[0] != n:
+        raise InputError(f"{name} has {p.shape[0]} points, expected {n} (one per base point)")
+    if not np.all(np.isfinite(p)):
+        row = int(np.flatnonzero(~np.all(np.isfinite(p), axis=1))[0])
+        raise InputError(f"{name} row {row} is not finite")
+    return p
+
+
+def check_geometry(points: np.ndarray, name: str = "points") -> None:
+    """Refuse point sets that cannot fix a rigid pose: fewer than 3, or (nearly) collinear.
+
+    Raises
+    ------
+    LocalizationError
+        When the second principal spread of ``points`` ((n, 3), metres) is below
+        :data:`MIN_SPREAD` or below :data:`COLLINEAR_RATIO` times the first.
+    """
+    n = points.shape[0]
+    if n < 3:
+        raise LocalizationError(f"{name}: need at least 3 points to fix a pose, got {n}")
+    centred = points - points.mean(axis=0)
+    s = np.linalg.svd(centred, compute_uv=False) / np.sqrt(n)
+    if s[1] < MIN_SPREAD or s[1] < COLLINEAR_RATIO * s[0]:
+        raise LocalizationError(
+            f"{name}: the {n} points are (nearly) collinear or coincident "
+            f"(principal spreads {s[0]:.4g} m, {s[1]:.3g} m); the rotation about their "
+            "line is undetermined. Use points that span a plane."
+        )
+
+
+# --------------------------------------------------------------- registration
+
 
 # ------------------------------------------------------------------- solvers
 
@@ -76,7 +123,7 @@ def kabsch(
     return R, t
 
 
-def _jacobians(R: np.ndarray, points_base: np.ndarray) -> np.ndarray:
+def point_jacobians(R: np.ndarray, points_base: np.ndarray) -> np.ndarray:
     """``(..., n, 3, 6)`` derivative of the fitted world points by ``[d, r]`` (fabflow convention).
 
     ``R`` is ``(..., 3, 3)``, ``points_base`` ``(..., n, 3)``.
@@ -91,7 +138,7 @@ def _jacobians(R: np.ndarray, points_base: np.ndarray) -> np.ndarray:
     return J
 
 
-def _normal_matrices(J: np.ndarray, W: np.ndarray) -> np.ndarray:
+def normal_matrices(J: np.ndarray, W: np.ndarray) -> np.ndarray:
     """Per-point ``J^T W J``, ``(..., n, 6, 6)``."""
     return np.einsum("...nki,...nkl,...nlj->...nij", J, W, J)
 
@@ -116,8 +163,8 @@ def refine_registration(
     while it < max_iter:
         it += 1
         e = np.einsum("...ij,...nj->...ni", R, P) + t[..., None, :] - M
-        J = _jacobians(R, P)
-        A = _normal_matrices(J, W).sum(axis=-3)
+        J = point_jacobians(R, P)
+        A = normal_matrices(J, W).sum(axis=-3)
         b = np.einsum("...nki,...nkl,...nl->...i", J, W, e)
         delta = -np.linalg.solve(A, b[..., None])[..., 0]
         R = exp_so3(delta[..., 3:]) @ R
@@ -214,20 +261,6 @@ def optimize_registration(
     U, _, Vt = np.linalg.svd(np.column_stack([X, Y, np.cross(X, Y)]))
     R = U @ Vt
     return R, m0 + origin - R @ p0, int(res.nit)
-
-
-def _spans_plane(points: np.ndarray) -> bool:
-    try:
-        check_geometry(points)
-    except LocalizationError:
-        return False
-    return True
-
-
-def _scatter(values: np.ndarray, idx: np.ndarray, n: int, fill: float) -> np.ndarray:
-    out = np.full((n, *values.shape[1:]), fill)
-    out[idx] = values
-    return out
 
 
 def register_leveled(

@@ -7,7 +7,8 @@ from typing import Any
 import numpy as np
 
 from fabflow.errors import InputError
-from fabflow.positioning.registration import Registration, _as_points, check_geometry
+from fabflow.positioning.registration import Registration
+from fabflow.positioning.rigid_fit import as_points, check_geometry
 from fabflow.transforms.se3 import make_T
 from fabflow.transforms.so3 import log_so3
 
@@ -77,7 +78,7 @@ def localize_three_point(
     base_sigma
         Robot positioning standard deviation (metres), added to each point.
     """
-    M = _as_points(points_world, "points_world", n=3)
+    M = as_points(points_world, "points_world", n=3)
     if not d > 0:
         raise InputError(f"the three-point step d must be positive, got {d}")
     P = three_point_base_points(p1, d)

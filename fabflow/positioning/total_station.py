@@ -38,13 +38,8 @@ from typing import Literal
 import numpy as np
 
 from fabflow.errors import InputError, LocalizationError
-from fabflow.positioning.polar import (
-    ARCSEC,
-    Instrument,
-    Observations,
-)
+from fabflow.positioning.polar import ARCSEC, Instrument, Observations
 from fabflow.positioning.registration import Registration, register_points
-from fabflow.project import TotalStationSetup
 from fabflow.transforms.se3 import compose_covariance, inv_T
 
 # --------------------------------------------------------------- observations
@@ -114,14 +109,14 @@ def localize_observations(
     return reg, tuple(matched)
 
 
-def setup_covariance(setup: TotalStationSetup) -> np.ndarray:
-    """6x6 covariance of ``T_world_instrument`` from the set-up uncertainty fields.
+def setup_covariance(sigma_mm: float, sigma_arcsec: float) -> np.ndarray:
+    """6x6 covariance of ``T_world_instrument`` from the set-up uncertainty.
 
-    The instrument is levelled by its compensator, so only its position and
-    its orientation about the vertical are uncertain.
+    The instrument is levelled by its compensator, so only its position (``sigma_mm``
+    per axis) and its orientation about the vertical (``sigma_arcsec``) are uncertain.
     """
-    s = setup.setup_sigma_mm * 1e-3
-    a = setup.setup_sigma_arcsec * ARCSEC
+    s = sigma_mm * 1e-3
+    a = sigma_arcsec * ARCSEC
     return np.diag([s * s, s * s, s * s, 0.0, 0.0, a * a])
 
 

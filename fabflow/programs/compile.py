@@ -14,7 +14,6 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from fabflow import __version__
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError, UnsupportedError
 from fabflow.positioning.result import BasePose
@@ -28,6 +27,7 @@ from fabflow.project import Project
 from fabflow.robots import RobotModel, get_robot
 from fabflow.tasks.plan import Plan, WorkPackage
 from fabflow.transforms.so3 import exp_so3, log_so3
+from fabflow.version import __version__
 
 STEP_TRANSLATION = 0.02
 """Largest tool translation between two checked samples of a linear move (m)."""

@@ -9,12 +9,16 @@ seeds) are solved at once; no Python loop runs over them.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numpy.typing import NDArray
 
-from fabflow.robots.chain import RobotModel
 from fabflow.robots.planar_ik import is_pitch_chain, pitch_chain_ik
 from fabflow.transforms.so3 import log_so3
+
+if TYPE_CHECKING:
+    from fabflow.robots.chain import RobotModel
 
 FloatArray = NDArray[np.float64]
 

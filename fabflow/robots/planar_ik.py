@@ -10,10 +10,13 @@ link the remaining two-link problem is solved in closed form (elbow up/down).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numpy.typing import NDArray
 
-from fabflow.robots.chain import RobotModel
+if TYPE_CHECKING:
+    from fabflow.robots.chain import RobotModel
 
 FloatArray = NDArray[np.float64]
 

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 import trimesh
 
-from fabflow.design.elements import Element
+from fabflow.design.elements import Element, element_boxes
 from fabflow.positioning.scan_matching import FloatArray, ScanMap, map_from_points
 from fabflow.sensors.lidar import HESAI_QT64, LidarModel, simulate_scan
 from fabflow.sensors.site_scene import boxes_mesh, site_scene
@@ -84,13 +84,10 @@ def with_as_built(scan_map: ScanMap, built: Sequence[Element], rng: np.random.Ge
     placement errors of real blocks (within tolerance) become map errors.
     """
 
-    blocks = [e for e in built if e.extents is not None]
-    if not blocks:
+    T_boxes, extents = element_boxes(built)
+    if not len(extents):
         return scan_map
-    mesh = boxes_mesh(
-        np.stack([e.T_world_element for e in blocks]),
-        np.stack([np.asarray(e.extents, dtype=float) for e in blocks]),
-    )
+    mesh = boxes_mesh(T_boxes, extents)
     n = int(np.ceil(mesh.area / scan_map.voxel_size**2))
     pts, face = trimesh.sample.sample_surface(mesh, n, seed=int(rng.integers(2**31)))
     merged = map_from_points(

@@ -19,7 +19,7 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
-from fabflow.design.elements import Element
+from fabflow.design.elements import Element, element_boxes
 from fabflow.transforms.se3 import make_T
 from fabflow.transforms.so3 import exp_so3
 
@@ -216,14 +216,9 @@ def site_scene(
         parts.append(box_mesh(lower, upper))
     for polygon, z_min, z_max in prisms:
         parts.append(prism_mesh(polygon, z_min, z_max))
-    blocks = [e for e in built if e.extents is not None]
-    if blocks:
-        parts.append(
-            boxes_mesh(
-                np.stack([e.T_world_element for e in blocks]),
-                np.stack([np.asarray(e.extents, dtype=float) for e in blocks]),
-            )
-        )
+    T_boxes, extents = element_boxes(built)
+    if len(extents):
+        parts.append(boxes_mesh(T_boxes, extents))
     if not parts:
         return trimesh.Trimesh()
     return trimesh.util.concatenate(parts)

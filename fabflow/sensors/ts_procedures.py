@@ -22,14 +22,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fabflow.positioning.point_selection import Workspace, optimal_points
-from fabflow.positioning.polar import (
-    INSTRUMENTS,
-    Instrument,
-    polar_covariance,
-    polar_to_cartesian,
-    simulate_polar,
-)
+from fabflow.positioning.polar import INSTRUMENTS, Instrument, polar_covariance, polar_to_cartesian
 from fabflow.positioning.rigid_fit import kabsch, refine_registration, register_leveled
+from fabflow.sensors.total_station import simulate_polar
 from fabflow.transforms.se3 import apply_T, inv_T, make_T
 from fabflow.transforms.so3 import exp_so3
 

@@ -31,7 +31,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from fabflow import __version__
 from fabflow.design import generate_elements
 from fabflow.errors import InputError, LocalizationError
 from fabflow.output import write_json
@@ -56,6 +55,7 @@ from fabflow.sim.run import (
 )
 from fabflow.tasks.planner import plan_project
 from fabflow.transforms.so3 import abc_from_matrix
+from fabflow.version import __version__
 
 if TYPE_CHECKING:
     from distributed import Client
