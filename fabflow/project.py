@@ -23,6 +23,7 @@ from pydantic import (
 
 from fabflow.design.specs import ElementSource
 from fabflow.errors import InputError
+from fabflow.robots.catalog import PROGRAM_FORMATS, ROBOT_NAMES
 from fabflow.schema import (
     ExistingPath,
     NonNegativeFloat,
@@ -33,9 +34,13 @@ from fabflow.schema import (
     Vec3,
 )
 
-ROBOT_MODELS = ("kuka_kr60_3", "ur10e", "abb_irb4600_60_205", "brokk_170")
-LOCALIZATION_METHODS = ("uwb", "total_station", "icp")
-PROGRAM_FORMATS = ("krl", "rapid", "urscript", "json")
+LOCALIZATION_METHODS: tuple[str, ...] = ("uwb", "total_station", "icp")
+"""The localization methods, one setup section each below; :mod:`fabflow.localize.methods`
+maps each to its ``localize_station``."""
+
+RobotName = Literal[ROBOT_NAMES]  # type: ignore[valid-type]
+ProgramFormat = Literal[PROGRAM_FORMATS]  # type: ignore[valid-type]
+LocalizationMethod = Literal[LOCALIZATION_METHODS]  # type: ignore[valid-type]
 
 
 # --------------------------------------------------------------------------- site
@@ -130,7 +135,7 @@ class Platform(StrictModel):
 class Robot(StrictModel):
     """The robot arm, its tool and the platform it stands on."""
 
-    model: Literal["kuka_kr60_3", "ur10e", "abb_irb4600_60_205", "brokk_170"] = "kuka_kr60_3"
+    model: RobotName = "kuka_kr60_3"
     tool: Tool = Tool()
     platform: Platform = Platform()
 
@@ -233,7 +238,7 @@ class IcpSetup(StrictModel):
 class Localization(StrictModel):
     """Which method localizes the platform at each station, with that method's setup."""
 
-    method: Literal["uwb", "total_station", "icp"] = "total_station"
+    method: LocalizationMethod = "total_station"
     uwb: UwbSetup | None = None
     total_station: TotalStationSetup | None = None
     icp: IcpSetup | None = None
@@ -284,7 +289,7 @@ class Planning(StrictModel):
 class ProgramSettings(StrictModel):
     """Robot program output settings."""
 
-    format: Literal["krl", "rapid", "urscript", "json"] = "krl"
+    format: ProgramFormat = "krl"
     speed: PositiveFloat = 0.25
     """Cartesian speed for linear moves (m/s)."""
     approach: PositiveFloat = 0.10

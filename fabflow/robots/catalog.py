@@ -17,6 +17,7 @@ Joint values are the ones the robot's own controller shows (radians here):
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
@@ -178,15 +179,70 @@ def _brokk_170() -> RobotModel:
     )
 
 
-_FACTORIES = {
-    "kuka_kr60_3": _kuka_kr60_3,
-    "ur10e": _ur10e,
-    "abb_irb4600_60_205": _abb_irb4600_60_205,
-    "brokk_170": _brokk_170,
+@dataclass(frozen=True)
+class Vendor:
+    """A machine maker and the controller fabflow writes programs for.
+
+    Attributes
+    ----------
+    name
+        The maker's name (``"KUKA"``).
+    controller
+        The controller and software generation the programs are written for.
+    language
+        The controller's program format in :data:`PROGRAM_FORMATS`, or ``None``
+        when the machine has no language of its own (a retrofitted gateway).
+    """
+
+    name: str
+    controller: str
+    language: str | None
+
+
+VENDORS: dict[str, Vendor] = {
+    "kuka": Vendor("KUKA", "KR C4 / KSS 8.x", "krl"),
+    "abb": Vendor("ABB", "IRC5 / RobotWare 6", "rapid"),
+    "ur": Vendor("Universal Robots", "e-Series / PolyScope 5", "urscript"),
+    "brokk": Vendor("Brokk", "retrofitted gateway (UDP/CAN)", None),
+}
+"""Makers by key; every catalogue robot names one."""
+
+NEUTRAL_FORMATS: tuple[str, ...] = ("json",)
+"""Program formats any machine takes: a command stream its own gateway follows."""
+
+PROGRAM_FORMATS: tuple[str, ...] = (
+    *(v.language for v in VENDORS.values() if v.language is not None),
+    *NEUTRAL_FORMATS,
+)
+"""Every program format fabflow writes: the vendors' languages, then the neutral ones."""
+
+_CATALOGUE = {
+    "kuka_kr60_3": (_kuka_kr60_3, "kuka"),
+    "ur10e": (_ur10e, "ur"),
+    "abb_irb4600_60_205": (_abb_irb4600_60_205, "abb"),
+    "brokk_170": (_brokk_170, "brokk"),
 }
 
-ROBOT_NAMES: tuple[str, ...] = tuple(_FACTORIES)
+ROBOT_NAMES: tuple[str, ...] = tuple(_CATALOGUE)
 """Names accepted by :func:`get_robot`."""
+
+
+def vendor_of(name: str) -> str:
+    """The :data:`VENDORS` key of a catalogue robot (``"kuka"`` for ``"kuka_kr60_3"``)."""
+    _check_name(name)
+    return _CATALOGUE[name][1]
+
+
+def format_vendor(fmt: str) -> str | None:
+    """The :data:`VENDORS` key whose controllers run programs of ``fmt``; ``None`` if any."""
+    return next((k for k, v in VENDORS.items() if v.language == fmt), None)
+
+
+def _check_name(name: str) -> None:
+    if not isinstance(name, str) or name not in _CATALOGUE:
+        raise UnsupportedError(
+            f"unknown robot model {name!r}; known models: {', '.join(ROBOT_NAMES)}"
+        )
 
 
 def get_robot(name: str) -> RobotModel:
@@ -202,13 +258,10 @@ def get_robot(name: str) -> RobotModel:
     UnsupportedError
         For an unknown name (the message lists the known ones).
     """
-    if not isinstance(name, str) or name not in _FACTORIES:
-        raise UnsupportedError(
-            f"unknown robot model {name!r}; known models: {', '.join(ROBOT_NAMES)}"
-        )
+    _check_name(name)
     return _build(name)
 
 
 @cache
 def _build(name: str) -> RobotModel:
-    return _FACTORIES[name]()
+    return _CATALOGUE[name][0]()

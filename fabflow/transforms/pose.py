@@ -25,7 +25,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from fabflow.errors import InputError
 from fabflow.transforms.errors import DegenerateFrameError
@@ -206,6 +205,8 @@ class Pose:
         if ang.ndim == 0 or ang.shape[-1] != len(seq):
             raise InputError(f"Euler angles for {seq!r} must have shape (..., {len(seq)})")
         try:
+            from scipy.spatial.transform import Rotation  # only here: keeps imports light
+
             rot = Rotation.from_euler(seq, ang.reshape(-1, len(seq)), degrees=degrees)
         except ValueError as exc:
             raise InputError(f"invalid Euler sequence {seq!r}: {exc}") from exc
@@ -300,6 +301,8 @@ class Pose:
         warning about it is suppressed). For KUKA ABC prefer
         :func:`fabflow.transforms.to_kuka_xyzabc`.
         """
+        from scipy.spatial.transform import Rotation  # only here: keeps imports light
+
         rot = Rotation.from_matrix(self._R.reshape(-1, 3, 3))
         try:
             with warnings.catch_warnings():

@@ -18,6 +18,7 @@ import numpy as np
 
 from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
+from fabflow.programs.writers.base import Writer
 from fabflow.transforms.so3 import quat_from_matrix
 
 FORMAT = "fabflow-command-stream"
@@ -92,3 +93,7 @@ def write_json_stream(program: Program) -> dict[str, str]:
     head = json.dumps(doc, separators=(", ", ": "))[: -len("[]}")]
     body = ",\n  ".join(json.dumps(c, separators=(", ", ": ")) for c in commands)
     return {f"{name}.json": head + "[\n  " + body + "\n]}\n"}
+
+
+WRITER = Writer("json", write_json_stream, "fabflow JSON command stream for a machine gateway")
+"""The command stream writer behind the common interface."""

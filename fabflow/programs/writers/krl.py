@@ -21,20 +21,14 @@ import numpy as np
 from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.robots import kuka_status_turn
-from fabflow.transforms.so3 import abc_from_matrix
+from fabflow.programs.writers.base import Writer
+from fabflow.transforms.vendors import to_kuka_xyzabc
 
 MAX_NAME = 24
 """KRL identifiers and module names have at most 24 characters."""
 
 PTP_APPROXIMATION_PERCENT = 10
 """``$APO.CPTP``: how early an approximated PTP move leaves its point (percent)."""
-
-
-def kuka_frame_values(T: np.ndarray) -> np.ndarray:
-    """``[X, Y, Z, A, B, C]`` in millimetres and degrees from a 4x4 pose in metres."""
-    T = np.asarray(T, dtype=float)
-    abc = np.degrees(abc_from_matrix(T[..., :3, :3]))
-    return np.concatenate([T[..., :3, 3] * 1000.0, abc], axis=-1)
 
 
 def _num(v: float, digits: int) -> str:
@@ -55,15 +49,15 @@ def _module_text(
     header = [f"; {k}: {v}" for k, v in program.header.items()]
     src = ["&ACCESS RVP", "&REL 1", f"DEF {name}( )", *header]
     dat = ["&ACCESS RVP", "&REL 1", f"DEFDAT {name}", *header]
-    base = _frame(kuka_frame_values(program.T_base_world))
-    tool = _frame(kuka_frame_values(program.T_flange_tool))
+    base = _frame(to_kuka_xyzabc(program.T_base_world))
+    tool = _frame(to_kuka_xyzabc(program.T_flange_tool))
     dat += [f"DECL FRAME BASE_WORLD={{{base}}}", f"DECL FRAME TOOL_TCP={{{tool}}}"]
     if is_main:
         src.append("BAS (#INITMOV,0)")
     src += ["$BASE = BASE_WORLD", "$TOOL = TOOL_TCP"]
     moves = [i for i in instructions if isinstance(i, Move)]
     if moves:
-        values = kuka_frame_values(np.stack([m.T_world_tool for m in moves]))
+        values = to_kuka_xyzabc(np.stack([m.T_world_tool for m in moves]))
         status, turn = kuka_status_turn(np.stack([m.q for m in moves]))
     current_speed: float | None = None
     current_axis_speed: float | None = None
@@ -151,3 +145,7 @@ def write_krl(program: Program, max_moves: int = 400) -> dict[str, str]:
         files[f"{sub}.dat"] = dat
     src, dat = _module_text(name, program, [], True, sub_names)
     return {f"{name}.src": src, f"{name}.dat": dat, **files}
+
+
+WRITER = Writer("krl", write_krl, "KUKA KRL (KSS 8.x): .src/.dat module pairs")
+"""The KRL writer behind the common interface."""

@@ -17,7 +17,8 @@ from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.robots import get_robot
 from fabflow.robots.catalog import IRB4600_60_205_OPW
 from fabflow.robots.opw import OPWParameters
-from fabflow.transforms.so3 import quat_from_matrix
+from fabflow.programs.writers.base import Writer
+from fabflow.transforms.vendors import to_abb_pose
 
 MAX_NAME = 32
 """RAPID identifiers have at most 32 characters."""
@@ -61,12 +62,6 @@ ZONES_MM = (0, 1, 5, 10, 15, 20, 30, 40, 50, 60, 80, 100, 150, 200)
 """The predefined ``zonedata`` (``z0`` ... ``z200``; 0 blending is ``fine``)."""
 
 
-def abb_pose_values(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Position (mm) and quaternion (w, x, y, z; w >= 0) of a 4x4 pose in metres."""
-    T = np.asarray(T, dtype=float)
-    return T[..., :3, 3] * 1000.0, quat_from_matrix(T[..., :3, :3])
-
-
 def confdata(q: np.ndarray, T_base_flange: np.ndarray, arm: OPWParameters) -> tuple[int, ...]:
     """ABB ``confdata`` [cf1, cf4, cf6, cfx] for a 6-axis configuration.
 
@@ -105,7 +100,7 @@ def _num(v: float, digits: int) -> str:
 
 
 def _pose(T: np.ndarray) -> str:
-    p, q = abb_pose_values(T)
+    p, q = to_abb_pose(T)
     return "[[" + ",".join(_num(v, 3) for v in p) + "],[" + ",".join(_num(v, 9) for v in q) + "]]"
 
 
@@ -182,3 +177,7 @@ def write_rapid(program: Program) -> dict[str, str]:
     body.append("  ENDPROC")
     text = "\n".join([*lines, *body, "ENDMODULE"]) + "\n"
     return {f"{name}.mod": text}
+
+
+WRITER = Writer("rapid", write_rapid, "ABB RAPID (RobotWare 6): one .mod module")
+"""The RAPID writer behind the common interface."""

@@ -14,18 +14,13 @@ import numpy as np
 from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.robots import get_robot
-from fabflow.transforms.so3 import log_so3
+from fabflow.programs.writers.base import Writer
+from fabflow.transforms.vendors import to_ur_pose
 
 JOINT_ACCELERATION = 1.4
 """rad/s^2 for ``movej``."""
 TOOL_ACCELERATION = 1.2
 """m/s^2 for ``movel``."""
-
-
-def ur_pose_values(T: np.ndarray) -> np.ndarray:
-    """``[x, y, z, rx, ry, rz]`` (metres, rotation vector in radians) of a 4x4 pose."""
-    T = np.asarray(T, dtype=float)
-    return np.concatenate([T[..., :3, 3], log_so3(T[..., :3, :3])], axis=-1)
 
 
 def _num(v: float, digits: int = 7) -> str:
@@ -34,7 +29,7 @@ def _num(v: float, digits: int = 7) -> str:
 
 
 def _p(T: np.ndarray) -> str:
-    return "p[" + ", ".join(_num(v) for v in ur_pose_values(T)) + "]"
+    return "p[" + ", ".join(_num(v) for v in to_ur_pose(T)) + "]"
 
 
 def write_urscript(program: Program) -> dict[str, str]:
@@ -84,3 +79,7 @@ def write_urscript(program: Program) -> dict[str, str]:
     lines.append("end")
     lines.append(f"{name}()")
     return {f"{name}.script": "\n".join(lines) + "\n"}
+
+
+WRITER = Writer("urscript", write_urscript, "Universal Robots URScript: one .script file")
+"""The URScript writer behind the common interface."""
