@@ -17,14 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from fabflow.design import (
-    cabin_elements,
-    order_contours,
-    read_dxf_contours,
-    sample_hermite,
-    with_block_supports,
-    write_site_plan,
-)
+from fabflow.design.cabin import cabin_elements
+from fabflow.design.dxf_in import read_dxf_contours
+from fabflow.design.generate import with_block_supports
+from fabflow.design.print_path import order_contours, sample_hermite
+from fabflow.design.site_plan import write_site_plan
 from fabflow.design.specs import CabinSpec, Opening
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -19,8 +19,8 @@ import time
 from pathlib import Path
 
 from fabflow.project import load_project
+from fabflow.robots.reach_model import reach_model
 from fabflow.tasks.planner import plan_project
-from fabflow.tasks.reach import reach_model
 from fabflow.tasks.synthetic import cabin_rows
 
 ROOT = Path(__file__).resolve().parents[1]

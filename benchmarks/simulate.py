@@ -21,7 +21,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from fabflow.design import generate_elements
+from fabflow.design.generate import generate_elements
 from fabflow.errors import FabflowError
 from fabflow.project import load_project
 from fabflow.sim.monte_carlo import comparison_row, dask_client, run_study, summarize

@@ -171,12 +171,12 @@ def program(
     ] = None,
 ) -> None:
     """Write one robot program per work package under OUT/programs (plans and localizes first)."""
-    from fabflow.programs.compile import check_format
+    from fabflow.programs.writers import writer_for
     from fabflow.project import load_project
 
     p = load_project(project)
     if fmt is not None:
-        check_format(fmt, p.robot.model)
+        writer_for(fmt, p.robot.model)
         p = p.model_copy(update={"program": p.program.model_copy(update={"format": fmt})})
     run_stages(p, out, "program", until="program")
 

@@ -14,17 +14,11 @@ from hypothesis import strategies as st
 
 from fabflow.build.context import BuildContext
 from fabflow.build.design import stage_design
-from fabflow.design import (
-    Element,
-    cabin_blocks,
-    compute_supports,
-    elements_from_json,
-    elements_to_json,
-    generate_elements,
-    max_overlap_volume,
-)
-from fabflow.design.cabin import cabin_layer_counts
+from fabflow.design.cabin import cabin_blocks, cabin_layer_counts
+from fabflow.design.elements import Element, elements_from_json, elements_to_json
+from fabflow.design.generate import generate_elements
 from fabflow.design.specs import BlockSize, CabinSpec, Opening
+from fabflow.design.supports import compute_supports, max_overlap_volume
 from fabflow.errors import InputError
 from fabflow.project import parse_project
 
@@ -291,7 +285,7 @@ def test_design_stage_writes_elements_and_site_plan(mixed_project, tmp_path) -> 
 
 
 def test_element_meshes(mixed_elements) -> None:
-    from fabflow.design import blocks_mesh, element_mesh
+    from fabflow.design.geometry import blocks_mesh, element_mesh
 
     blocks = [e for e in mixed_elements if e.type == "block"]
     mesh = blocks_mesh(blocks)

@@ -12,13 +12,10 @@ import shapely
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from fabflow.design import (
-    DxfWarning,
-    Element,
-    read_dxf_contours,
-    write_site_plan,
-)
+from fabflow.design.dxf_in import DxfWarning, read_dxf_contours
+from fabflow.design.elements import Element
 from fabflow.design.generate import task_point_elements
+from fabflow.design.site_plan import write_site_plan
 from fabflow.design.specs import TaskPoint
 from fabflow.errors import InputError
 from fabflow.schema import PoseSpec

@@ -11,11 +11,11 @@ from conftest import PROJECTS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fabflow.design import (
+from fabflow.design.dxf_in import read_dxf_contours
+from fabflow.design.print_path import (
     element_tool_frames,
     order_contours,
     print_path_elements,
-    read_dxf_contours,
     sample_hermite,
     sample_print_path,
     slice_mesh,
@@ -205,7 +205,7 @@ def test_open_path_allowed_when_not_closed(tmp_path) -> None:
 
 
 def test_tool_frames_survive_repeated_waypoints() -> None:
-    from fabflow.design import Element
+    from fabflow.design.elements import Element
 
     poly = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 0], [1, 1, 0]], dtype=float)
     e = Element(id="P", type="print_path", T_world_element=np.eye(4), polyline=poly)

@@ -19,9 +19,10 @@ from conftest import ROOT
 
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError, UnsupportedError
-from fabflow.programs.compile import WRITERS, check_format, compile_program
+from fabflow.programs.compile import compile_program
 from fabflow.programs.ir import Move, Program, sanitize_identifier
 from fabflow.programs.motions import work_package_motion
+from fabflow.programs.writers import WRITERS, writer_for
 from fabflow.programs.writers.krl import write_krl
 from fabflow.programs.writers.rapid import write_rapid
 from fabflow.programs.writers.urscript import write_urscript
@@ -89,7 +90,7 @@ CASES = [
 
 @pytest.mark.parametrize(("fmt", "robot"), CASES)
 def test_golden(fmt: str, robot: str) -> None:
-    files = WRITERS[fmt](_program(robot))
+    files = WRITERS[fmt].write(_program(robot))
     folder = GOLDEN / fmt
     if os.environ.get("FABFLOW_UPDATE_GOLDEN"):
         folder.mkdir(parents=True, exist_ok=True)
@@ -101,7 +102,7 @@ def test_golden(fmt: str, robot: str) -> None:
 
 @pytest.mark.parametrize(("fmt", "robot"), CASES)
 def test_writers_are_deterministic(fmt: str, robot: str) -> None:
-    assert WRITERS[fmt](_program(robot)) == WRITERS[fmt](_program(robot))
+    assert WRITERS[fmt].write(_program(robot)) == WRITERS[fmt].write(_program(robot))
 
 
 # ----------------------------------------------------------------------- readers
@@ -253,7 +254,7 @@ def test_urscript_targets_parse_back() -> None:
 
 def test_json_stream_setpoints(kuka_program: Program) -> None:
     robot = get_robot("kuka_kr60_3")
-    (text,) = WRITERS["json"](kuka_program).values()
+    (text,) = WRITERS["json"].write(kuka_program).values()
     doc = json.loads(text)
     setpoints = [c for c in doc["commands"] if c["type"] == "setpoint"]
     times = [c["t"] for c in doc["commands"]]
@@ -318,10 +319,10 @@ def test_identifiers_are_sanitized() -> None:
 
 def test_vendor_format_must_fit_robot() -> None:
     with pytest.raises(UnsupportedError, match="KUKA"):
-        check_format("krl", "ur10e")
+        writer_for("krl", "ur10e")
     with pytest.raises(UnsupportedError, match="unknown program format"):
-        check_format("gcode", "kuka_kr60_3")
-    check_format("json", "brokk_170")
+        writer_for("gcode", "kuka_kr60_3")
+    writer_for("json", "brokk_170")
 
 
 def test_unreachable_target_names_element() -> None:
@@ -364,6 +365,6 @@ def test_program_moves_carry_valid_configurations(kuka_program: Program) -> None
 
 def test_golden_folder_has_no_stale_files() -> None:
     for fmt, robot in CASES:
-        names = set(WRITERS[fmt](_program(robot)))
+        names = set(WRITERS[fmt].write(_program(robot)))
         assert {p.name for p in (GOLDEN / fmt).iterdir()} == names
     assert Path(GOLDEN).is_dir()

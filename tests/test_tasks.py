@@ -17,6 +17,7 @@ from fabflow.design.elements import Element
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InfeasibleError, InputError
 from fabflow.project import Project, load_project
+from fabflow.robots.reach_model import reach_model
 from fabflow.tasks import Plan
 from fabflow.tasks.cover import tour
 from fabflow.tasks.order import (
@@ -27,7 +28,6 @@ from fabflow.tasks.order import (
     visit_patterns,
 )
 from fabflow.tasks.planner import make_plan, plan_project, thin_frames
-from fabflow.tasks.reach import reach_model
 from fabflow.tasks.split import split_wide_paths, with_pieces
 from fabflow.tasks.stations import element_polygons, footprint_polygons
 from fabflow.tasks.targets import element_targets

@@ -31,7 +31,8 @@ import numpy as np
 
 from fabflow.design.elements import Element
 from fabflow.design.specs import CabinSpec
-from fabflow.transforms import make_T, matrix_from_abc
+from fabflow.transforms.se3 import make_T
+from fabflow.transforms.so3 import matrix_from_abc
 
 _X_WALLS = ("right", "left")
 _Y_WALLS = ("front", "rear")

@@ -30,7 +30,7 @@ from fabflow.design.dxf_in import Contour, read_dxf_contours
 from fabflow.design.elements import Element
 from fabflow.design.specs import PrintPathSpec
 from fabflow.errors import InputError
-from fabflow.transforms import make_T
+from fabflow.transforms.se3 import make_T
 
 if TYPE_CHECKING:
     import trimesh

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
-from fabflow.transforms import apply_T
+from fabflow.transforms.se3 import apply_T
 
 _CORNERS = np.array(
     [[sx, sy, sz] for sx in (-0.5, 0.5) for sy in (-0.5, 0.5) for sz in (-0.5, 0.5)]

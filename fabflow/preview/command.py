@@ -19,7 +19,8 @@ from fabflow.preview.export import check_export_target, export_html
 from fabflow.preview.gui import ProgramSource
 from fabflow.preview.inputs import model_for_project, read_build_outputs
 from fabflow.preview.model import COLOUR_MODES, PreviewModel
-from fabflow.programs.compile import WRITERS, work_package_program
+from fabflow.programs.compile import work_package_program
+from fabflow.programs.writers import WRITERS
 from fabflow.project import Project, load_project
 from fabflow.tasks.plan import Plan
 from fabflow.tasks.planner import plan_project
@@ -48,7 +49,7 @@ def project_program_source(
             station=wp.station.id,
         )
         program = work_package_program(wp, by_id, project, base_pose)
-        files = WRITERS[project.program.format](program)
+        files = WRITERS[project.program.format].write(program)
         if len(files) == 1:
             name, text = next(iter(files.items()))
             return name, text.encode()

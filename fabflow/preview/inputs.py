@@ -18,7 +18,7 @@ from fabflow.positioning.result import BasePose
 from fabflow.preview.arm import RobotArm
 from fabflow.preview.model import PreviewModel, build_model
 from fabflow.project import Project
-from fabflow.robots import get_robot
+from fabflow.robots.catalog import get_robot
 from fabflow.tasks.plan import Plan
 from fabflow.tasks.planner import plan_project
 

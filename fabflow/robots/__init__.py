@@ -2,7 +2,9 @@
 
 Public API::
 
-    from fabflow.robots import get_robot, kuka_status_turn, reach_map
+    from fabflow.robots.catalog import get_robot
+    from fabflow.robots.kuka_config import kuka_status_turn
+    from fabflow.robots import reach_map
 
     robot = get_robot("kuka_kr60_3")          # also ur10e, abb_irb4600_60_205, brokk_170
     T_base_flange = robot.fk(q)               # q (dof,) or (N, dof), radians

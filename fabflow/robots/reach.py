@@ -167,7 +167,7 @@ def reach_map(
     Parameters
     ----------
     robot_name
-        Catalogue name (see :func:`fabflow.robots.get_robot`).
+        Catalogue name (see :func:`fabflow.robots.catalog.get_robot`).
     T_flange_tool
         4x4 TCP pose in the flange frame (metres).
     tool_axis

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from fabflow.design import generate_elements
+from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError, LocalizationError
 from fabflow.output import write_json
 from fabflow.project import LOCALIZATION_METHODS, Project

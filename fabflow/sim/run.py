@@ -30,8 +30,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from fabflow.design import generate_elements
 from fabflow.design.elements import Element
+from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
 from fabflow.localize.plan import (
     LocalizeStation,

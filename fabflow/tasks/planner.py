@@ -3,7 +3,7 @@
 :func:`plan_project` runs the whole planning chain on the elements of a project:
 
 1. tool targets of every robot-built element (:mod:`fabflow.tasks.targets`);
-2. the arm's reach model, shrunk by ``planning.reach_margin`` (:mod:`fabflow.tasks.reach`);
+2. the arm's reach model, shrunk by ``planning.reach_margin`` (:mod:`fabflow.robots.reach_model`);
 3. collision-free candidate platform poses and which elements each reaches at
    which lift heights (:mod:`fabflow.tasks.stations`);
 4. few stations with short travel (:mod:`fabflow.tasks.cover`);
@@ -33,6 +33,7 @@ from scipy.spatial import cKDTree
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError, InputError, UnsupportedError
 from fabflow.project import Project
+from fabflow.robots.reach_model import ReachModel, reach_model
 from fabflow.tasks.cover import select_stations
 from fabflow.tasks.order import (
     dissolve_small_visits,
@@ -44,7 +45,6 @@ from fabflow.tasks.order import (
     topological_order,
 )
 from fabflow.tasks.plan import Plan, Station, WorkPackage
-from fabflow.tasks.reach import ReachModel, reach_model
 from fabflow.tasks.split import split_wide_paths
 from fabflow.tasks.stations import (
     Candidates,
@@ -341,7 +341,7 @@ def plan_project(
         All elements of the design in the world frame; pre-built ones
         (``robot_built=False``) are obstacles that exist from the start.
     reach
-        Reach model to use (default: :func:`~fabflow.tasks.reach.reach_model` for
+        Reach model to use (default: :func:`~fabflow.robots.reach_model.reach_model` for
         the project's robot and tool, shrunk by ``planning.reach_margin``).
 
     Returns

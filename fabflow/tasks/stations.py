@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 
 from fabflow.design.elements import Element
 from fabflow.project import Platform, Site
-from fabflow.tasks.reach import ReachModel
+from fabflow.robots.reach_model import ReachModel
 
 PAIR_CHUNK = 2_000_000
 """Candidate-frame pairs evaluated per batch (bounds memory on large projects)."""

@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from fabflow.project import Project
-from fabflow.robots import get_robot, platform
+from fabflow.robots import platform
+from fabflow.robots.catalog import get_robot
 from fabflow.tasks.plan import Plan
 
 

@@ -20,8 +20,8 @@ import numpy as np
 
 from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
-from fabflow.robots import kuka_status_turn
 from fabflow.programs.writers.base import Writer
+from fabflow.robots.kuka_config import kuka_status_turn
 from fabflow.transforms.vendors import to_kuka_xyzabc
 
 MAX_NAME = 24

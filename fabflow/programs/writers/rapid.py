@@ -14,10 +14,9 @@ import numpy as np
 from fabflow.errors import UnsupportedError
 from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
-from fabflow.robots import get_robot
-from fabflow.robots.catalog import IRB4600_60_205_OPW
-from fabflow.robots.opw import OPWParameters
 from fabflow.programs.writers.base import Writer
+from fabflow.robots.catalog import IRB4600_60_205_OPW, get_robot
+from fabflow.robots.opw import OPWParameters
 from fabflow.transforms.vendors import to_abb_pose
 
 MAX_NAME = 32

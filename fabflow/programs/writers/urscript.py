@@ -13,8 +13,8 @@ import numpy as np
 
 from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
-from fabflow.robots import get_robot
 from fabflow.programs.writers.base import Writer
+from fabflow.robots.catalog import get_robot
 from fabflow.transforms.vendors import to_ur_pose
 
 JOINT_ACCELERATION = 1.4

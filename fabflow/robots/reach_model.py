@@ -1,4 +1,4 @@
-"""Reach model of the arm: which tool-centre positions it reaches with the tool pointing down.
+"""The planner's reach model: a fine (r, z) table of where the arm reaches, tool down.
 
 An arm whose first axis is vertical and turns (almost) a full circle reaches
 the same set in every direction, so reachability with the tool pointing down
@@ -7,15 +7,17 @@ the same set in every direction, so reachability with the tool pointing down
 model is a boolean table over a regular (r, z) grid, built once per robot and
 tool and cached:
 
-* from the robots module's inverse kinematics (``fabflow.robots.reach_map``),
-  when it is available (``source = "ik"``);
-* otherwise from the robot's published dimensions (``source = "geometric"``):
-  the wrist centre, ``d6 + tool offset`` above the TCP, must lie in the annulus
-  the shoulder and elbow links sweep (shrunk by a small margin), and the
-  forearm may rise at most ``A5_max - 90 deg`` above horizontal so the wrist
-  can still turn the tool straight down; targets closer than 0.6 m to axis 1
-  are left out. Joint limits of A2 and A3 and the tool's sideways offset are
-  not modelled by this fallback.
+* from the inverse-kinematics reach map of :func:`fabflow.robots.reach.reach_map`,
+  sampled at the table's cell centres (``source = "ik"``, the planner's model);
+* or, on request or when the arm has no reach map, from the catalogue geometry
+  alone (``source = "geometric"``): the wrist centre, ``d6 + tool offset`` above
+  the TCP, must lie in the annulus the shoulder and elbow links sweep (shrunk by
+  a small margin), and the forearm may rise at most ``A5_max - 90 deg`` above
+  horizontal so the wrist can still turn the tool straight down; targets closer
+  than 0.6 m to axis 1 are left out. Joint limits of A2 and A3 and the tool's
+  sideways offset are not modelled by this approximation. The dimensions are
+  read from the robot's DH table, for arms with an offset shoulder and a
+  spherical wrist (the KUKA and ABB arms of the catalogue).
 
 The table is eroded by one cell, so a grid lookup errs on the unreachable side.
 """
@@ -30,21 +32,12 @@ import numpy as np
 from scipy import ndimage
 
 from fabflow.errors import UnsupportedError
-from fabflow.robots import reach_map
+from fabflow.robots.catalog import get_robot
+from fabflow.robots.chain import RobotModel
+from fabflow.robots.reach import reach_map
 
-# Published dimensions (metres, degrees) for the fallback model: DH d1, a1, a2,
-# a3, d4, d6 and the A5 limit.
-PUBLISHED_DIMENSIONS: dict[str, dict[str, float]] = {
-    "kuka_kr60_3": {
-        "d1": 0.815,
-        "a1": 0.350,
-        "a2": 0.850,
-        "a3": 0.145,
-        "d4": 0.820,
-        "d6": 0.170,
-        "a5_max_deg": 119.0,
-    },
-}
+SPHERICAL_WRIST_ALPHAS = (-math.pi / 2, 0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, 0.0)
+"""DH twists of a six-axis arm with an offset shoulder and a spherical wrist."""
 
 R_STEP = 0.02
 Z_STEP = 0.02
@@ -163,13 +156,38 @@ def _grid() -> tuple[np.ndarray, np.ndarray]:
     return r, z
 
 
+def arm_dimensions(robot: RobotModel) -> dict[str, float]:
+    """DH ``d1, a1, a2, a3, d4, d6`` (metres) and the A5 limit (``a5_max_deg``) of an arm.
+
+    Raises
+    ------
+    UnsupportedError
+        When the arm has no offset shoulder and spherical wrist in the DH sense.
+    """
+    dh = robot.dh
+    if robot.dof != 6 or not np.allclose(dh[:, 1], SPHERICAL_WRIST_ALPHAS, atol=1e-9):
+        raise UnsupportedError(
+            f"no geometric reach model for robot '{robot.name}': it needs a six-axis arm "
+            "with an offset shoulder and a spherical wrist"
+        )
+    return {
+        "d1": float(dh[0, 2]),
+        "a1": float(dh[0, 0]),
+        "a2": float(dh[1, 0]),
+        "a3": float(dh[2, 0]),
+        "d4": float(dh[3, 2]),
+        "d6": float(dh[5, 2]),
+        "a5_max_deg": float(np.degrees(robot.joint_limits[4, 1])),
+    }
+
+
 def geometric_table(robot: str, tool_offset: float) -> np.ndarray:
-    """Fallback reach table from published dimensions (see the module docstring).
+    """Reach table from the catalogue geometry alone (see the module docstring).
 
     Parameters
     ----------
     robot
-        Robot model name; must be in :data:`PUBLISHED_DIMENSIONS`.
+        Robot model name; an arm accepted by :func:`arm_dimensions`.
     tool_offset
         Distance from the flange to the TCP along the flange z axis (metres).
 
@@ -178,13 +196,7 @@ def geometric_table(robot: str, tool_offset: float) -> np.ndarray:
     np.ndarray
         (nr, nz) bool table on the grid of :class:`ReachModel` (cell centres), not eroded.
     """
-    if robot not in PUBLISHED_DIMENSIONS:
-        raise UnsupportedError(
-            f"no reach model for robot '{robot}': the robots module's reach map is not "
-            f"available and published dimensions are known only for "
-            f"{', '.join(PUBLISHED_DIMENSIONS)}"
-        )
-    g = PUBLISHED_DIMENSIONS[robot]
+    g = arm_dimensions(get_robot(robot))
     r, z = _grid()
     R, Z = np.meshgrid(r, z, indexing="ij")
     dx = R - g["a1"]

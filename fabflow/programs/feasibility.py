@@ -1,0 +1,342 @@
+"""TODO: docstring."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from fabflow.errors import InfeasibleError
+from fabflow.programs.motions import Waypoint
+from fabflow.robots.catalog import get_robot
+from fabflow.robots.chain import RobotModel
+from fabflow.transforms.so3 import exp_so3, log_so3
+
+STEP_TRANSLATION = 0.02
+"""Largest tool translation between two checked samples of a linear move (m)."""
+STEP_ROTATION = 0.015
+"""Largest tool rotation between two checked samples of a linear move (rad)."""
+MIN_SPEED_FRACTION = 0.1
+"""A linear move may be slowed near a singularity so its joints stay within their
+speed limits, down to this fraction of its programmed speed; slower is an error."""
+MAX_JOINT_STEP = np.pi / 2
+"""A joint moving more than this between neighbouring samples (rad) is a
+configuration change, whatever the time allowed."""
+TOOL_ROTATION_SPEED = 1.0
+"""Tool rotation speed assumed for timing linear moves (rad/s)."""
+
+
+def move_lengths(T_world_tool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tool translation (m) and rotation (rad) from each pose to the next, (n-1,) each."""
+    R = T_world_tool[:, :3, :3]
+    dist = np.linalg.norm(np.diff(T_world_tool[:, :3, 3], axis=0), axis=1)
+    angle = np.linalg.norm(log_so3(R[:-1].transpose(0, 2, 1) @ R[1:]), axis=1)
+    return dist, angle
+
+
+def sample_linear_moves(
+    T_world_tool: np.ndarray, linear: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every target, preceded for linear moves by samples one controller step apart.
+
+    Parameters
+    ----------
+    T_world_tool
+        (n, 4, 4) targets in execution order.
+    linear
+        (n,) whether each target is reached by a linear move from the previous one.
+
+    Returns
+    -------
+    samples
+        (m, 4, 4) poses: for each target its intermediate samples (positions on the
+        line, rotations on the geodesic), then the target itself, exactly.
+    stops
+        (n,) end index (exclusive) of each target's rows in ``samples``.
+    """
+    n = len(T_world_tool)
+    linear = np.asarray(linear, dtype=bool).copy()
+    linear[0] = False
+    dist, angle = move_lengths(T_world_tool)
+    counts = np.ones(n, dtype=np.intp)
+    steps = np.maximum(np.ceil(dist / STEP_TRANSLATION), np.ceil(angle / STEP_ROTATION))
+    counts[1:] = np.where(linear[1:], np.maximum(steps, 1), 1).astype(np.intp)
+    stops = np.cumsum(counts)
+    owner = np.repeat(np.arange(n), counts)
+    within = np.arange(stops[-1]) - np.repeat(stops - counts, counts) + 1
+    frac = within / counts[owner]
+    prev = np.maximum(owner - 1, 0)
+    R0 = T_world_tool[prev, :3, :3]
+    w = log_so3(R0.transpose(0, 2, 1) @ T_world_tool[owner, :3, :3])
+    out = np.repeat(np.eye(4)[None], len(owner), axis=0)
+    out[:, :3, :3] = R0 @ exp_so3(frac[:, None] * w)
+    p0, p1 = T_world_tool[prev, :3, 3], T_world_tool[owner, :3, 3]
+    out[:, :3, 3] = p0 + frac[:, None] * (p1 - p0)
+    out[stops - 1] = T_world_tool  # targets exactly as given, not re-interpolated
+    return out, stops
+
+
+def _fail(wp: Waypoint, why: str, T_base_tool: np.ndarray) -> InfeasibleError:
+    x, y, z = T_base_tool[:3, 3]
+    return InfeasibleError(
+        f"element {wp.element}, target '{wp.label}': {why} "
+        f"(tool at x={x:.3f}, y={y:.3f}, z={z:.3f} m in the robot base frame)"
+    )
+
+
+def solve_moves(
+    waypoints: Sequence[Waypoint],
+    robot_name: str,
+    T_base_world: np.ndarray,
+    T_flange_tool: np.ndarray,
+    q_start: np.ndarray | None = None,
+) -> tuple[np.ndarray, list[np.ndarray | None], list[np.ndarray | None], np.ndarray]:
+    """Joint configurations for every waypoint, with linear moves checked along the line.
+
+    Parameters
+    ----------
+    waypoints
+        Cartesian targets in the world frame, in execution order.
+    robot_name
+        Robot model name.
+    T_base_world
+        Pose of the world in the robot base frame (metres).
+    T_flange_tool
+        Tool centre point in the flange frame.
+    q_start
+        Configuration before the first move (default: the middle of the joint limits).
+
+    Returns
+    -------
+    q
+        (n, dof) joint configuration at each waypoint (radians).
+    via_q, via_T
+        Per waypoint, the intermediate samples of a linear move (or None).
+    slowdown
+        (n,) factor (>= 1) each linear move's speed must be divided by so that
+        its joints stay within their speed limits (near a singularity).
+
+    Raises
+    ------
+    InfeasibleError
+        Naming the element and target that is unreachable, or the linear move
+        that crosses a joint limit or changes configuration.
+    """
+    robot = get_robot(robot_name)
+    n = len(waypoints)
+    if n == 0:
+        return np.zeros((0, robot.dof)), [], [], np.ones(0)
+    T_tool_flange = np.linalg.inv(np.asarray(T_flange_tool, dtype=float))
+    T_world_tool = np.stack([w.T_world_tool for w in waypoints])
+    flat, stops = sample_linear_moves(T_world_tool, np.array([w.kind == "lin" for w in waypoints]))
+    T_base_tool = T_base_world @ flat
+    T_base_flange = T_base_tool @ T_tool_flange
+    q_all, valid = robot.ik_batch(T_base_flange)
+
+    q_prev = (
+        robot.joint_limits.mean(axis=1) if q_start is None else np.asarray(q_start, dtype=float)
+    )
+    multi_turn = np.diff(robot.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
+    # Time per sample of each linear move at its programmed speed: the joint
+    # speeds the line demands must stay within the robot's limits.
+    dist, angle = move_lengths(T_world_tool)
+    speed = np.array([w.speed for w in waypoints[1:]])
+    counts = np.diff(stops)
+    dt = np.r_[np.inf, np.maximum(dist / speed, angle / TOOL_ROTATION_SPEED) / counts]
+    q_out = np.zeros((n, robot.dof))
+    slowdown = np.ones(n)
+    via_q: list[np.ndarray | None] = [None] * n
+    via_T: list[np.ndarray | None] = [None] * n
+    starts = np.r_[0, stops[:-1]]
+
+    def follow(i: int, q_prev: np.ndarray, branch: int) -> tuple[np.ndarray, int, float]:
+        """Joint path of linear move ``i`` from ``q_prev`` on IK branch ``branch``."""
+        rows = slice(starts[i], stops[i])
+        path = _follow_branch(
+            robot, q_all[rows, branch], valid[rows, branch], q_prev, multi_turn, dt[i]
+        )
+        if path is not None:
+            return path[0], branch, path[1]
+        return _step_through(
+            robot,
+            waypoints[i],
+            q_all[rows],
+            valid[rows],
+            q_prev,
+            T_base_flange[rows],
+            T_base_tool[rows],
+            dt=dt[i],
+        )
+
+    # A PTP target and the linear moves after it form a chain: the PTP takes the
+    # fastest configuration from which the whole chain can be followed.
+    i = 0
+    while i < n:
+        end = i + 1
+        while end < n and waypoints[end].kind == "lin":
+            end += 1
+        options = _ptp_options(robot, q_all[stops[i] - 1], valid[stops[i] - 1], q_prev)
+        if not options:
+            raise _fail(
+                waypoints[i],
+                "no inverse kinematics solution within the joint limits",
+                T_base_tool[stops[i] - 1],
+            )
+        first_error: InfeasibleError | None = None
+        for q_i, branch in options:
+            try:
+                chain = []
+                q_chain = q_i
+                for k in range(i + 1, end):
+                    path, branch, slow = follow(k, q_chain, branch)
+                    chain.append((path, slow))
+                    q_chain = path[-1]
+            except InfeasibleError as error:
+                first_error = first_error or error
+                continue
+            break
+        else:
+            assert first_error is not None
+            raise first_error
+        q_out[i] = q_prev = q_i
+        for k, (path, slow) in zip(range(i + 1, end), chain, strict=True):
+            q_out[k] = q_prev = path[-1]
+            slowdown[k] = slow
+            if len(path) > 1:
+                via_q[k] = path[:-1]
+                via_T[k] = flat[starts[k] : stops[k] - 1]
+        i = end
+    return q_out, via_q, via_T, slowdown
+
+
+def _ptp_options(
+    robot: RobotModel, q_branches: np.ndarray, ok: np.ndarray, q_prev: np.ndarray
+) -> list[tuple[np.ndarray, int]]:
+    """Valid configurations of a PTP target with their IK branch, fastest first.
+
+    A PTP's duration is its largest joint travel over that joint's speed limit.
+    """
+    candidates = np.flatnonzero(ok)
+    if len(candidates) == 0:
+        return []
+    turned = _nearest_turn(robot, q_branches[candidates], q_prev)
+    duration = (np.abs(turned - q_prev) / robot.velocity_limits).max(axis=1)
+    order = np.argsort(duration, kind="stable")
+    return [(turned[k], int(candidates[k])) for k in order]
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    """Angles wrapped into [-pi, pi)."""
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _nearest_turn(robot: RobotModel, q: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
+    """Candidates (k, dof) with multi-turn joints put at the turn nearest ``q_ref``.
+
+    The shortest-angle turn is tried first; candidates it puts outside the
+    limits are left to the robot model's general rule.
+    """
+    lo, hi = robot.joint_limits[:, 0], robot.joint_limits[:, 1]
+    multi_turn = hi - lo > 2.0 * np.pi
+    turned = q.copy()
+    turned[:, multi_turn] = q_ref[multi_turn] + _wrap(q[:, multi_turn] - q_ref[multi_turn])
+    outside = ((turned < lo - 1e-9) | (turned > hi + 1e-9)).any(axis=1)
+    if outside.any():
+        turned[outside] = robot.nearest_turn(q[outside], q_ref)
+    return turned
+
+
+def _follow_branch(
+    robot: RobotModel,
+    q_branch: np.ndarray,
+    ok: np.ndarray,
+    q_prev: np.ndarray,
+    multi_turn: np.ndarray,
+    dt: float,
+) -> tuple[np.ndarray, float] | None:
+    """The joint path along one IK branch and its slowdown, or None when the branch
+    leaves the limits, jumps, or would need more than the allowed slowdown.
+
+    The fast path for linear moves: consecutive samples are one controller step
+    apart (``dt`` seconds at the programmed speed), so joints with more than one
+    turn of range are unwrapped by the shortest angle between neighbours.
+    """
+    if not ok.all():
+        return None
+    steps = np.diff(np.vstack([q_prev, q_branch]), axis=0)
+    steps[:, multi_turn] = _wrap(steps[:, multi_turn])
+    if np.abs(steps).max() > MAX_JOINT_STEP:
+        return None
+    slowdown = max(1.0, float((np.abs(steps) / (robot.velocity_limits * dt)).max()))
+    if slowdown > 1.0 / MIN_SPEED_FRACTION:
+        return None
+    path = q_prev + np.cumsum(steps, axis=0)
+    return (path, slowdown) if robot.within_limits(path).all() else None
+
+
+def _step_through(
+    robot: RobotModel,
+    wp: Waypoint,
+    q_rows: np.ndarray,
+    valid_rows: np.ndarray,
+    q_prev: np.ndarray,
+    T_base_flange: np.ndarray,
+    T_base_tool: np.ndarray,
+    dt: float,
+) -> tuple[np.ndarray, int, float]:
+    """Follow a linear move sample by sample, each time taking the valid
+    configuration nearest the previous one.
+
+    Handles the places where the branch numbering of the closed-form solver
+    swaps, and the wrist singularity, where only the sum of the two aligned
+    axes is determined: there the sample is solved again with the previous
+    configuration as reference, which keeps the split continuous. The joint
+    speeds must stay within the robot's limits (``dt``: seconds per sample at the
+    programmed speed): the returned slowdown (>= 1) divides the move's speed so
+    they do. Raises naming the element and target when no configuration
+    continues the motion.
+    """
+    rate_limit = robot.velocity_limits * dt
+    path = np.zeros((len(q_rows), robot.dof))
+    branch = -1
+    slowdown = 1.0
+    for j in range(len(q_rows)):
+        candidates = np.flatnonzero(valid_rows[j])
+        if len(candidates) == 0:
+            why = (
+                "no inverse kinematics solution within the joint limits"
+                if j == len(q_rows) - 1
+                else "the linear move to it crosses a joint limit or leaves the workspace"
+            )
+            raise _fail(wp, why, T_base_tool[j])
+        turned = _nearest_turn(robot, q_rows[j, candidates], q_prev)
+        load = (np.abs(turned - q_prev) / rate_limit).max(axis=1)
+        best = int(np.argmin(load))
+        if load[best] > 1.0:
+            q_again, ok = robot.ik_batch(T_base_flange[j][None], q_ref=q_prev)
+            if ok[0].any():
+                candidates = np.flatnonzero(ok[0])
+                turned = _nearest_turn(robot, q_again[0, candidates], q_prev)
+                load = (np.abs(turned - q_prev) / rate_limit).max(axis=1)
+                best = int(np.argmin(load))
+        step = np.abs(turned[best] - q_prev)
+        k = int(np.argmax(step / rate_limit))
+        if step[k] > MAX_JOINT_STEP:
+            why = (
+                f"the linear move to it changes configuration "
+                f"(joint {k + 1} jumps {np.degrees(step[k]):.0f} deg)"
+            )
+            raise _fail(wp, why, T_base_tool[j])
+        if load[best] > 1.0 / MIN_SPEED_FRACTION:
+            why = (
+                f"the linear move to it passes too close to a singularity: joint {k + 1} "
+                f"would need {np.degrees(step[k] / dt * MIN_SPEED_FRACTION):.0f} deg/s at "
+                f"{MIN_SPEED_FRACTION:.0%} of the speed (limit "
+                f"{np.degrees(robot.velocity_limits[k]):.0f} deg/s)"
+            )
+            raise _fail(wp, why, T_base_tool[j])
+        slowdown = max(slowdown, float(load[best]))
+        q_prev = turned[best]
+        path[j] = q_prev
+        branch = int(candidates[best])
+    return path, branch, slowdown
