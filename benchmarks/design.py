@@ -20,7 +20,8 @@ import numpy as np
 from fabflow.design.cabin import cabin_elements
 from fabflow.design.dxf_in import read_dxf_contours
 from fabflow.design.generate import with_block_supports
-from fabflow.design.print_path import order_contours, sample_hermite
+from fabflow.design.hermite import sample_hermite
+from fabflow.design.print_path import order_contours
 from fabflow.design.site_plan import write_site_plan
 from fabflow.design.specs import CabinSpec, Opening
 

@@ -26,10 +26,10 @@ from typing import Any
 
 import numpy as np
 
+from fabflow.positioning.cv_ekf import cv_ekf_track
 from fabflow.positioning.eskf import (
     Eskf,
     EskfParams,
-    cv_ekf_track,
     default_covariance,
     initial_attitude,
     run_eskf,

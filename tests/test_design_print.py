@@ -12,11 +12,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fabflow.design.dxf_in import read_dxf_contours
+from fabflow.design.hermite import sample_hermite
 from fabflow.design.print_path import (
     element_tool_frames,
     order_contours,
     print_path_elements,
-    sample_hermite,
     sample_print_path,
     slice_mesh,
     tool_frames,

@@ -8,13 +8,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fabflow.errors import InputError
+from fabflow.positioning.cv_ekf import cv_ekf_track
 from fabflow.positioning.eskf import (
     Eskf,
     EskfParams,
     _exp_transpose,
     _quat_rotate_right,
     _quat_to_R,
-    cv_ekf_track,
     default_covariance,
     initial_attitude,
     pose_covariance_world,

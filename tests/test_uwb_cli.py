@@ -13,7 +13,8 @@ from typer.testing import CliRunner
 from fabflow.cli import app
 from fabflow.errors import InputError
 from fabflow.positioning.result import BasePose
-from fabflow.positioning.uwb_io import heading_from_motion, read_imu_csv, read_ranges_csv
+from fabflow.positioning.uwb_io import read_imu_csv, read_ranges_csv
+from fabflow.positioning.uwb_platform import heading_from_motion
 
 DATA = ROOT / "tests" / "data" / "uwb"
 STATIC = DATA / "static"

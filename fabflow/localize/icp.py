@@ -18,9 +18,7 @@ from numpy.typing import ArrayLike
 
 from fabflow.design.elements import Element
 from fabflow.localize.site import site_obstacles
-from fabflow.positioning.pointcloud import (
-    read_point_cloud,
-)
+from fabflow.positioning.pointcloud import read_point_cloud
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.scan_matching import ScanMap, load_map, localize_scan, to_base_pose
 from fabflow.project import IcpSetup, Platform, Project

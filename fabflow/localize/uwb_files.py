@@ -1,4 +1,11 @@
-"""TODO: docstring."""
+"""UWB localization from measured files: the computation behind ``fabflow localize uwb``.
+
+Ranges (CSV), the anchors file (YAML: the ``localization.uwb`` section plus
+``T_platform_base``) and optionally an IMU record (CSV) give the arm base pose.
+Without an IMU the platform is taken as standing still
+(:func:`~fabflow.positioning.uwb_platform.locate_platform`); with one the
+UWB/IMU ESKF (:mod:`fabflow.positioning.eskf`) runs over the whole record.
+"""
 
 from __future__ import annotations
 
@@ -27,8 +34,12 @@ from fabflow.positioning.uwb_calibration import (
     reject_outliers,
     reject_outliers_static,
 )
-from fabflow.positioning.uwb_io import heading_from_motion, read_imu_csv, read_ranges_csv
-from fabflow.positioning.uwb_platform import locate_platform, platform_to_base_covariance
+from fabflow.positioning.uwb_io import read_imu_csv, read_ranges_csv
+from fabflow.positioning.uwb_platform import (
+    heading_from_motion,
+    locate_platform,
+    platform_to_base_covariance,
+)
 from fabflow.project import UwbSetup, format_loc
 from fabflow.schema import PoseSpec
 from fabflow.sensors.uwb import UwbErrorModel

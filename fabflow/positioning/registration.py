@@ -1,4 +1,18 @@
-"""TODO: docstring."""
+"""Arbitrary-point localization (paper 001, eqs 7-8): base pose from matched prism points.
+
+A prism on the robot's tool is moved to known points ``p_i`` of the robot base
+frame (from forward kinematics); the total station measures each one, giving
+``m_i`` in the world. :func:`register_points` finds the rigid motion taking
+the ``p_i`` onto the ``m_i``: closed form by weighted Kabsch/Umeyama
+(reflection-safe); with per-point covariances (a total station's are
+needle-shaped along the line of sight) a few Gauss-Newton steps then minimise
+the full Mahalanobis cost; ``method="optimize"`` solves the paper's constrained
+problem over ``(O, X, Y)`` with SLSQP instead. The result carries the 6x6
+covariance (fabflow convention, see :mod:`fabflow.positioning.result`),
+residuals, RMSE and a leave-one-out test for a single bad prism reading
+(:class:`OutlierTest`). The solvers themselves are in
+:mod:`fabflow.positioning.rigid_fit`.
+"""
 
 from __future__ import annotations
 
@@ -144,9 +158,6 @@ class Registration:
             station=station,
             quality={**self.quality(), **(quality or {})},
         )
-
-
-# ------------------------------------------------------------------ validation
 
 
 def _loo_test(

@@ -1,4 +1,11 @@
-"""TODO: docstring."""
+"""Rigid fits of matched 3D points: the batch-capable building blocks of registration.
+
+:func:`kabsch` (weighted, reflection-safe), :func:`refine_registration`
+(Gauss-Newton on the full Mahalanobis cost, batched), :func:`optimize_registration`
+(the constrained SLSQP form of paper 001), :func:`register_leveled` (4 DOF: a
+levelled instrument, as in a free-station set-up), and the input and geometry
+checks they share (:func:`as_points`, :func:`check_geometry`). Metres throughout.
+"""
 
 from __future__ import annotations
 
@@ -51,12 +58,6 @@ def check_geometry(points: np.ndarray, name: str = "points") -> None:
             f"(principal spreads {s[0]:.4g} m, {s[1]:.3g} m); the rotation about their "
             "line is undetermined. Use points that span a plane."
         )
-
-
-# --------------------------------------------------------------- registration
-
-
-# ------------------------------------------------------------------- solvers
 
 
 def _det3(A: np.ndarray) -> np.ndarray:

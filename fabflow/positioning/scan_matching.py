@@ -9,10 +9,8 @@ point-to-plane ICP and checks the result: too low a fitness, too high an inlier
 RMSE or degenerate geometry raise :class:`~fabflow.errors.LocalizationError`
 instead of returning a silently wrong pose.
 
-:func:`localize_station` is the simulated version used by ``fabflow build``: it
-scans the simulated site from the true pose with the platform's LiDAR
-(``localization.icp``) and localizes that scan against the project's map file,
-or against a map built from simulated scans of the site when no file is given.
+The simulated station and the files of ``fabflow localize icp`` are joined to
+these estimators in :mod:`fabflow.localize.icp`.
 """
 
 from __future__ import annotations

@@ -1,4 +1,9 @@
-"""TODO: docstring."""
+"""Three-point localization (paper 001, eqs 1-6): base pose from ``P1``, ``P1 + d x``, ``P1 + d y``.
+
+The prism is moved to three points of the base frame a step ``d`` apart along
+its x and y axes; the measured points give the base axes directly.
+:func:`localize_three_point` adds the first-order covariance.
+"""
 
 from __future__ import annotations
 
@@ -11,8 +16,6 @@ from fabflow.positioning.registration import Registration
 from fabflow.positioning.rigid_fit import as_points, check_geometry
 from fabflow.transforms.se3 import make_T
 from fabflow.transforms.so3 import log_so3
-
-# ------------------------------------------------------------------ three point
 
 
 def three_point_base_points(p1: Any, d: float) -> np.ndarray:

@@ -1,32 +1,11 @@
-"""Robot base localization with a robotic total station (paper 001, eqs 1-8).
+"""Total station observations to a base pose (paper 001): matching, set-up uncertainty.
 
-A prism on the robot's tool is moved to known points ``p_i`` of the robot base
-frame (from forward kinematics); the total station measures each one, giving
-``m_i`` in the world. The base pose ``T_world_base`` is the rigid motion taking
-the ``p_i`` onto the ``m_i``.
-
-Solvers
--------
-- :func:`register_points`: the arbitrary-point localization (eqs 7-8). Closed
-  form by weighted Kabsch/Umeyama (reflection-safe); with per-point covariances
-  (a total station's are needle-shaped along the line of sight) a few
-  Gauss-Newton steps then minimise the full Mahalanobis cost. ``method="optimize"``
-  solves the paper's constrained problem over ``(O, X, Y)`` with SLSQP instead.
-  Either way the result carries the 6x6 covariance (fabflow convention, see
-  :mod:`fabflow.positioning.result`), residuals, RMSE and a leave-one-out test
-  for a single bad prism reading.
-- :func:`three_point_localization` / :func:`localize_three_point`: eqs 1-6 for
-  the points ``P1``, ``P1 + d x``, ``P1 + d y``.
-- :func:`kabsch`, :func:`refine_registration`, :func:`register_leveled`: the
-  batch-capable building blocks (the last one fits a levelled instrument,
-  4 DOF, as in a free-station set-up).
-
-Entry points
-------------
-- :func:`localize_files` / :func:`localize_observations`: measured readings
-  (CSV or Leica GSI) against robot points (``fabflow localize total-station``).
-- :func:`localize_station`: the simulated instrument used by ``fabflow build``
-  and the simulator.
+:func:`localize_observations` matches measured readings (polar or coordinates,
+from :mod:`fabflow.positioning.ts_io`) to robot points by point id and
+registers them (:func:`fabflow.positioning.registration.register_points`);
+:func:`add_instrument_uncertainty` adds the uncertainty of the instrument's
+set-up (:func:`setup_covariance`) to a registration made in the world frame.
+The three-point procedure is :mod:`fabflow.positioning.three_point`.
 """
 
 from __future__ import annotations

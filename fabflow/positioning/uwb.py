@@ -43,8 +43,10 @@ Sigma = float | Callable[[np.ndarray], np.ndarray]
 METHODS: tuple[str, ...] = ("ls", "wls", "wls-t")
 UNOBSERVED_VARIANCE = 1.0
 """Variance (rad^2) reported for pose components the measurement does not observe."""
-_MIN_RANGE_FOR_WEIGHT = 0.1
-_COND_LIMIT = 1e10
+MIN_RANGE_FOR_WEIGHT = 0.1
+"""Ranges below this (metres) are weighted as if this long (keeps the WLS weights finite)."""
+COND_LIMIT = 1e10
+"""Normal matrices worse conditioned than this count as singular (degenerate geometry)."""
 
 
 @dataclass(frozen=True)
@@ -86,7 +88,8 @@ class UwbFix:
     method: str
 
 
-def _sigma_of(sigma: Sigma, d: np.ndarray) -> np.ndarray:
+def sigma_of(sigma: Sigma, d: np.ndarray) -> np.ndarray:
+    """Range standard deviations (metres) at distances ``d``: a constant, or a function of ``d``."""
     if callable(sigma):
         s = np.asarray(sigma(d), dtype=float)
     else:
@@ -164,7 +167,7 @@ def _inv_batched(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _solve_batched(M: np.ndarray, rhs: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Solve ``M x = rhs`` where ``ok`` and M is well conditioned; (x, M^-1), NaN elsewhere."""
     Minv, cond = _inv_batched(M)
-    good = ok & (cond > 1.0 / _COND_LIMIT)
+    good = ok & (cond > 1.0 / COND_LIMIT)
     x = np.einsum("nij,nj->ni", Minv, rhs)
     x[~good] = np.nan
     Minv[~good] = np.nan
@@ -190,7 +193,7 @@ def _ls(
     rhs = np.einsum("nij,ni,ni->nj", H, w, b)
     x, Minv = _solve_batched(M, rhs, ok)
     # covariance of the differenced rows: 4 (diag(d_i^2 s_i^2) + d_ref^2 s_ref^2 11^T)
-    s = _sigma_of(sigma, np.maximum(d, _MIN_RANGE_FOR_WEIGHT))
+    s = sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT))
     var = (d * s) ** 2
     Hw = H * w[..., None]
     C_diag = np.einsum("nij,ni,nik->njk", Hw, var, Hw)
@@ -206,8 +209,8 @@ def _wls(
     n = r.shape[1]
     dim = A.shape[1]
     d = np.where(mask, r, 0.0)
-    dw = np.maximum(d, _MIN_RANGE_FOR_WEIGHT)
-    s = _sigma_of(sigma, dw)
+    dw = np.maximum(d, MIN_RANGE_FOR_WEIGHT)
+    s = sigma_of(sigma, dw)
     w = np.where(mask, 1.0 / (4.0 * dw**2 * s**2), 0.0)
     H = np.concatenate([-2.0 * A, np.ones((n, 1))], axis=1)
     b = d**2 - np.sum(A**2, axis=1)[None]
@@ -227,7 +230,7 @@ def _gauss_newton(
     tol: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     d = np.where(mask, r, 0.0)
-    s = _sigma_of(sigma, np.maximum(d, _MIN_RANGE_FOR_WEIGHT))
+    s = sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT))
     w = np.where(mask, 1.0 / s**2, 0.0)
     x = x0.copy()
     dim = x.shape[1]
@@ -380,10 +383,10 @@ def crlb(anchors: np.ndarray, position: np.ndarray, sigma: Sigma) -> np.ndarray:
     diff = P[:, None, :] - A[None]
     dist = np.linalg.norm(diff, axis=-1)
     u = diff / np.maximum(dist, 1e-12)[..., None]
-    s = _sigma_of(sigma, dist)
+    s = sigma_of(sigma, dist)
     F = np.einsum("nij,ni,nik->njk", u, 1.0 / s**2, u)
     ev = np.linalg.eigvalsh(F)
-    if np.any(ev[:, 0] <= ev[:, -1] / _COND_LIMIT):
+    if np.any(ev[:, 0] <= ev[:, -1] / COND_LIMIT):
         raise LocalizationError(
             "the anchor geometry does not determine the position (singular Fisher information)"
         )

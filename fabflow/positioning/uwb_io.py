@@ -1,4 +1,7 @@
-"""UWB measurement files and the ``fabflow localize uwb`` computation.
+"""UWB measurement files: readers and writers of ranges and IMU records.
+
+The computation of ``fabflow localize uwb`` over these files is
+:mod:`fabflow.localize.uwb_files`.
 
 Files
 -----
@@ -27,8 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from fabflow.errors import InputError, LocalizationError
-from fabflow.positioning.uwb_calibration import running_median
+from fabflow.errors import InputError
 
 RANGE_COLUMNS = ("t", "anchor", "range")
 IMU_COLUMNS = ("t", "ax", "ay", "az", "gx", "gy", "gz")
@@ -208,31 +210,6 @@ def read_imu_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise InputError("an IMU file needs at least two samples", path)
     data = np.array(rows)
     return data[:, 0], data[:, 1:4], data[:, 4:7]
-
-
-def heading_from_motion(fix_xy: np.ndarray, min_travel: float = 0.3, window: int = 31) -> float:
-    """Heading (rad) of the first displacement longer than ``min_travel`` metres.
-
-    ``fix_xy`` are (N, 2) position fixes in time order (NaN allowed). They are
-    smoothed by a running median of ``window`` fixes first, so single noisy
-    fixes do not trigger; the displacement is measured from the median of the
-    first ``window`` fixes.
-    """
-
-    xy = np.asarray(fix_xy, dtype=float)
-    if np.sum(np.all(np.isfinite(xy), axis=1)) < window:
-        raise LocalizationError("too few position fixes to take the heading from the motion")
-    smooth = running_median(xy, window)
-    start = np.nanmedian(xy[:window], axis=0)
-    dist = np.linalg.norm(smooth - start, axis=1)
-    moved = np.flatnonzero(dist > min_travel)
-    if moved.size == 0:
-        raise LocalizationError(
-            "one tag and an IMU: the heading comes from the motion, but the tag never moved "
-            f"more than {min_travel} m; add a second tag"
-        )
-    d = smooth[moved[0]] - start
-    return float(math.atan2(d[1], d[0]))
 
 
 def write_ranges_csv(

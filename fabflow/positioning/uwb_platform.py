@@ -1,23 +1,31 @@
-"""TODO: docstring."""
+"""The platform pose from UWB ranges of several tags: ``x, y, z, yaw`` and its covariance.
+
+Tags sit at known lever arms on the platform (platform frame); every range of
+every tag constrains the platform pose. :func:`locate_platform` estimates
+``x, y, z, yaw`` (a level platform) jointly over all ranges by Gauss-Newton
+(``wls-t``), or as the median of per-epoch fixes (``ls``, ``wls``), with
+residual-based rejection; :func:`platform_to_base_covariance` moves the
+covariance to the arm base. Metres and radians; anchors in the world frame.
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from fabflow.errors import InputError, LocalizationError
 from fabflow.positioning.uwb import (
-    _COND_LIMIT,
-    _MIN_RANGE_FOR_WEIGHT,
+    COND_LIMIT,
+    MIN_RANGE_FOR_WEIGHT,
     UNOBSERVED_VARIANCE,
     Method,
     Sigma,
-    _sigma_of,
     locate,
+    sigma_of,
 )
-
-# ------------------------------------------------------------------ platform pose
+from fabflow.positioning.uwb_calibration import running_median
 
 
 def _rotz(yaw: float) -> np.ndarray:
@@ -158,7 +166,7 @@ def locate_platform(
     tag_idx = np.broadcast_to(np.arange(n_tags)[None, :, None], R.shape)[finite]
     anc_idx = np.broadcast_to(np.arange(A.shape[0])[None, None, :], R.shape)[finite]
     d = R[finite]
-    s = _sigma_of(sigma, np.maximum(d, _MIN_RANGE_FOR_WEIGHT))
+    s = sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT))
     use = np.ones(d.size, dtype=bool)
     iterations = 0
     if method == "wls-t" or not heading_observed or n_tags == 1:
@@ -178,7 +186,7 @@ def locate_platform(
         info[:, 3] = 0.0
         info[3, 3] = 1.0 / UNOBSERVED_VARIANCE
     ev = np.linalg.eigvalsh(info)
-    if ev[0] <= ev[-1] / _COND_LIMIT:
+    if ev[0] <= ev[-1] / COND_LIMIT:
         raise LocalizationError("the tag and anchor geometry does not determine the platform pose")
     cov = np.linalg.inv(info)
     if anchor_bias_sigma is not None:
@@ -299,3 +307,28 @@ def platform_to_base_covariance(
     cov[3, 3] += UNOBSERVED_VARIANCE
     cov[4, 4] += UNOBSERVED_VARIANCE
     return 0.5 * (cov + cov.T)
+
+
+def heading_from_motion(fix_xy: np.ndarray, min_travel: float = 0.3, window: int = 31) -> float:
+    """Heading (rad) of the first displacement longer than ``min_travel`` metres.
+
+    ``fix_xy`` are (N, 2) position fixes in time order (NaN allowed). They are
+    smoothed by a running median of ``window`` fixes first, so single noisy
+    fixes do not trigger; the displacement is measured from the median of the
+    first ``window`` fixes.
+    """
+
+    xy = np.asarray(fix_xy, dtype=float)
+    if np.sum(np.all(np.isfinite(xy), axis=1)) < window:
+        raise LocalizationError("too few position fixes to take the heading from the motion")
+    smooth = running_median(xy, window)
+    start = np.nanmedian(xy[:window], axis=0)
+    dist = np.linalg.norm(smooth - start, axis=1)
+    moved = np.flatnonzero(dist > min_travel)
+    if moved.size == 0:
+        raise LocalizationError(
+            "one tag and an IMU: the heading comes from the motion, but the tag never moved "
+            f"more than {min_travel} m; add a second tag"
+        )
+    d = smooth[moved[0]] - start
+    return float(math.atan2(d[1], d[0]))

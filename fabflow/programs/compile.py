@@ -1,11 +1,11 @@
-"""Robot programs per work package: motions, inverse kinematics checks, writers.
+"""Robot programs per work package: motion steps compiled into checked, timed programs.
 
-Every Cartesian target is checked with inverse kinematics before anything is
-written. PTP targets take the valid configuration nearest the previous one;
-linear moves must keep the configuration of their start, and are sampled at
-most one controller step apart (2 cm / 0.015 rad) so that a joint limit or a
-configuration change inside the line is found. Any failure is an
-:class:`~fabflow.errors.InfeasibleError` naming the element and the target.
+:func:`work_package_program` turns the motion of one work package
+(:mod:`fabflow.programs.motions`) into a :class:`~fabflow.programs.ir.Program`
+in the station's localized base frame, with every move checked by
+:mod:`fabflow.programs.feasibility`; :func:`write_programs` does so for a whole
+plan and renders the files with the project's writer
+(:mod:`fabflow.programs.writers`).
 """
 
 from __future__ import annotations

@@ -1,4 +1,13 @@
-"""TODO: docstring."""
+"""Inverse kinematics along the moves of a program: can the arm follow them?
+
+Every Cartesian target is checked with inverse kinematics before anything is
+written. A PTP target takes the configuration from which the linear moves
+after it can be followed; a linear move must keep the configuration of its
+start and is sampled at most one controller step apart (2 cm / 0.015 rad), so
+that a joint limit, a configuration change or a joint speed beyond the
+robot's limits inside the line is found. Any failure is an
+:class:`~fabflow.errors.InfeasibleError` naming the element and the target.
+"""
 
 from __future__ import annotations
 

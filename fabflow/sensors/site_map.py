@@ -1,4 +1,9 @@
-"""TODO: docstring."""
+"""A simulated LiDAR map of the site, and the as-built structure added to a map.
+
+:func:`simulated_site_map` scans the simulated site (:mod:`fabflow.sensors.site_scene`)
+from a ring of poses before construction starts, as an offline mapping run
+would; :func:`with_as_built` adds the blocks built so far at their design poses.
+"""
 
 from __future__ import annotations
 
@@ -13,8 +18,6 @@ from fabflow.positioning.scan_matching import FloatArray, ScanMap, map_from_poin
 from fabflow.sensors.lidar import HESAI_QT64, LidarModel, simulate_scan
 from fabflow.sensors.site_scene import boxes_mesh, site_scene
 from fabflow.transforms.se3 import apply_T
-
-# ------------------------------------------------------------------- simulation
 
 
 def mapping_poses(center: Sequence[float] = (2.0, 1.65), height: float = 1.8) -> FloatArray:

@@ -1,4 +1,9 @@
-"""TODO: docstring."""
+"""Simulated total station readings: noisy ``Hz``, ``V`` and slope distances of true points.
+
+The noise follows the instrument's data-sheet accuracy model
+(:class:`fabflow.positioning.polar.Instrument`): independent normal errors of
+the angles and of the distance (``a + b * sd``).
+"""
 
 from __future__ import annotations
 
