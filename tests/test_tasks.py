@@ -27,7 +27,8 @@ from fabflow.tasks.order import (
     schedule,
     visit_patterns,
 )
-from fabflow.tasks.planner import make_plan, plan_project, thin_frames
+from fabflow.tasks.planner import make_plan, plan_project
+from fabflow.tasks.reachability import thin_frames
 from fabflow.tasks.split import split_wide_paths, with_pieces
 from fabflow.tasks.stations import element_polygons, footprint_polygons
 from fabflow.tasks.targets import element_targets
