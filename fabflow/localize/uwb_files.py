@@ -28,13 +28,13 @@ from fabflow.positioning.eskf import (
     run_eskf,
 )
 from fabflow.positioning.result import BasePose
-from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, locate
+from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Sigma, locate
 from fabflow.positioning.uwb_calibration import (
     RangeCalibration,
     reject_outliers,
     reject_outliers_static,
 )
-from fabflow.positioning.uwb_io import read_imu_csv, read_ranges_csv
+from fabflow.positioning.uwb_io import RangeLog, read_imu_csv, read_ranges_csv
 from fabflow.positioning.uwb_platform import (
     heading_from_motion,
     locate_platform,
@@ -93,7 +93,6 @@ def localize_from_files(
     single tag its initial heading is the direction of the first motion (the
     platform drives along its x axis).
     """
-
     setup, T_platform_base = load_anchors_file(anchors_yaml)
     ids, A = anchors_world(setup)
     L = np.asarray(setup.tags, dtype=float)
@@ -104,12 +103,7 @@ def localize_from_files(
         str(anchors_yaml),
     )
     sigma = UwbErrorModel(sigma_1m=setup.sigma).sigma
-    corrected = cal.apply_indexed(log.range, log.anchor)
     epochs = cal.apply(log.epochs(len(L), len(ids)))
-    if imu_csv is None:
-        rej = reject_outliers_static(epochs, sigma(epochs))
-    else:
-        rej = reject_outliers(epochs, sigma(epochs))
     quality: dict[str, Any] = {
         "n_ranges": int(log.range.size),
         "n_tags": len(L),
@@ -117,74 +111,17 @@ def localize_from_files(
         "calibration": cal.to_dict(ids),
     }
     if imu_csv is None:
-        estimator = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
-        fix = locate_platform(A, rej.ranges, L, sigma, method=estimator)
-        T_world_platform = fix.T
-        cov = platform_to_base_covariance(T_world_platform, T_platform_base, fix.covariance)
-        residuals = fix.residuals
-        quality.update(
-            estimator=estimator,
-            solver="static platform: joint Gauss-Newton over all ranges",
-            n_rejected_robust_centre=int(rej.rejected.sum()),
-            n_used=fix.n_used,
-            std_xyz_yaw=[float(v) for v in np.sqrt(np.diag(fix.covariance))],
-            unobserved=["rx", "ry"] + ([] if fix.heading_observed else ["rz"]),
-            unobserved_variance_rad2=UNOBSERVED_VARIANCE,
+        rej = reject_outliers_static(epochs, sigma(epochs))
+        T_world_platform, cov, residuals, more = _static_pose(
+            setup, A, L, rej, sigma, T_platform_base
         )
     else:
-        t_imu, acc, gyr = read_imu_csv(imu_csv)
-        t0 = t_imu[0]
-        first = rej.ranges[: max(10, int(setup.rate_hz))]
-        if len(L) >= 2:
-            pf = locate_platform(A, first, L, sigma)
-            p0, yaw0, s_yaw = pf.T[:3, 3], float(pf.state[3]), math.radians(5.0)
-        else:
-            fixes = locate(A, rej.ranges[:, 0, :], method="wls-t", sigma=sigma)
-            yaw0 = heading_from_motion(fixes.positions[:, :2], 0.3)
-            c, s = math.cos(yaw0), math.sin(yaw0)
-            lever_w = np.array([c * L[0, 0] - s * L[0, 1], s * L[0, 0] + c * L[0, 1], L[0, 2]])
-            p0 = np.nanmedian(fixes.positions[: max(5, int(setup.rate_hz))], axis=0) - lever_w
-            s_yaw = math.radians(15.0)
-        rest = t_imu < t0 + 0.5
-        q0 = initial_attitude(acc[rest] if rest.sum() >= 2 else acc[:2], yaw0)
-        filt = Eskf(
-            p0, np.zeros(3), q0, default_covariance(sigma_p=0.3, sigma_yaw=s_yaw), EskfParams()
+        rej = reject_outliers(epochs, sigma(epochs))
+        corrected = cal.apply_indexed(log.range, log.anchor)
+        T_world_platform, cov, residuals, more = _eskf_pose(
+            setup, A, L, rej, sigma, T_platform_base, log, corrected, imu_csv
         )
-        use = np.isfinite(log.range)
-        track = run_eskf(
-            filt,
-            t_imu,
-            acc,
-            gyr,
-            log.t[use],
-            log.anchor[use],
-            corrected[use],
-            A,
-            sigma,
-            tag_index=log.tag[use],
-            lever_arms=L,
-        )
-        T_world_platform = np.eye(4)
-        T_world_platform[:3, :3] = matrix_from_quat(track.q[-1])
-        T_world_platform[:3, 3] = track.p[-1]
-        C_wp = pose_covariance_world(track.q[-1], track.P_final)
-        cov = compose_covariance(T_world_platform, C_wp, T_platform_base, None)
-        R = T_world_platform[:3, :3]
-        tags_w = track.p[-1] + L @ R.T
-        res_all = corrected - np.linalg.norm(tags_w[log.tag] - A[log.anchor], axis=1)
-        # residuals of the last second against the final pose (the platform has stopped)
-        late = log.t >= log.t[-1] - 1.0
-        residuals = res_all[late]
-        quality.update(
-            estimator="eskf",
-            solver="UWB/IMU ESKF, per-range updates; pose at the last IMU sample",
-            n_updates=track.n_updates,
-            n_rejected_gate=track.n_rejected,
-            residual_window_s=1.0,
-            t_end=float(t_imu[-1]),
-            std_xyz_rpy=[float(v) for v in np.sqrt(np.diag(cov))],
-            unobserved=[],
-        )
+    quality.update(more)
     T_world_base = T_world_platform @ T_platform_base
     rmse = float(np.sqrt(np.mean(residuals**2))) if residuals.size else 0.0
     return BasePose(
@@ -195,3 +132,92 @@ def localize_from_files(
         rmse=rmse,
         quality=quality,
     )
+
+
+def _static_pose(
+    setup: UwbSetup,
+    A: np.ndarray,
+    L: np.ndarray,
+    rej: Any,
+    sigma: Sigma,
+    T_platform_base: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+    """Platform pose, base covariance, residuals and quality of a standing platform."""
+    estimator = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
+    fix = locate_platform(A, rej.ranges, L, sigma, method=estimator)
+    cov = platform_to_base_covariance(fix.T, T_platform_base, fix.covariance)
+    quality = {
+        "estimator": estimator,
+        "solver": "static platform: joint Gauss-Newton over all ranges",
+        "n_rejected_robust_centre": int(rej.rejected.sum()),
+        "n_used": fix.n_used,
+        "std_xyz_yaw": [float(v) for v in np.sqrt(np.diag(fix.covariance))],
+        "unobserved": ["rx", "ry"] + ([] if fix.heading_observed else ["rz"]),
+        "unobserved_variance_rad2": UNOBSERVED_VARIANCE,
+    }
+    return fix.T, cov, fix.residuals, quality
+
+
+def _eskf_pose(
+    setup: UwbSetup,
+    A: np.ndarray,
+    L: np.ndarray,
+    rej: Any,
+    sigma: Sigma,
+    T_platform_base: np.ndarray,
+    log: RangeLog,
+    corrected: np.ndarray,
+    imu_csv: str | Path,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+    """Platform pose at the end of the record, base covariance, residuals and quality (ESKF)."""
+    t_imu, acc, gyr = read_imu_csv(imu_csv)
+    t0 = t_imu[0]
+    first = rej.ranges[: max(10, int(setup.rate_hz))]
+    if len(L) >= 2:
+        pf = locate_platform(A, first, L, sigma)
+        p0, yaw0, s_yaw = pf.T[:3, 3], float(pf.state[3]), math.radians(5.0)
+    else:
+        fixes = locate(A, rej.ranges[:, 0, :], method="wls-t", sigma=sigma)
+        yaw0 = heading_from_motion(fixes.positions[:, :2], 0.3)
+        c, s = math.cos(yaw0), math.sin(yaw0)
+        lever_w = np.array([c * L[0, 0] - s * L[0, 1], s * L[0, 0] + c * L[0, 1], L[0, 2]])
+        p0 = np.nanmedian(fixes.positions[: max(5, int(setup.rate_hz))], axis=0) - lever_w
+        s_yaw = math.radians(15.0)
+    rest = t_imu < t0 + 0.5
+    q0 = initial_attitude(acc[rest] if rest.sum() >= 2 else acc[:2], yaw0)
+    filt = Eskf(p0, np.zeros(3), q0, default_covariance(sigma_p=0.3, sigma_yaw=s_yaw), EskfParams())
+    use = np.isfinite(log.range)
+    track = run_eskf(
+        filt,
+        t_imu,
+        acc,
+        gyr,
+        log.t[use],
+        log.anchor[use],
+        corrected[use],
+        A,
+        sigma,
+        tag_index=log.tag[use],
+        lever_arms=L,
+    )
+    T_world_platform = np.eye(4)
+    T_world_platform[:3, :3] = matrix_from_quat(track.q[-1])
+    T_world_platform[:3, 3] = track.p[-1]
+    C_wp = pose_covariance_world(track.q[-1], track.P_final)
+    cov = compose_covariance(T_world_platform, C_wp, T_platform_base, None)
+    R = T_world_platform[:3, :3]
+    tags_w = track.p[-1] + L @ R.T
+    res_all = corrected - np.linalg.norm(tags_w[log.tag] - A[log.anchor], axis=1)
+    # residuals of the last second against the final pose (the platform has stopped)
+    late = log.t >= log.t[-1] - 1.0
+    quality = {
+        "estimator": "eskf",
+        "solver": "UWB/IMU ESKF, per-range updates; pose at the last IMU sample",
+        "n_updates": track.n_updates,
+        "n_rejected_gate": track.n_rejected,
+        "residual_window_s": 1.0,
+        "t_end": float(t_imu[-1]),
+        "std_xyz_rpy": [float(v) for v in np.sqrt(np.diag(cov))],
+        "unobserved": [],
+    }
+    return T_world_platform, cov, res_all[late], quality
