@@ -1,6 +1,9 @@
-"""Drawing a robot arm from its kinematic model (:mod:`fabflow.robots`)."""
+"""The arm in the preview: drawing it from its kinematic model, and its pose at every step."""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol
 
 import numpy as np
 
@@ -75,3 +78,115 @@ class RobotArm:
         if self.model.analytic_ik is None:
             return None
         return self.model.ik_batch(T_base_flange)
+
+
+class ArmModel(Protocol):
+    """What the preview needs of a robot arm.
+
+    ``joint_origins`` returns the points the arm is drawn through (foot of axis
+    1, each joint origin, the flange) in the robot base frame, shape
+    ``(..., n_points, 3)`` for joint vectors of shape ``(..., dof)``; ``fk``
+    the flange pose in the base frame (4x4).
+    ``ik`` returns the joint solutions (radians) that put the flange at a 4x4
+    pose given in the base frame, empty when unreachable. An arm may also offer
+    ``ik_many(T (N, 4, 4)) -> (q (N, K, dof), valid (N, K)) | None`` to solve
+    all targets at once.
+    """
+
+    name: str
+    home: np.ndarray
+
+    def joint_origins(self, q: np.ndarray) -> np.ndarray: ...
+
+    def fk(self, q: np.ndarray) -> np.ndarray: ...
+
+    def ik(self, T_base_flange: np.ndarray) -> list[np.ndarray]: ...
+
+
+def _choose_solution(solutions: Sequence[np.ndarray], reference: np.ndarray) -> np.ndarray | None:
+    """The IK solution closest (in joint space) to ``reference``."""
+    if not solutions:
+        return None
+    sols = np.asarray(solutions, dtype=float).reshape(len(solutions), -1)
+    return sols[int(np.argmin(np.linalg.norm(sols - reference, axis=1)))]
+
+
+def _arm_configurations(
+    arm: ArmModel,
+    T_world_base_p: np.ndarray,
+    step_package: np.ndarray,
+    T_world_targets: np.ndarray,
+    T_flange_tool: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint configuration per step (home at step 0) and whether the target was reached.
+
+    At each step the IK solution closest to the previous step's configuration
+    is drawn, so the arm moves smoothly; an unreachable target keeps the
+    previous configuration and is flagged.
+    """
+    S = T_world_targets.shape[0]
+    home = np.asarray(arm.home, dtype=float)
+    q = np.empty((S + 1, home.shape[0]))
+    reached = np.ones(S + 1, dtype=bool)
+    q[0] = home
+    if S == 0:
+        return q, reached
+    T_base_world = np.linalg.inv(T_world_base_p)[step_package]
+    T_tool_flange = np.linalg.inv(T_flange_tool)
+    T_base_flange = T_base_world @ T_world_targets @ T_tool_flange
+    ik_many = getattr(arm, "ik_many", None)
+    batch = ik_many(T_base_flange) if ik_many is not None else None
+    for k in range(S):
+        if batch is not None:
+            sols = list(batch[0][k][batch[1][k]])
+        else:
+            sols = arm.ik(T_base_flange[k])
+        sol = _choose_solution(sols, q[k])
+        if sol is None:
+            q[k + 1] = q[k]
+            reached[k + 1] = False
+        else:
+            q[k + 1] = sol
+    return q, reached
+
+
+def arm_track(
+    arm: ArmModel | None,
+    T_wb: np.ndarray,
+    step_package: np.ndarray,
+    T_world_targets: np.ndarray,
+    T_flange_tool: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The arm at the start and at every step: joints, reached, joint origins, tool pose.
+
+    Returns
+    -------
+    arm_q
+        (S + 1, dof) joint values (``dof`` 0 without an arm).
+    reached
+        (S + 1,) whether the arm reaches the step's target.
+    arm_points
+        (S + 1, J, 3) joint origins in the world (metres).
+    T_world_tool
+        (S + 1, 4, 4) tool poses: the arm's home tool pose, then the targets.
+    """
+    S, P = len(step_package), len(T_wb)
+    if arm is not None and P > 0:
+        arm_q, reached = _arm_configurations(
+            arm, T_wb, step_package, T_world_targets, T_flange_tool
+        )
+        pts_base = np.asarray(arm.joint_origins(arm_q), dtype=float)
+        pkg_of_step = np.concatenate([[0], step_package])
+        T = T_wb[pkg_of_step]
+        arm_points = np.einsum("sij,snj->sni", T[:, :3, :3], pts_base) + T[:, None, :3, 3]
+        T_world_tool = np.array([T_wb[0]] * (S + 1))
+        T_world_tool[1:] = T_world_targets
+        T_world_tool[0] = T_wb[0] @ np.asarray(arm.fk(arm_q[0]), dtype=float) @ T_flange_tool
+    else:
+        arm_q = np.zeros((S + 1, 0))
+        reached = np.ones(S + 1, dtype=bool)
+        arm_points = np.zeros((S + 1, 0, 3))
+        T_world_tool = np.zeros((S + 1, 4, 4))
+        T_world_tool[0] = T_wb[0] if P else np.eye(4)
+        T_world_tool[1:] = T_world_targets
+    return arm_q, reached, arm_points, T_world_tool

@@ -16,13 +16,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from typing import Literal
 
 import numpy as np
 
 from fabflow.design.elements import Element
 from fabflow.errors import InputError
 from fabflow.positioning.result import BasePose
+from fabflow.preview.arm import ArmModel, arm_track
 from fabflow.project import Platform
 from fabflow.tasks.plan import Plan
 from fabflow.transforms.so3 import quat_from_matrix
@@ -69,29 +70,6 @@ STATE_COLOURS: dict[str, np.ndarray] = {
     "pre-built": PREBUILT_COLOUR,
 }
 UNKNOWN_DEVIATION_COLOUR = np.array([200, 200, 200], dtype=np.uint8)
-
-
-class ArmModel(Protocol):
-    """What the preview needs of a robot arm.
-
-    ``joint_origins`` returns the points the arm is drawn through (foot of axis
-    1, each joint origin, the flange) in the robot base frame, shape
-    ``(..., n_points, 3)`` for joint vectors of shape ``(..., dof)``; ``fk``
-    the flange pose in the base frame (4x4).
-    ``ik`` returns the joint solutions (radians) that put the flange at a 4x4
-    pose given in the base frame, empty when unreachable. An arm may also offer
-    ``ik_many(T (N, 4, 4)) -> (q (N, K, dof), valid (N, K)) | None`` to solve
-    all targets at once.
-    """
-
-    name: str
-    home: np.ndarray
-
-    def joint_origins(self, q: np.ndarray) -> np.ndarray: ...
-
-    def fk(self, q: np.ndarray) -> np.ndarray: ...
-
-    def ik(self, T_base_flange: np.ndarray) -> list[np.ndarray]: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -352,53 +330,6 @@ def _colormap(name: str, values: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(rgba)[..., :3] * 255).astype(np.uint8)
 
 
-def _choose_solution(solutions: Sequence[np.ndarray], reference: np.ndarray) -> np.ndarray | None:
-    """The IK solution closest (in joint space) to ``reference``."""
-    if not solutions:
-        return None
-    sols = np.asarray(solutions, dtype=float).reshape(len(solutions), -1)
-    return sols[int(np.argmin(np.linalg.norm(sols - reference, axis=1)))]
-
-
-def _arm_configurations(
-    arm: ArmModel,
-    T_world_base_p: np.ndarray,
-    step_package: np.ndarray,
-    T_world_targets: np.ndarray,
-    T_flange_tool: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Joint configuration per step (home at step 0) and whether the target was reached.
-
-    At each step the IK solution closest to the previous step's configuration
-    is drawn, so the arm moves smoothly; an unreachable target keeps the
-    previous configuration and is flagged.
-    """
-    S = T_world_targets.shape[0]
-    home = np.asarray(arm.home, dtype=float)
-    q = np.empty((S + 1, home.shape[0]))
-    reached = np.ones(S + 1, dtype=bool)
-    q[0] = home
-    if S == 0:
-        return q, reached
-    T_base_world = np.linalg.inv(T_world_base_p)[step_package]
-    T_tool_flange = np.linalg.inv(T_flange_tool)
-    T_base_flange = T_base_world @ T_world_targets @ T_tool_flange
-    ik_many = getattr(arm, "ik_many", None)
-    batch = ik_many(T_base_flange) if ik_many is not None else None
-    for k in range(S):
-        if batch is not None:
-            sols = list(batch[0][k][batch[1][k]])
-        else:
-            sols = arm.ik(T_base_flange[k])
-        sol = _choose_solution(sols, q[k])
-        if sol is None:
-            q[k + 1] = q[k]
-            reached[k + 1] = False
-        else:
-            q[k + 1] = sol
-    return q, reached
-
-
 def build_model(
     elements: Sequence[Element],
     plan: Plan,
@@ -445,22 +376,7 @@ def build_model(
     platform = platform or Platform()
     T_flange_tool = np.eye(4) if T_flange_tool is None else np.asarray(T_flange_tool, float)
     elements = tuple(elements)
-    index_of = {e.id: i for i, e in enumerate(elements)}
-    if len(index_of) != len(elements):
-        raise InputError("element ids are not unique")
-
-    seq_ids = [eid for wp in plan.work_packages for eid in wp.elements]
-    missing = [eid for eid in seq_ids if eid not in index_of]
-    if missing:
-        raise InputError(f"the plan names elements that the design does not have: {missing[:10]}")
-    sequence = np.array([index_of[eid] for eid in seq_ids], dtype=np.int64)
-    if np.unique(sequence).size != sequence.size:
-        raise InputError("the plan places some elements more than once")
-    step_package = np.repeat(
-        np.arange(len(plan.work_packages)), [len(wp.elements) for wp in plan.work_packages]
-    ).astype(np.int64)
-    built_at = np.zeros(len(elements), dtype=np.int64)
-    built_at[sequence] = np.arange(1, sequence.size + 1)
+    sequence, step_package, built_at = _build_sequence(elements, plan)
 
     station_ids = tuple(s.id for s in plan.stations)
     package_station = np.array(
@@ -508,25 +424,9 @@ def build_model(
         else np.zeros((0, 4, 4))
     )
 
-    S = sequence.size
-    if arm is not None and P > 0:
-        arm_q, reached = _arm_configurations(
-            arm, T_wb, step_package, T_world_targets, T_flange_tool
-        )
-        pts_base = np.asarray(arm.joint_origins(arm_q), dtype=float)
-        pkg_of_step = np.concatenate([[0], step_package])
-        T = T_wb[pkg_of_step]
-        arm_points = np.einsum("sij,snj->sni", T[:, :3, :3], pts_base) + T[:, None, :3, 3]
-        T_world_tool = np.array([T_wb[0]] * (S + 1))
-        T_world_tool[1:] = T_world_targets
-        T_world_tool[0] = T_wb[0] @ np.asarray(arm.fk(arm_q[0]), dtype=float) @ T_flange_tool
-    else:
-        arm_q = np.zeros((S + 1, 0))
-        reached = np.ones(S + 1, dtype=bool)
-        arm_points = np.zeros((S + 1, 0, 3))
-        T_world_tool = np.zeros((S + 1, 4, 4))
-        T_world_tool[0] = T_wb[0] if P else np.eye(4)
-        T_world_tool[1:] = T_world_targets
+    arm_q, reached, arm_points, T_world_tool = arm_track(
+        arm, T_wb, step_package, T_world_targets, T_flange_tool
+    )
 
     dev = None
     if deviation is not None:
@@ -565,6 +465,44 @@ def build_model(
         localization=dict(localization or {}),
         method=method,
     )
+
+
+def _build_sequence(
+    elements: Sequence[Element], plan: Plan
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The build order as element indices, its work package per step, and the step of each element.
+
+    Returns
+    -------
+    sequence
+        (S,) element indices in build order.
+    step_package
+        (S,) work package index of every step.
+    built_at
+        (N,) 1-based step at which each element is built (0: never, pre-built).
+
+    Raises
+    ------
+    InputError
+        When the element ids are not unique, or the plan names an element that is
+        not in ``elements`` or places one twice.
+    """
+    index_of = {e.id: i for i, e in enumerate(elements)}
+    if len(index_of) != len(elements):
+        raise InputError("element ids are not unique")
+    seq_ids = [eid for wp in plan.work_packages for eid in wp.elements]
+    missing = [eid for eid in seq_ids if eid not in index_of]
+    if missing:
+        raise InputError(f"the plan names elements that the design does not have: {missing[:10]}")
+    sequence = np.array([index_of[eid] for eid in seq_ids], dtype=np.int64)
+    if np.unique(sequence).size != sequence.size:
+        raise InputError("the plan places some elements more than once")
+    step_package = np.repeat(
+        np.arange(len(plan.work_packages)), [len(wp.elements) for wp in plan.work_packages]
+    ).astype(np.int64)
+    built_at = np.zeros(len(elements), dtype=np.int64)
+    built_at[sequence] = np.arange(1, sequence.size + 1)
+    return sequence, step_package, built_at
 
 
 def _path_world(element: Element) -> np.ndarray:
