@@ -10,12 +10,14 @@ browser scene), ``sim`` (simulated runs) and ``build`` (the stage runner behind
 
 The names below are the short way in; each is documented where it lives::
 
+    import numpy as np
     import fabflow
 
     project = fabflow.load_project("projects/cabin")
     elements = fabflow.generate_elements(project.elements, project.path)
     plan = fabflow.make_plan(project, elements)
-    poses = fabflow.localize_plan(project, plan, elements, numpy.random.default_rng(0))
+    poses = fabflow.localize_plan(project, plan, elements, np.random.default_rng(0))
+    base_poses = {visit: estimate for visit, (estimate, _) in poses.items()}
     programs, files = fabflow.write_programs(plan, elements, project, base_poses)
 
 They are loaded on first use, so that ``import fabflow`` (and every command

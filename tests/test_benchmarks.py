@@ -9,7 +9,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import ROOT
+from helpers import ROOT
 
 SCRIPTS = sorted((ROOT / "benchmarks").glob("*.py"))
 

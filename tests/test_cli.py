@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
-from conftest import PROJECTS, ROOT
+from helpers import PROJECTS, ROOT
 
 from fabflow.build import runner
 from fabflow.build.runner import run_build

@@ -9,7 +9,7 @@ import jsonschema
 import numpy as np
 import pytest
 import yaml
-from conftest import PROJECTS, ROOT
+from helpers import PROJECTS, ROOT
 
 from fabflow.errors import InputError
 from fabflow.project import format_loc, load_project, parse_project, project_json_schema

@@ -7,11 +7,12 @@ nothing). Outputs the README writes under ``out/`` go to a temporary folder.
 
 from __future__ import annotations
 
+import doctest
 import re
 import shlex
 
 import pytest
-from conftest import ROOT
+from helpers import ROOT
 
 README = (ROOT / "README.md").read_text(encoding="utf-8")
 
@@ -76,3 +77,17 @@ def test_project_reference_lists_every_top_level_field() -> None:
     for field in Project.model_fields:
         if field != "path":
             assert f"| `{field}` |" in section, field
+
+
+def test_python_api_examples(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The README's ``pycon`` blocks run as doctests, from the repository root."""
+    blocks = re.findall(r"```pycon\n(.*?)```", README, flags=re.S)
+    assert blocks
+    monkeypatch.chdir(ROOT)
+    parser = doctest.DocTestParser()
+    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS)
+    for i, block in enumerate(blocks):
+        test = parser.get_doctest(block, {}, f"README pycon block {i + 1}", "README.md", 0)
+        runner.run(test)
+    result = runner.summarize(verbose=False)
+    assert result.attempted > 0 and result.failed == 0

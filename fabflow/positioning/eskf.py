@@ -1,4 +1,4 @@
-"""UWB/IMU fusion: an error-state Kalman filter, and a constant-velocity EKF baseline.
+"""UWB/IMU fusion: an error-state Kalman filter.
 
 The ESKF follows seeds/003 equations 19-28 and Sola, "Quaternion kinematics for
 the error-state Kalman filter" (2017), sections 5.3-6.3 (local attitude error):
@@ -18,11 +18,8 @@ the error-state Kalman filter" (2017), sections 5.3-6.3 (local attitude error):
   positive definite; injection and reset (equations 25-28) with
   ``G = blockdiag(I, I, I - [dtheta/2]x, I, I)``.
 
-The world z axis is up; gravity is ``(0, 0, -g)``.
-
-:func:`cv_ekf_track` is the baseline without IMU: filterpy's
-``ExtendedKalmanFilter`` with a constant-velocity model and the same per-range
-updates and gating.
+The world z axis is up; gravity is ``(0, 0, -g)``. The baseline without an
+IMU is :mod:`fabflow.positioning.cv_ekf`.
 """
 
 from __future__ import annotations
@@ -37,6 +34,7 @@ from fabflow.errors import InputError
 from fabflow.transforms.so3 import matrix_from_quat, quat_from_matrix
 
 GRAVITY = 9.81
+"""Magnitude of gravity (m/s^2): the filter's model, and the IMU simulator's."""
 CHI2_1DOF_997 = 8.81
 """Chi-square quantile (1 degree of freedom, 99.7 %): the default range gate."""
 

@@ -12,10 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fabflow.positioning.eskf import GRAVITY
 from fabflow.sensors.uwb import PlanarTrajectory
-
-GRAVITY = 9.81
-"""Magnitude of gravity (m/s^2) used by the simulator and the filters."""
 
 
 @dataclass(frozen=True)

@@ -1,1 +1,1 @@
-"""Sensor simulators, simulated construction runs and Monte Carlo studies."""
+"""Simulated construction runs of whole projects, and Monte Carlo studies of them on Dask."""

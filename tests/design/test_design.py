@@ -9,6 +9,7 @@ import math
 import ezdxf
 import numpy as np
 import pytest
+from helpers import PROJECTS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -220,7 +221,6 @@ elements:
 
 @pytest.fixture(scope="module")
 def mixed_project(tmp_path_factory):
-    from conftest import PROJECTS
 
     dxf = PROJECTS / "print_path" / "sine_wall.dxf"
     folder = tmp_path_factory.mktemp("mixed")
@@ -335,7 +335,6 @@ def test_any_cabin_stands_without_overlaps(length, width, eave, roof, block_leng
 
 
 def test_site_sensors_in_world_frame() -> None:
-    from conftest import PROJECTS
 
     from fabflow.localize.site import site_sensors
     from fabflow.project import load_project

@@ -7,11 +7,12 @@ import json
 from pathlib import Path
 
 from distributed import LocalCluster
+from helpers import DATA
 from typer.testing import CliRunner, Result
 
 from fabflow.cli import app
 
-SMALL = Path(__file__).parent / "data" / "sim" / "project.yaml"
+SMALL = DATA / "sim" / "project.yaml"
 
 
 def invoke(*args: str) -> Result:

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from conftest import PROJECTS
+from helpers import PROJECTS
 
 from fabflow.build.context import BuildContext
 from fabflow.build.plan import stage_plan

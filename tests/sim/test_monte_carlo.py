@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from distributed import Client, LocalCluster
+from helpers import DATA
 
 import fabflow.sim.monte_carlo as mc
 from fabflow.errors import LocalizationError
@@ -21,7 +22,7 @@ from fabflow.sim.report import parse_methods, simulate_project, write_study
 from fabflow.sim.run import Study, prepare_study
 from fabflow.transforms.se3 import perturb
 
-SMALL = Path(__file__).parent / "data" / "sim" / "project.yaml"
+SMALL = DATA / "sim" / "project.yaml"
 
 
 @pytest.fixture(scope="module")

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from helpers import DATA, PROJECTS
 
 from fabflow.errors import InputError
 from fabflow.project import Project, load_project
@@ -14,8 +13,8 @@ from fabflow.sim.run import Study, prepare_study, run_seed, simulate_run
 from fabflow.transforms import FrameGraph, Pose
 from fabflow.transforms.se3 import inv_T, perturb
 
-SMALL = Path(__file__).parent / "data" / "sim" / "project.yaml"
-CABIN = Path(__file__).resolve().parents[1] / "projects" / "cabin" / "project.yaml"
+SMALL = DATA / "sim" / "project.yaml"
+CABIN = PROJECTS / "cabin" / "project.yaml"
 
 
 def with_noise(project: Project, **fields: float | bool) -> Project:

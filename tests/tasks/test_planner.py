@@ -5,11 +5,11 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import shapely
+from helpers import PROJECTS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -34,7 +34,6 @@ from fabflow.tasks.stations import element_polygons, footprint_polygons
 from fabflow.tasks.targets import element_targets
 from fabflow.tasks.verify import unreachable_targets
 
-PROJECTS = Path(__file__).resolve().parents[1] / "projects"
 BLOCK = np.array([0.6, 0.105, 0.105])
 
 

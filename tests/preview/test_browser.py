@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ROOT
 from PIL import Image
 
 from fabflow.preview.app import serve
@@ -33,7 +34,7 @@ CHROMIUM_ARGS = [
     "--disable-sync",
     "--no-first-run",
 ]
-ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts" / "preview"
+ARTIFACTS = ROOT / "test-artifacts" / "preview"
 VIEWPORT = {"width": 1500, "height": 760}
 TIMEOUT_MS = 180_000
 """Software rendering on a loaded machine is slow; be patient before failing."""

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PROJECTS
-from test_programs import read_krl
+from helpers import PROJECTS
+from program_readers import read_krl
 
 from fabflow.build.runner import run_build
 from fabflow.design.elements import elements_from_json

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import DATA
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
@@ -22,12 +23,12 @@ from fabflow.positioning.ts_io import read_observations, read_robot_points
 from fabflow.transforms.se3 import make_T, pose_error
 from fabflow.transforms.so3 import exp_so3
 
-DATA = Path(__file__).parent / "data" / "total_station"
+TS_DATA = DATA / "total_station"
 T_TRUE = make_T(exp_so3([0.0, 0.0, np.radians(30.0)]), [6.0, 4.0, 0.5])
 
 
 def test_gsi8_sample() -> None:
-    obs = read_gsi(DATA / "obs_gsi8.gsi")
+    obs = read_gsi(TS_DATA / "obs_gsi8.gsi")
     assert obs.point_ids == ("P1", "P2", "P3", "P4", "P5")
     assert obs.lines == (2, 3, 4, 5, 6)
     assert obs.hz[0] == pytest.approx(59.38845 * GON, abs=1e-12)
@@ -38,13 +39,13 @@ def test_gsi8_sample() -> None:
 
 
 def test_gsi16_sample_with_station_block() -> None:
-    obs = read_observations(DATA / "obs_gsi16.gsi")
+    obs = read_observations(TS_DATA / "obs_gsi16.gsi")
     assert obs.point_ids == ("P1", "P2", "P3", "P4", "P5")
     assert obs.hz[0] == pytest.approx(53.44961 * DEG, abs=1e-12)
     assert obs.sd[0] == pytest.approx(8.5665)
     np.testing.assert_array_equal(obs.station_xyz, [0.0, 0.0, 0.0])
     assert obs.instrument_height == 0.0
-    g8 = read_gsi(DATA / "obs_gsi8.gsi")
+    g8 = read_gsi(TS_DATA / "obs_gsi8.gsi")
     np.testing.assert_allclose(obs.hz, g8.hz, atol=2e-7)
 
 
@@ -90,11 +91,11 @@ def test_gsi_mil_is_unsupported() -> None:
 
 
 def test_csv_sample_and_robot_points() -> None:
-    obs = read_observations(DATA / "obs.csv")
+    obs = read_observations(TS_DATA / "obs.csv")
     assert obs.point_ids == ("P1", "P2", "P3", "P4", "P5")
     assert obs.lines[0] == 3  # after the comment and the header
     assert obs.hz[2] == pytest.approx(51.72527 * GON)
-    rp = read_robot_points(DATA / "robot_points.csv")
+    rp = read_robot_points(TS_DATA / "robot_points.csv")
     assert rp.point_ids[-1] == "P9" and rp.xyz is not None and rp.xyz.shape == (6, 3)
     assert rp.joints is None and rp.lines[0] == 2
     np.testing.assert_allclose(rp.xyz[1], [1.5, -0.8, 1.6])
@@ -102,8 +103,8 @@ def test_csv_sample_and_robot_points() -> None:
 
 @pytest.mark.parametrize("name", ["obs_gsi8.gsi", "obs_gsi16.gsi", "obs.csv"])
 def test_samples_localize_the_known_pose(name: str) -> None:
-    obs = read_observations(DATA / name)
-    rp = read_robot_points(DATA / "robot_points.csv")
+    obs = read_observations(TS_DATA / name)
+    rp = read_robot_points(TS_DATA / "robot_points.csv")
     assert rp.xyz is not None
     reg, matched = localize_observations(obs, rp.point_ids, rp.xyz, INSTRUMENTS["leica_ms50"])
     assert matched == ("P1", "P2", "P3", "P4", "P5")
@@ -136,7 +137,7 @@ def test_csv_errors(tmp_path: Path) -> None:
 
 
 def test_too_few_matching_ids(tmp_path: Path) -> None:
-    obs = read_observations(DATA / "obs.csv")
+    obs = read_observations(TS_DATA / "obs.csv")
     with pytest.raises(LocalizationError, match="only 2 observed point id"):
         localize_observations(obs, ("P1", "P2", "X"), np.eye(3), INSTRUMENTS["leica_ms50"])
 
@@ -144,8 +145,8 @@ def test_too_few_matching_ids(tmp_path: Path) -> None:
 def test_localize_files_with_instrument_pose() -> None:
     # the same readings with the instrument placed at (1, 2, 0) and turned 90 degrees
     pose = localize_files(
-        DATA / "obs.csv",
-        DATA / "robot_points.csv",
+        TS_DATA / "obs.csv",
+        TS_DATA / "robot_points.csv",
         instrument_xyz=(1.0, 2.0, 0.0),
         instrument_abc_deg=(90.0, 0.0, 0.0),
         station="S1",
@@ -207,9 +208,9 @@ def test_cli_writes_base_pose(tmp_path: Path) -> None:
         [
             "localize",
             "total-station",
-            str(DATA / "obs_gsi8.gsi"),
+            str(TS_DATA / "obs_gsi8.gsi"),
             "--robot-points",
-            str(DATA / "robot_points.csv"),
+            str(TS_DATA / "robot_points.csv"),
             "-o",
             str(out),
         ],
@@ -231,7 +232,7 @@ def test_cli_bad_file_is_one_message(tmp_path: Path) -> None:
             "total-station",
             str(bad),
             "--robot-points",
-            str(DATA / "robot_points.csv"),
+            str(TS_DATA / "robot_points.csv"),
             "-o",
             str(out),
         ],
@@ -255,14 +256,14 @@ localization:
   method: total_station
   total_station:
     T_world_instrument: {{xyz: [0, 0, 0]}}
-    observations: {DATA / "obs_gsi8.gsi"}
-    robot_points: {DATA / "robot_points.csv"}
+    observations: {TS_DATA / "obs_gsi8.gsi"}
+    robot_points: {TS_DATA / "robot_points.csv"}
 """
     p = parse_project(text, base_dir=tmp_path)
     bp = localize_station(p, np.eye(4), np.random.default_rng(0), "S1")
     assert bp.station == "S1" and bp.quality["observations"].endswith("obs_gsi8.gsi")
     assert np.linalg.norm(pose_error(bp.T_world_base, T_TRUE)[:3]) < 1e-3
-    bad = text.replace(f"    robot_points: {DATA / 'robot_points.csv'}\n", "")
+    bad = text.replace(f"    robot_points: {TS_DATA / 'robot_points.csv'}\n", "")
     with pytest.raises(InputError, match="must be given together"):
         parse_project(bad, base_dir=tmp_path)
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import shapely
 import trimesh
-from conftest import PROJECTS
+from helpers import PROJECTS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
