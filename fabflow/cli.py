@@ -1,7 +1,9 @@
 """The ``fabflow`` command line: a thin layer over the library.
 
 Errors caused by the user's input are printed as one message and exit with
-code 2; nothing is left half-written.
+code 2; nothing is left half-written. Each command imports the library it needs
+when it runs, so that ``fabflow --help`` and a mistyped command answer at once
+(this module and ``fabflow/__init__.py`` are the only ones allowed to).
 """
 
 from __future__ import annotations

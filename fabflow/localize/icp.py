@@ -20,7 +20,13 @@ from fabflow.design.elements import Element
 from fabflow.localize.site import site_obstacles
 from fabflow.positioning.pointcloud import read_point_cloud
 from fabflow.positioning.result import BasePose
-from fabflow.positioning.scan_matching import ScanMap, load_map, localize_scan, to_base_pose
+from fabflow.positioning.scan_matching import (
+    ScanLocalization,
+    ScanMap,
+    load_map,
+    localize_scan,
+    to_base_pose,
+)
 from fabflow.project import IcpSetup, Platform, Project
 from fabflow.robots import platform
 from fabflow.sensors.lidar import HESAI_QT64, simulate_scan
@@ -34,6 +40,25 @@ def _project_map(setup: IcpSetup, project: Project) -> ScanMap:
         return _cached_file_map(str(setup.map), setup.map_voxel_size)
     boxes, prisms = site_obstacles(project)
     return simulated_site_map(boxes, setup.map_voxel_size, 0, None, prisms)  # type: ignore[arg-type]
+
+
+def _localize_scan(
+    scan: np.ndarray, scan_map: ScanMap, T_init: np.ndarray, setup: IcpSetup
+) -> ScanLocalization:
+    """Register a scan to the map from ``T_init`` with the project's ICP settings."""
+    return localize_scan(
+        scan,
+        scan_map,
+        T_init,
+        voxel_size=setup.voxel_size,
+        min_fitness=setup.min_fitness,
+        max_rmse=setup.max_rmse,
+        min_structure_fitness=setup.min_structure_fitness,
+        coarse_schedule=(
+            4.0 * setup.max_correspondence_distance,
+            setup.max_correspondence_distance,
+        ),
+    )
 
 
 @functools.lru_cache(maxsize=4)
@@ -113,19 +138,7 @@ def localize_station(
     scan_map = _project_map(setup, project)
     if setup.map_as_built:
         scan_map = with_as_built(scan_map, built, rng)
-    loc = localize_scan(
-        scan.points,
-        scan_map,
-        T_init,
-        voxel_size=setup.voxel_size,
-        min_fitness=setup.min_fitness,
-        max_rmse=setup.max_rmse,
-        min_structure_fitness=setup.min_structure_fitness,
-        coarse_schedule=(
-            4.0 * setup.max_correspondence_distance,
-            setup.max_correspondence_distance,
-        ),
-    )
+    loc = _localize_scan(scan.points, scan_map, T_init, setup)
     return to_base_pose(
         loc,
         T_base_lidar,
@@ -176,19 +189,7 @@ def localize_files(
     T_world_platform = np.array([[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, 0], [0, 0, 0, 1.0]])
     scan = read_point_cloud(scan_path).points
     scan_map = load_map(map_path, setup.map_voxel_size)
-    loc = localize_scan(
-        scan,
-        scan_map,
-        T_world_platform @ T_platform_lidar,
-        voxel_size=setup.voxel_size,
-        min_fitness=setup.min_fitness,
-        max_rmse=setup.max_rmse,
-        min_structure_fitness=setup.min_structure_fitness,
-        coarse_schedule=(
-            4.0 * setup.max_correspondence_distance,
-            setup.max_correspondence_distance,
-        ),
-    )
+    loc = _localize_scan(scan, scan_map, T_world_platform @ T_platform_lidar, setup)
     return to_base_pose(
         loc,
         inv_T(T_platform_base) @ T_platform_lidar,

@@ -63,7 +63,7 @@ class ReachModel:
     r_step, z_step, z_min
         Grid spacing and origin (metres).
     source
-        ``"ik"`` (from the robots module) or ``"geometric"`` (published dimensions).
+        ``"ik"`` (sampled from the reach map) or ``"geometric"`` (from the DH table).
     robot
         Robot model name.
     """

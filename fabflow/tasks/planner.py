@@ -385,8 +385,8 @@ def _station_notes(
         )
     if reach.source != "ik":
         notes.append(
-            "reach model: geometric fallback from the robot's published dimensions "
-            "(inverse kinematics of the robots module not available)"
+            "reach model: geometric approximation from the robot's DH table "
+            "(no inverse-kinematics reach map for this robot)"
         )
     return notes
 

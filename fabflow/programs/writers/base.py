@@ -20,6 +20,12 @@ from fabflow.programs.ir import Move, Program
 from fabflow.robots.catalog import NEUTRAL_FORMATS, format_vendor, vendor_of
 
 
+def fixed(value: float, digits: int) -> str:
+    """``value`` with ``digits`` decimals, never as negative zero (``-0.000`` reads ``0.000``)."""
+    text = f"{value:.{digits}f}"
+    return "0." + "0" * digits if text == "-0." + "0" * digits else text
+
+
 @dataclass(frozen=True)
 class Writer:
     """One program format.

@@ -20,7 +20,7 @@ import numpy as np
 
 from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
-from fabflow.programs.writers.base import Writer
+from fabflow.programs.writers.base import Writer, fixed
 from fabflow.robots.kuka_config import kuka_status_turn
 from fabflow.transforms.vendors import to_kuka_xyzabc
 
@@ -31,16 +31,10 @@ PTP_APPROXIMATION_PERCENT = 10
 """``$APO.CPTP``: how early an approximated PTP move leaves its point (percent)."""
 
 
-def _num(v: float, digits: int) -> str:
-    text = f"{v:.{digits}f}"
-    return "0." + "0" * digits if text == "-0." + "0" * digits else text
-
-
 def _frame(values: np.ndarray) -> str:
     x, y, z, a, b, c = values
-    return (
-        f"X {_num(x, 3)},Y {_num(y, 3)},Z {_num(z, 3)},A {_num(a, 4)},B {_num(b, 4)},C {_num(c, 4)}"
-    )
+    xyz = f"X {fixed(x, 3)},Y {fixed(y, 3)},Z {fixed(z, 3)}"
+    return f"{xyz},A {fixed(a, 4)},B {fixed(b, 4)},C {fixed(c, 4)}"
 
 
 def _module_text(
@@ -70,20 +64,20 @@ def _module_text(
             number = program.outputs[ins.name]
             src.append(f"$OUT[{number}] = {'TRUE' if ins.value else 'FALSE'}")
         elif isinstance(ins, Wait):
-            src.append(f"WAIT SEC {_num(ins.seconds, 3)}")
+            src.append(f"WAIT SEC {fixed(ins.seconds, 3)}")
         else:
             assert isinstance(ins, Move)
             point = f"XP{n + 1}"
             if ins.kind == "ptp" and ins.speed != current_axis_speed:
-                percent = _num(min(max(ins.speed, 0.01), 1.0) * 100.0, 1)
+                percent = fixed(min(max(ins.speed, 0.01), 1.0) * 100.0, 1)
                 src += [f"$VEL_AXIS[{i}] = {percent}" for i in range(1, 7)]
                 current_axis_speed = ins.speed
             if ins.kind == "lin" and ins.speed != current_speed:
-                src.append(f"$VEL.CP = {_num(ins.speed, 4)}")
+                src.append(f"$VEL.CP = {fixed(ins.speed, 4)}")
                 current_speed = ins.speed
             if ins.blend > 0 and ins.blend != current_blend:
                 src += [
-                    f"$APO.CDIS = {_num(ins.blend * 1000.0, 3)}",
+                    f"$APO.CDIS = {fixed(ins.blend * 1000.0, 3)}",
                     f"$APO.CPTP = {PTP_APPROXIMATION_PERCENT}",
                 ]
                 current_blend = ins.blend

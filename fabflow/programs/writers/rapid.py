@@ -14,7 +14,7 @@ import numpy as np
 from fabflow.errors import UnsupportedError
 from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
-from fabflow.programs.writers.base import Writer
+from fabflow.programs.writers.base import Writer, fixed
 from fabflow.robots.catalog import IRB4600_60_205_OPW, get_robot
 from fabflow.robots.opw import OPWParameters
 from fabflow.transforms.vendors import to_abb_pose
@@ -93,14 +93,9 @@ def confdata(q: np.ndarray, T_base_flange: np.ndarray, arm: OPWParameters) -> tu
     return cf1, cf4, cf6, cfx
 
 
-def _num(v: float, digits: int) -> str:
-    text = f"{v:.{digits}f}"
-    return "0." + "0" * digits if text == "-0." + "0" * digits else text
-
-
 def _pose(T: np.ndarray) -> str:
     p, q = to_abb_pose(T)
-    return "[[" + ",".join(_num(v, 3) for v in p) + "],[" + ",".join(_num(v, 9) for v in q) + "]]"
+    return "[[" + ",".join(fixed(v, 3) for v in p) + "],[" + ",".join(fixed(v, 9) for v in q) + "]]"
 
 
 def _speed(speed: float) -> str:
@@ -156,7 +151,7 @@ def write_rapid(program: Program) -> dict[str, str]:
         elif isinstance(ins, SetOutput):
             body.append(f"    SetDO do_{_sanitize(ins.name, MAX_NAME - 3)}, {int(ins.value)};")
         elif isinstance(ins, Wait):
-            body.append(f"    WaitTime {_num(ins.seconds, 3)};")
+            body.append(f"    WaitTime {fixed(ins.seconds, 3)};")
         else:
             assert isinstance(ins, Move)
             conf = confdata(ins.q, flanges[n], arm)

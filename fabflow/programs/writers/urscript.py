@@ -13,7 +13,7 @@ import numpy as np
 
 from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
-from fabflow.programs.writers.base import Writer
+from fabflow.programs.writers.base import Writer, fixed
 from fabflow.robots.catalog import get_robot
 from fabflow.transforms.vendors import to_ur_pose
 
@@ -23,13 +23,8 @@ TOOL_ACCELERATION = 1.2
 """m/s^2 for ``movel``."""
 
 
-def _num(v: float, digits: int = 7) -> str:
-    text = f"{v:.{digits}f}"
-    return "0." + "0" * digits if text == "-0." + "0" * digits else text
-
-
 def _p(T: np.ndarray) -> str:
-    return "p[" + ", ".join(_num(v) for v in to_ur_pose(T)) + "]"
+    return "p[" + ", ".join(fixed(v, 7) for v in to_ur_pose(T)) + "]"
 
 
 def write_urscript(program: Program) -> dict[str, str]:
@@ -63,18 +58,18 @@ def write_urscript(program: Program) -> dict[str, str]:
             number = program.outputs[ins.name]
             lines.append(f"  set_standard_digital_out({number}, {ins.value})")
         elif isinstance(ins, Wait):
-            lines.append(f"  sleep({_num(ins.seconds, 3)})")
+            lines.append(f"  sleep({fixed(ins.seconds, 3)})")
         else:
             assert isinstance(ins, Move)
             comment = f"  # {ins.element} {ins.label}".rstrip() if ins.element else ""
-            r = _num(ins.blend, 4)
+            r = fixed(ins.blend, 4)
             if ins.kind == "ptp":
-                q = "[" + ", ".join(_num(v) for v in ins.q) + "]"
-                v = _num(ins.speed * max_joint_speed, 4)
+                q = "[" + ", ".join(fixed(v, 7) for v in ins.q) + "]"
+                v = fixed(ins.speed * max_joint_speed, 4)
                 lines.append(f"  movej({q}, a={JOINT_ACCELERATION}, v={v}, r={r}){comment}")
             else:
                 target = f"pose_trans(world_in_base, {_p(ins.T_world_tool)})"
-                v = _num(ins.speed, 4)
+                v = fixed(ins.speed, 4)
                 lines.append(f"  movel({target}, a={TOOL_ACCELERATION}, v={v}, r={r}){comment}")
     lines.append("end")
     lines.append(f"{name}()")
