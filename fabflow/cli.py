@@ -214,8 +214,10 @@ def parse_numbers(text: str, option: str, names: str, units: str = "") -> tuple[
     return tuple(values)
 
 
-def _optional_numbers(text: str | None, option: str, names: str) -> tuple[float, ...] | None:
-    return None if text is None else parse_numbers(text, option, names)
+def _optional_numbers(
+    text: str | None, option: str, names: str, units: str
+) -> tuple[float, ...] | None:
+    return None if text is None else parse_numbers(text, option, names, units)
 
 
 def report_base_pose(pose: BasePose, out: Path, method: str, rows: list[tuple[str, str]]) -> None:
@@ -309,15 +311,19 @@ def localize_total_station(
         distance_sigma_mm=distance_sigma_mm,
         distance_ppm=distance_ppm,
         angle_sigma_arcsec=angle_sigma_arcsec,
-        instrument_xyz=_optional_numbers(instrument_xyz, "--instrument-xyz", "x,y,z"),
-        instrument_abc_deg=_optional_numbers(instrument_abc_deg, "--instrument-abc-deg", "A,B,C"),
+        instrument_xyz=_optional_numbers(
+            instrument_xyz, "--instrument-xyz", "x,y,z", " (metres, world frame)"
+        ),
+        instrument_abc_deg=_optional_numbers(
+            instrument_abc_deg, "--instrument-abc-deg", "A,B,C", " (degrees, Rz Ry Rx)"
+        ),
         instrument_height=instrument_height,
         robot_sigma=robot_sigma,
         method="optimize" if optimize else "closed_form",
         reject_outlier=not keep_outliers,
         station=station,
         robot=robot,
-        tcp_xyz=_optional_numbers(tcp_xyz, "--tcp-xyz", "x,y,z"),
+        tcp_xyz=_optional_numbers(tcp_xyz, "--tcp-xyz", "x,y,z", " (metres, flange frame)"),
     )
     q = pose.quality
     rows = [("points used", f"{q['n_inliers']} of {q['n_points']}")]

@@ -10,6 +10,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PROJECTS = ROOT / "projects"
 DATA = ROOT / "tests" / "data"
+TS_DATA = DATA / "total_station"
+"""Sample total station readings (see its README.md)."""
 
 
 def run_cli(

@@ -17,6 +17,7 @@ from fabflow.design.elements import Element
 from fabflow.localize import icp, total_station, uwb
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project
+from fabflow.tasks.plan import Station
 
 
 class LocalizeStation(Protocol):
@@ -38,3 +39,17 @@ LOCALIZERS: dict[str, LocalizeStation] = {
     "icp": icp.localize_station,
 }
 """Method name (``localization.method``) to its ``localize_station`` function."""
+
+NEEDS_LIFT = frozenset({"icp"})
+"""Methods whose sensor does not ride the lift, so the station's lift height places it."""
+
+
+def localizer_arguments(project: Project, method: str, station: Station) -> dict[str, float]:
+    """Method-specific keyword arguments of ``localize_station`` for a station.
+
+    The LiDAR sits on the platform, below the lifted arm base, so ICP needs the
+    lift height to place it (:data:`NEEDS_LIFT`).
+    """
+    if method in NEEDS_LIFT and project.simulation.sensor_noise:
+        return {"lift": station.lift}
+    return {}

@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from fabflow.design.elements import Element
-from fabflow.localize.methods import LOCALIZERS, LocalizeStation
+from fabflow.localize.methods import LOCALIZERS, LocalizeStation, localizer_arguments
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project
 from fabflow.robots import platform
@@ -54,17 +54,6 @@ def station_localizer(project: Project, method: str) -> LocalizeStation:
     if not project.simulation.sensor_noise:
         return exact_localizer(method)
     return LOCALIZERS[method]
-
-
-def localizer_arguments(project: Project, method: str, station: Station) -> dict[str, float]:
-    """Method-specific keyword arguments of ``localize_station`` for a station.
-
-    The LiDAR sits on the platform, below the lifted arm base, so ICP needs the
-    lift height to place it.
-    """
-    if method == "icp" and project.simulation.sensor_noise:
-        return {"lift": station.lift}
-    return {}
 
 
 def parked_pose(

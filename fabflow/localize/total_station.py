@@ -221,6 +221,19 @@ def localize_station(
     return reg.to_base_pose(station=station_id, quality=quality)
 
 
+def _three(values: Sequence[float] | None, name: str) -> tuple[float, float, float] | None:
+    """Three finite numbers given as ``name`` (or ``None``); anything else is an InputError."""
+    if values is None:
+        return None
+    try:
+        v = np.asarray(values, dtype=float).ravel()
+    except (TypeError, ValueError):
+        v = np.zeros(0)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise InputError(f"{name} must be three finite numbers, got {values!r}")
+    return float(v[0]), float(v[1]), float(v[2])
+
+
 def localize_files(
     observations_path: str | Path,
     robot_points_path: str | Path,
@@ -261,10 +274,13 @@ def localize_files(
         distance_ppm if distance_ppm is not None else setup.distance_ppm,
         angle_sigma_arcsec if angle_sigma_arcsec is not None else setup.angle_sigma_arcsec,
     )
+    instrument_xyz = _three(instrument_xyz, "instrument_xyz")
+    instrument_abc_deg = _three(instrument_abc_deg, "instrument_abc_deg")
+    tcp_xyz = _three(tcp_xyz, "tcp_xyz")
     if instrument_xyz is not None or instrument_abc_deg is not None:
         pose = PoseSpec(
-            xyz=tuple(instrument_xyz) if instrument_xyz is not None else pose.xyz,
-            abc_deg=tuple(instrument_abc_deg) if instrument_abc_deg is not None else pose.abc_deg,
+            xyz=instrument_xyz if instrument_xyz is not None else pose.xyz,
+            abc_deg=instrument_abc_deg if instrument_abc_deg is not None else pose.abc_deg,
         )
     hi = setup.instrument_height if instrument_height is None else instrument_height
     T_world_instrument = trunnion_pose(pose.matrix(), hi)

@@ -122,7 +122,7 @@ def localize_station(
         anchor_bias_sigma=cal.bias_sigma(dist),
     )
     T_world_platform_est = fix.T
-    T_world_base_est = T_world_platform_est @ T_platform_base
+    T_world_base_est = platform.T_world_base(T_world_platform_est, 0.0, T_platform_base)
     cov = platform_to_base_covariance(T_world_platform_est, T_platform_base, fix.covariance)
     unobserved = ["rx", "ry"] + ([] if fix.heading_observed else ["rz"])
     rmse = float(np.sqrt(np.mean(fix.residuals**2))) if fix.residuals.size else 0.0

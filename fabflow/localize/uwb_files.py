@@ -41,6 +41,7 @@ from fabflow.positioning.uwb_platform import (
     platform_to_base_covariance,
 )
 from fabflow.project import UwbSetup, format_loc
+from fabflow.robots import platform
 from fabflow.schema import PoseSpec
 from fabflow.sensors.uwb import UwbErrorModel
 from fabflow.transforms.se3 import compose_covariance
@@ -122,7 +123,7 @@ def localize_from_files(
             setup, A, L, rej, sigma, T_platform_base, log, corrected, imu_csv
         )
     quality.update(more)
-    T_world_base = T_world_platform @ T_platform_base
+    T_world_base = platform.T_world_base(T_world_platform, 0.0, T_platform_base)
     rmse = float(np.sqrt(np.mean(residuals**2))) if residuals.size else 0.0
     return BasePose(
         T_world_base=T_world_base,

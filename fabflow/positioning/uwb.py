@@ -1,4 +1,4 @@
-"""UWB multilateration: LS, WLS and WLS-T, the Cramer-Rao bound, and the platform pose.
+"""UWB multilateration: LS, WLS and WLS-T, and the Cramer-Rao bound.
 
 Implements seeds/003 section 3.3.2 (equations 6-15), vectorized over epochs:
 

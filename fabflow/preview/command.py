@@ -20,7 +20,7 @@ from fabflow.preview.gui import ProgramSource
 from fabflow.preview.inputs import model_for_project, read_build_outputs
 from fabflow.preview.model import COLOUR_MODES, PreviewModel
 from fabflow.programs.compile import work_package_program
-from fabflow.programs.writers import WRITERS
+from fabflow.programs.writers import writer_for
 from fabflow.project import Project, load_project
 from fabflow.tasks.plan import Plan
 from fabflow.tasks.planner import plan_project
@@ -49,7 +49,7 @@ def project_program_source(
             station=wp.station.id,
         )
         program = work_package_program(wp, by_id, project, base_pose)
-        files = WRITERS[project.program.format].write(program)
+        files = writer_for(project.program.format, project.robot.model).write(program)
         if len(files) == 1:
             name, text = next(iter(files.items()))
             return name, text.encode()

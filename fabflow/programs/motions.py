@@ -24,7 +24,8 @@ import numpy as np
 
 from fabflow.design.elements import Element
 from fabflow.project import Project
-from fabflow.tasks.targets import R_FLIP_X, element_tool_frames
+from fabflow.tasks.targets import approach_poses, element_tool_frames
+from fabflow.transforms.so3 import R_FLIP_X
 
 OUTPUTS = {"gripper": 1, "extruder": 2, "drill": 3, "mark": 4, "measure": 5}
 """Digital output numbers of the tool actions."""
@@ -67,13 +68,6 @@ class Action:
 Step = Waypoint | Action
 
 
-def _lift(T: np.ndarray, dz: float) -> np.ndarray:
-    """``T`` moved up by ``dz`` metres along the world z axis."""
-    out = np.array(T, dtype=float, copy=True)
-    out[..., 2, 3] += dz
-    return out
-
-
 def T_base_pick_tool(project: Project) -> np.ndarray:
     """Tool pose for gripping a block in the platform magazine, in the robot base frame.
 
@@ -106,7 +100,7 @@ def element_motion(element: Element, project: Project, T_world_pick: np.ndarray)
     if element.type == "block":
         T_place = element_tool_frames(element)[0]
         T_pick = T_world_pick
-        pick_up, place_up = _lift(T_pick, approach), _lift(T_place, approach)
+        pick_up, place_up = approach_poses(np.stack([T_pick, T_place]), False, approach)
         steps: list[Step] = [
             Waypoint("ptp", pick_up, PTP_SPEED, blend, "pick approach", eid),
             Waypoint("lin", T_pick, speed, 0.0, "pick", eid),
@@ -128,8 +122,7 @@ def element_motion(element: Element, project: Project, T_world_pick: np.ndarray)
     if element.type == "print_path":
         return _print_motion(element, approach, blend, speed)
     T_point = element_tool_frames(element)[0]
-    backed = T_point.copy()
-    backed[:3, 3] -= T_point[:3, 2] * approach
+    backed = approach_poses(T_point, True, approach)
     action = str(element.attributes.get("action", "mark"))
     return [
         Waypoint("ptp", backed, PTP_SPEED, blend, "approach", eid),
@@ -156,7 +149,9 @@ def _print_motion(element: Element, approach: float, blend: float, speed: float)
     extrude = np.asarray(element.attributes.get("extrude", np.ones(max(n - 1, 0))), dtype=bool)
     print_speed = float(element.attributes.get("speed", speed))
     steps: list[Step] = [
-        Waypoint("ptp", _lift(frames[0], approach), PTP_SPEED, blend, "approach", eid),
+        Waypoint(
+            "ptp", approach_poses(frames[0], False, approach), PTP_SPEED, blend, "approach", eid
+        ),
         Waypoint("lin", frames[0], speed, 0.0, "start", eid),
     ]
     on = False
@@ -177,7 +172,9 @@ def _print_motion(element: Element, approach: float, blend: float, speed: float)
         )
     if on:
         steps.append(Action("extruder", False, 0.0, eid))
-    steps.append(Waypoint("lin", _lift(frames[-1], approach), speed, blend, "retract", eid))
+    steps.append(
+        Waypoint("lin", approach_poses(frames[-1], False, approach), speed, blend, "retract", eid)
+    )
     return steps
 
 

@@ -23,6 +23,7 @@ from fabflow.errors import InputError, LocalizationError
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
 from fabflow.transforms.se3 import inv_T, make_T
+from fabflow.transforms.so3 import R_FLIP_X
 
 SAMPLE_TOLERANCE = 0.03
 """Largest distance (m) to a sampled prism position that counts as reachable (no closed-form IK)."""
@@ -88,8 +89,7 @@ class PrismReach:
 
 def _tool_down(points: np.ndarray) -> np.ndarray:
     """Tool poses at ``points`` with the tool z axis pointing down (base frame)."""
-    R_down = np.diag([1.0, -1.0, -1.0])
-    return make_T(np.broadcast_to(R_down, (len(points), 3, 3)), points)
+    return make_T(np.broadcast_to(R_FLIP_X, (len(points), 3, 3)), points)
 
 
 def prism_reach(model: str, T_flange_tool: np.ndarray) -> PrismReach:

@@ -34,6 +34,7 @@ from fabflow.errors import InputError, UnsupportedError
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
 from fabflow.robots.planar_ik import is_pitch_chain, pitch_chain_ik
+from fabflow.transforms.so3 import R_FLIP_X
 
 FloatArray = NDArray[np.float64]
 
@@ -127,7 +128,7 @@ class ReachMap:
 
 def _tool_rotation(tool_axis: str) -> FloatArray:
     if tool_axis == "down":
-        return np.diag([1.0, -1.0, -1.0])
+        return R_FLIP_X.copy()
     if tool_axis == "up":
         return np.eye(3)
     raise UnsupportedError(f"tool_axis must be 'down' or 'up', got {tool_axis!r}")

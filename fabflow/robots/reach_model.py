@@ -255,8 +255,8 @@ def reach_model(robot: str, T_flange_tool: np.ndarray, use_ik: bool = True) -> R
     T_flange_tool
         4x4 TCP pose in the flange frame (metres).
     use_ik
-        Build the table from the robots module's inverse kinematics when it is
-        available; ``False`` forces the geometric fallback.
+        Sample the table from the arm's inverse-kinematics reach map when it has
+        one; ``False`` forces the geometric approximation.
     """
     key = tuple(np.round(np.asarray(T_flange_tool, dtype=float).ravel(), 9).tolist())
     return _cached_model(robot, key, use_ik)

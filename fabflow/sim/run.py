@@ -33,12 +33,8 @@ import numpy as np
 from fabflow.design.elements import Element
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
-from fabflow.localize.plan import (
-    LocalizeStation,
-    localizer_arguments,
-    parked_pose,
-    station_localizer,
-)
+from fabflow.localize.methods import localizer_arguments
+from fabflow.localize.plan import LocalizeStation, parked_pose, station_localizer
 from fabflow.positioning.result import BasePose
 from fabflow.project import LOCALIZATION_METHODS, Project
 from fabflow.tasks.plan import Plan, Station

@@ -30,7 +30,7 @@ from fabflow.tasks.stations import (
     footprint_polygons,
     obstacle_polygons,
 )
-from fabflow.tasks.targets import element_tool_frames
+from fabflow.tasks.targets import approach_poses, element_tool_frames
 from fabflow.tasks.verify import ik_lift_masks
 
 MAX_LISTED = 12
@@ -256,11 +256,9 @@ def _embed_rows(M: sparse.csr_matrix, rows: np.ndarray, n_rows: int) -> sparse.c
 def with_approach_frames(
     T_frames: np.ndarray, owner: np.ndarray, types: Sequence[str], approach: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Tool frames plus each element's approach pose, which the program also moves to.
+    """Tool frames plus each element's approach pose (as the programs approach it).
 
-    Blocks and print paths are approached from above (world z), task points back
-    along the tool axis (as :mod:`fabflow.programs.motions` does), ``approach``
-    metres away.
+    See :func:`fabflow.tasks.targets.approach_poses`.
 
     Returns
     -------
@@ -268,10 +266,8 @@ def with_approach_frames(
         The frames with one approach frame added per element, sorted by owner.
     """
     first = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
-    T_up = T_frames[first].copy()
     along_tool = np.array([types[i] == "task_point" for i in owner[first]])
-    T_up[:, 2, 3] += np.where(along_tool, 0.0, approach)
-    T_up[:, :3, 3] -= along_tool[:, None] * T_up[:, :3, 2] * approach
+    T_up = approach_poses(T_frames[first], along_tool, approach)
     T_all = np.concatenate([T_frames, T_up])
     owner_all = np.concatenate([owner, owner[first]])
     order = np.argsort(owner_all, kind="stable")

@@ -18,9 +18,7 @@ import numpy as np
 
 from fabflow.design.elements import Element
 from fabflow.design.print_path import element_tool_frames as print_path_tool_frames
-
-# Turning a z-up frame half a turn about its x axis keeps x and points z down.
-R_FLIP_X = np.diag([1.0, -1.0, -1.0])
+from fabflow.transforms.so3 import R_FLIP_X
 
 
 def element_tool_frames(element: Element) -> np.ndarray:
@@ -85,6 +83,29 @@ def tool_frames(elements: Sequence[Element]) -> tuple[np.ndarray, np.ndarray]:
     owner = np.concatenate(owners)
     order = np.argsort(owner, kind="stable")
     return T_all[order], owner[order]
+
+
+def approach_poses(T_world_tool: np.ndarray, along_tool: np.ndarray, distance: float) -> np.ndarray:
+    """Poses ``distance`` metres before tool targets, where the robot approaches them from.
+
+    Blocks and print paths are approached from above (world z); task points
+    (``along_tool``) back along their tool z axis. The programs move through
+    these poses and the planner checks they are reachable.
+
+    Parameters
+    ----------
+    T_world_tool
+        (..., 4, 4) tool targets in the world (metres).
+    along_tool
+        (...) bool: approach along the tool axis instead of from above.
+    distance
+        Approach distance (metres).
+    """
+    T = np.array(T_world_tool, dtype=float, copy=True)
+    along = np.asarray(along_tool, dtype=bool)
+    T[..., 2, 3] += np.where(along, 0.0, distance)
+    T[..., :3, 3] -= along[..., None] * T[..., :3, 2] * distance
+    return T
 
 
 def element_targets(elements: Sequence[Element]) -> np.ndarray:

@@ -37,6 +37,10 @@ _GIMBAL_EPS = 1e-12
 FloatArray = NDArray[np.float64]
 
 
+R_FLIP_X = np.diag([1.0, -1.0, -1.0])
+"""Half a turn about x: keeps x and points z down (a tool pointing down from a z-up frame)."""
+
+
 def _vec3(v: ArrayLike, name: str) -> FloatArray:
     a = np.asarray(v, dtype=float)
     if a.ndim == 0 or a.shape[-1] != 3:

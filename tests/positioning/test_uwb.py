@@ -8,11 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fabflow.errors import InputError, LocalizationError
-from fabflow.localize.uwb import localize_station
-from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, crlb, horizontal_ranges, locate
+from fabflow.positioning.uwb import crlb, horizontal_ranges, locate
 from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers, running_median
 from fabflow.positioning.uwb_platform import locate_platform
-from fabflow.project import load_project
 from fabflow.sensors.uwb import (
     PAPER_ANCHORS_3D,
     PAPER_POINTS_3D,
@@ -235,46 +233,6 @@ def test_platform_single_tag_needs_heading() -> None:
     fix = locate_platform(PAPER_ANCHORS_3D, r, L, 0.05, heading_prior=(yaw, 0.05))
     np.testing.assert_allclose(fix.state, [*p, yaw], atol=1e-6)
     assert np.sqrt(fix.covariance[3, 3]) < 0.051
-
-
-def test_localize_station_cabin() -> None:
-    project = load_project("projects/cabin")
-    T = np.eye(4)
-    T[:3, :3] = _rotz(0.7)
-    T[:3, 3] = [2.0, 2.5, 1.1]
-    rng = np.random.default_rng(5)
-    z = []
-    for _ in range(6):
-        pose = localize_station(project, T, rng, station_id="S1")
-        d = pose.T_world_base[:3, 3] - T[:3, 3]
-        dyaw = np.arctan2(pose.T_world_base[1, 0], pose.T_world_base[0, 0]) - 0.7
-        sd = np.sqrt(np.diag(pose.covariance))
-        z.extend(np.abs(np.r_[d, dyaw]) / sd[[0, 1, 2, 5]])
-    assert np.max(z) < 4.5
-    assert pose.station == "S1" and pose.method == "uwb"
-    assert pose.covariance.shape == (6, 6)
-    np.testing.assert_allclose(pose.covariance, pose.covariance.T)
-    assert np.all(np.linalg.eigvalsh(pose.covariance) > 0)
-    assert pose.covariance[3, 3] >= UNOBSERVED_VARIANCE
-    assert pose.quality["unobserved"] == ["rx", "ry"]
-    assert pose.residuals.shape[1] == 1 and pose.rmse > 0
-
-
-def test_localize_station_occlusion_by_built_blocks() -> None:
-    from fabflow.design.elements import Element
-
-    project = load_project("projects/cabin")
-    T = np.eye(4)
-    T[:3, 3] = [2.0, 2.5, 1.1]
-    wall = np.eye(4)
-    wall[:3, 3] = [1.0, 2.5, 1.0]
-    blocks = [Element("W", "block", wall, extents=np.array([0.2, 8.0, 6.0]))]
-    pose = localize_station(project, T, np.random.default_rng(6), built=blocks)
-    assert pose.quality["n_occluded_links"] >= 2
-    # half of the ranges on blocked links are NLOS; the estimate stays consistent
-    err = np.abs(pose.T_world_base[:3, 3] - T[:3, 3])
-    assert np.all(err < 4 * np.sqrt(np.diag(pose.covariance)[:3]))
-    assert pose.quality["n_rejected_robust_centre"] > 100
 
 
 def test_segments_occluded() -> None:

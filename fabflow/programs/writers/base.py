@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fabflow.errors import UnsupportedError
+from fabflow.errors import InputError, UnsupportedError
 from fabflow.programs.ir import Move, Program
 from fabflow.robots.catalog import NEUTRAL_FORMATS, format_vendor, vendor_of
 
@@ -60,10 +60,15 @@ class Writer:
             )
 
     def validate(self, program: Program) -> None:
-        """Raise :class:`UnsupportedError` for a program this format cannot carry.
+        """Raise for a program this format cannot carry.
 
-        The robot must be one of the format's vendor, and every frame, joint
-        value, speed and blend distance must be finite.
+        Raises
+        ------
+        UnsupportedError
+            When the robot is not one of the format's vendor.
+        InputError
+            When a frame, joint value, speed or blend distance is not finite (it
+            came from bad input: no file may hold NaN or infinity).
         """
         self.check_robot(program.robot)
         moves = [i for i in program.instructions if isinstance(i, Move)]
@@ -72,7 +77,7 @@ class Writer:
         values.append(np.array([[m.speed, m.blend] for m in moves], dtype=float))
         bad = next((k for k, v in enumerate(values) if not np.all(np.isfinite(v))), None)
         if bad is not None:
-            raise UnsupportedError(
+            raise InputError(
                 f"program {program.name!r} holds a value that is not finite; "
                 f"no '{self.format}' file is written"
             )

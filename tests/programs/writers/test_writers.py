@@ -7,6 +7,7 @@ the diff.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import os
@@ -18,8 +19,8 @@ import pytest
 from program_cases import CASES, GOLDEN, sample_program
 from program_readers import read_krl, read_rapid, read_urscript
 
-from fabflow.errors import UnsupportedError
-from fabflow.programs.ir import Program, sanitize_identifier
+from fabflow.errors import InputError, UnsupportedError
+from fabflow.programs.ir import Move, Program, sanitize_identifier
 from fabflow.programs.writers import WRITERS, writer_for
 from fabflow.programs.writers.krl import write_krl
 from fabflow.programs.writers.rapid import write_rapid
@@ -162,6 +163,23 @@ def test_identifiers_are_sanitized() -> None:
     assert len(name) <= 24
     assert re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", name)
     assert sanitize_identifier("ok_name", 24) == "ok_name"
+
+
+@pytest.mark.parametrize(("fmt", "robot"), CASES)
+def test_non_finite_values_are_refused_before_writing(fmt: str, robot: str) -> None:
+    program = sample_program(robot)
+    moves = [i for i in program.instructions if isinstance(i, Move)]
+    faults = {
+        moves[3]: dataclasses.replace(moves[3], speed=float("inf")),
+        moves[2]: dataclasses.replace(moves[2], T_world_tool=np.full((4, 4), np.nan)),
+    }
+    for good, bad in faults.items():
+        broken = dataclasses.replace(
+            program, instructions=tuple(bad if i is good else i for i in program.instructions)
+        )
+        with pytest.raises(InputError, match="not finite"):
+            WRITERS[fmt].write(broken)
+    WRITERS[fmt].write(program)
 
 
 def test_vendor_format_must_fit_robot() -> None:
