@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from fabflow.positioning.integrity import Integrity
+
 
 @dataclass(frozen=True, eq=False)
 class BasePose:
@@ -38,6 +40,10 @@ class BasePose:
         The station id this result belongs to, if any.
     quality
         Further quality figures: number of measurements/inliers, fitness, outliers, ...
+    integrity
+        The statistical tests of the pose and their outcome
+        (:class:`~fabflow.positioning.integrity.Integrity`); ``None`` only for a
+        result built by hand, which the localization stage treats as untested.
     """
 
     T_world_base: np.ndarray
@@ -47,6 +53,7 @@ class BasePose:
     rmse: float = 0.0
     station: str | None = None
     quality: dict[str, Any] = field(default_factory=dict)
+    integrity: Integrity | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-compatible data (the base pose JSON schema of ``fabflow localize``)."""
@@ -58,6 +65,7 @@ class BasePose:
             "residuals": np.asarray(self.residuals, dtype=float).tolist(),
             "rmse": float(self.rmse),
             "quality": self.quality,
+            "integrity": None if self.integrity is None else self.integrity.to_dict(),
         }
 
     @classmethod
@@ -72,6 +80,7 @@ class BasePose:
             rmse=float(d.get("rmse", 0.0)),
             station=d.get("station"),
             quality=dict(d.get("quality", {})),
+            integrity=None if d.get("integrity") is None else Integrity.from_dict(d["integrity"]),
         )
 
     def write(self, path: str | Path) -> Path:

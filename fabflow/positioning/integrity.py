@@ -1,0 +1,518 @@
+"""Quality control of a least-squares pose: the tests a surveyor runs before trusting it.
+
+Every pose fabflow estimates is the solution of a (linearized) Gauss-Markov
+model ``l = A x + v`` with observation covariance ``Q``: ranges, measured prism
+points, point-to-plane distances. With redundancy ``r = m - u`` the residuals
+``v`` carry the information to test it (Baarda's data snooping, as in any
+geodetic adjustment text; Teunissen, *Testing theory*, 2000):
+
+- **Global test** of the variance factor: ``T = v^T Q^-1 v`` is chi-square with
+  ``r`` degrees of freedom when the model and ``Q`` are right; it fails at level
+  ``alpha`` when ``T > chi2_{1-alpha}(r)``.
+- **w-test** per hypothesis (one observation, one anchor's ranges, one prism
+  point, a scale error): for a bias ``nabla`` entering as ``l = A x + c nabla``,
+  ``w = c^T Q^-1 v / sqrt(c^T Q^-1 Q_vv Q^-1 c)`` is standard normal without the
+  bias (``Q_vv = Q - A N^-1 A^T``, ``N = A^T Q^-1 A``). A hypothesis of ``k``
+  columns (a 3D point) has the chi-square(k) statistic
+  ``T_c = b^T S^-1 b`` with ``b = C^T Q^-1 v``, ``S = C^T Q^-1 Q_vv Q^-1 C``. The
+  levels are Bonferroni-corrected over the hypotheses tested, so that the
+  family of tests raises a false alarm with probability about ``alpha``.
+- **Internal reliability**: the minimal detectable bias (MDB) of a hypothesis,
+  the smallest bias the w-test finds with probability ``POWER``:
+  ``|nabla| = sqrt(lambda_0 / lambda_min(S))``.
+- **External reliability**: how far a bias of MDB size moves the estimate,
+  ``dx = N^-1 A^T Q^-1 C nabla``; mapped to the base position, its largest
+  horizontal and vertical value over all hypotheses is the **protection level**:
+  a fault the tests cannot see moves the base by at most that much (with power
+  ``POWER``).
+
+:func:`adjustment_test` computes all of it for one solution;
+:func:`identify` picks the observation to exclude. The estimators iterate
+(test, exclude the worst, solve again) while redundancy remains, and record
+the outcome in an :class:`Integrity` carried by every
+:class:`~fabflow.positioning.result.BasePose`.
+
+``Q`` is given as a :class:`Covariance`: block-diagonal (prism points) or
+diagonal plus a low-rank part (ranges sharing an anchor's calibration error),
+so that thousands of ranges are tested in linear time.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from scipy import optimize, special
+
+ALPHA = 1e-3
+"""Default significance level of the tests (false alarm probability of one solve)."""
+POWER = 0.8
+"""Probability with which the tests find a bias of the minimal detectable size."""
+
+Status = Literal["ok", "excluded", "failed"]
+
+
+@dataclass(frozen=True)
+class Covariance:
+    """An observation covariance ``Q = diag(d) + U diag(s) U^T`` or block-diagonal.
+
+    Attributes
+    ----------
+    diag
+        (m,) variances of the independent part (m^2).
+    low_rank
+        (m, k) columns ``U`` of errors shared by groups of observations (e.g. an
+        indicator per anchor), or ``None``.
+    low_rank_var
+        (k,) variances of the shared errors.
+    blocks
+        (m // b, b, b) covariance blocks of consecutive observations (e.g. the 3x3
+        covariance of each measured point); replaces ``diag`` when given.
+    """
+
+    diag: np.ndarray | None = None
+    low_rank: np.ndarray | None = None
+    low_rank_var: np.ndarray | None = None
+    blocks: np.ndarray | None = None
+
+    @property
+    def size(self) -> int:
+        """Number of observations."""
+        if self.blocks is not None:
+            return int(self.blocks.shape[0] * self.blocks.shape[1])
+        assert self.diag is not None
+        return int(self.diag.shape[0])
+
+    def solve(self, X: np.ndarray) -> np.ndarray:
+        """``Q^-1 X`` for ``X`` of shape (m,) or (m, k)."""
+        X = np.asarray(X, dtype=float)
+        vec = X.ndim == 1
+        X2 = X[:, None] if vec else X
+        if self.blocks is not None:
+            b = self.blocks.shape[1]
+            Xb = X2.reshape(-1, b, X2.shape[1])
+            out = np.linalg.solve(self.blocks, Xb).reshape(X2.shape)
+        else:
+            assert self.diag is not None
+            Di = 1.0 / self.diag
+            out = Di[:, None] * X2
+            if self.low_rank is not None and self.low_rank_var is not None:
+                U = self.low_rank
+                DU = Di[:, None] * U
+                core = np.diag(1.0 / self.low_rank_var) + U.T @ DU
+                out = out - DU @ np.linalg.solve(core, DU.T @ X2)
+        return out[:, 0] if vec else out
+
+    def inverse_diag(self) -> np.ndarray:
+        """The diagonal of ``Q^-1`` (m,)."""
+        if self.blocks is not None:
+            return np.linalg.inv(self.blocks).diagonal(axis1=1, axis2=2).reshape(-1)
+        assert self.diag is not None
+        Di = 1.0 / self.diag
+        if self.low_rank is None or self.low_rank_var is None:
+            return Di
+        DU = Di[:, None] * self.low_rank
+        core = np.diag(1.0 / self.low_rank_var) + self.low_rank.T @ DU
+        return Di - np.einsum("ij,ij->i", DU, np.linalg.solve(core, DU.T).T)
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """An alternative to the model: a bias entering the observations as ``C nabla``.
+
+    Attributes
+    ----------
+    label
+        What is suspected, in the user's words (``"anchor A3"``, ``"prism P2"``).
+    columns
+        (m, k) how a bias of each of its ``k`` components changes the observations.
+    excludable
+        Whether the observations it names can be left out and the pose solved
+        again (a scale error cannot).
+    """
+
+    label: str
+    columns: np.ndarray
+    excludable: bool = True
+
+
+@dataclass(frozen=True)
+class TestResult:
+    """The tests of one solution (see the module docstring).
+
+    Attributes
+    ----------
+    redundancy
+        Degrees of freedom ``r = m - u``.
+    statistic, threshold, p_value
+        Global test: ``v^T Q^-1 v``, its critical value and p-value.
+    variance_factor
+        ``statistic / redundancy`` (about 1 when ``Q`` is right).
+    labels
+        The hypotheses tested.
+    w
+        (h,) their test values: ``|w|`` for one-column hypotheses, ``sqrt(T_c)``
+        for more columns (so every value compares with ``thresholds`` alike).
+    thresholds
+        (h,) critical values of ``w`` (Bonferroni over the hypotheses).
+    mdb
+        (h,) minimal detectable bias of each hypothesis (its units: metres for
+        ranges and points, a pure number for scale).
+    shift
+        (h, 3) base position shift (metres) a bias of MDB size causes, in its worst
+        direction.
+    """
+
+    redundancy: int
+    statistic: float
+    threshold: float
+    p_value: float
+    variance_factor: float
+    labels: tuple[str, ...]
+    w: np.ndarray
+    thresholds: np.ndarray
+    mdb: np.ndarray
+    shift: np.ndarray
+    excludable: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+
+    @property
+    def global_passed(self) -> bool:
+        """Whether the global test passes (no redundancy: nothing to test, passes)."""
+        return self.redundancy <= 0 or self.statistic <= self.threshold
+
+    @property
+    def worst(self) -> int | None:
+        """Index of the hypothesis with the largest ``w / threshold``, or None."""
+        if len(self.w) == 0:
+            return None
+        ratio = np.where(np.isfinite(self.w), self.w / self.thresholds, -np.inf)
+        return int(np.argmax(ratio))
+
+    @property
+    def passed(self) -> bool:
+        """Global test and every w-test pass."""
+        k = self.worst
+        return self.global_passed and (k is None or self.w[k] <= self.thresholds[k])
+
+    def protection_level(self) -> tuple[float, float]:
+        """Largest horizontal and vertical base shift of a just-undetectable bias (metres)."""
+        if len(self.shift) == 0:
+            return 0.0, 0.0
+        finite = np.all(np.isfinite(self.shift), axis=1)
+        if not finite.any():
+            return math.inf, math.inf
+        s = self.shift[finite]
+        return float(np.hypot(s[:, 0], s[:, 1]).max()), float(np.abs(s[:, 2]).max())
+
+
+@functools.lru_cache(maxsize=256)
+def noncentrality(alpha0: float, power: float = POWER, dof: int = 1) -> float:
+    """Non-centrality ``lambda_0`` at which a chi-square(dof) test at level ``alpha0`` has ``power``.
+
+    For one degree of freedom this is ``(z_{1-alpha0/2} + z_{power})^2``, Baarda's
+    ``lambda_0`` (17.07 for ``alpha0 = 0.001``, ``power = 0.8``).
+    """
+    crit = float(special.chdtri(dof, alpha0))
+
+    def gap(lam: float) -> float:
+        return float(special.chndtr(crit, dof, lam)) - (1.0 - power)
+
+    hi = 1.0
+    while gap(hi) > 0:
+        hi *= 2.0
+    return float(optimize.brentq(gap, 0.0, hi, xtol=1e-10))
+
+
+def adjustment_test(
+    A: np.ndarray,
+    Q: Covariance,
+    v: np.ndarray,
+    hypotheses: Sequence[Hypothesis],
+    alpha: float = ALPHA,
+    position_map: np.ndarray | None = None,
+    prior_information: np.ndarray | None = None,
+) -> TestResult:
+    """Global test, w-tests, MDBs and external reliability of one least-squares solution.
+
+    Parameters
+    ----------
+    A
+        (m, u) design matrix: derivative of the observations by the parameters at
+        the solution.
+    Q
+        Observation covariance (m observations).
+    v
+        (m,) residuals, observed minus computed at the solution.
+    hypotheses
+        The alternatives to test.
+    alpha
+        Level of the global test; the w-tests share it (Bonferroni).
+    position_map
+        (3, u) derivative of the base position by the parameters (identity on the
+        first three parameters when ``None``).
+    prior_information
+        (u, u) information of prior knowledge of the parameters (a heading prior),
+        added to ``N``; it is not an observation and adds no redundancy.
+    """
+    A = np.asarray(A, dtype=float)
+    v = np.asarray(v, dtype=float)
+    m, u = A.shape
+    QiA = Q.solve(A)
+    N = A.T @ QiA
+    if prior_information is not None:
+        N = N + prior_information
+    Ninv = np.linalg.pinv(N)
+    Qiv = Q.solve(v)
+    r = m - int(np.linalg.matrix_rank(A))
+    statistic = float(v @ Qiv)
+    threshold = float(special.chdtri(r, alpha)) if r > 0 else math.inf
+    p_value = float(special.chdtrc(r, statistic)) if r > 0 else 1.0
+    G = np.eye(3, u) if position_map is None else np.asarray(position_map, dtype=float)
+    h = len(hypotheses)
+    w = np.full(h, np.nan)
+    thr = np.full(h, np.inf)
+    mdb = np.full(h, np.inf)
+    shift = np.full((h, 3), np.inf)
+    if h and r > 0:
+        alpha0 = alpha / h
+        lam = {}
+        for i, hyp in enumerate(hypotheses):
+            C = np.asarray(hyp.columns, dtype=float).reshape(m, -1)
+            k = C.shape[1]
+            if k not in lam:
+                lam[k] = noncentrality(alpha0, POWER, k)
+            QiC = Q.solve(C)
+            b = QiC.T @ v
+            B = QiA.T @ C
+            S = C.T @ QiC - B.T @ Ninv @ B
+            S = 0.5 * (S + S.T)
+            ev, V = np.linalg.eigh(S)
+            scale = max(float(ev[-1]), 1e-300)
+            ok = ev > 1e-12 * scale
+            if not ok.any():
+                continue
+            Sinv = (V[:, ok] / ev[ok]) @ V[:, ok].T
+            w[i] = math.sqrt(max(float(b @ Sinv @ b), 0.0))
+            thr[i] = math.sqrt(float(special.chdtri(int(ok.sum()), alpha0)))
+            # worst direction: the eigenvector of the smallest eigenvalue of S
+            j = int(np.argmax(ok))
+            mdb[i] = math.sqrt(lam[k] / ev[j])
+            dx = Ninv @ (B @ V[:, j]) * mdb[i]
+            shift[i] = G @ dx
+    return TestResult(
+        redundancy=r,
+        statistic=statistic,
+        threshold=threshold,
+        p_value=p_value,
+        variance_factor=statistic / r if r > 0 else math.nan,
+        labels=tuple(hyp.label for hyp in hypotheses),
+        w=w,
+        thresholds=thr,
+        mdb=mdb,
+        shift=shift,
+        excludable=np.array([hyp.excludable for hyp in hypotheses], dtype=bool),
+    )
+
+
+@dataclass(frozen=True)
+class Integrity:
+    """The integrity record of a localization: was the pose tested, and did it pass?
+
+    Attributes
+    ----------
+    status
+        ``"ok"`` (every test passed), ``"excluded"`` (passed after leaving out the
+        observations in ``excluded``) or ``"failed"`` (do not use the pose).
+    reason
+        Why, in one sentence, when not ``"ok"``.
+    alpha
+        Level of the tests.
+    redundancy
+        Degrees of freedom of the final solution.
+    global_test
+        ``{"statistic", "threshold", "p_value", "variance_factor", "passed"}``.
+    w_test
+        ``{"max", "threshold", "suspect", "passed"}``: the largest test value.
+    excluded
+        ``[{"observation": label, "w": value, "threshold": value}]`` in the order
+        they were left out.
+    mdb_max
+        Largest minimal detectable bias over the tested hypotheses (metres).
+    protection_level
+        ``{"horizontal": m, "vertical": m}``: the largest base shift a fault just
+        below detection can cause.
+    checks
+        Further method-specific checks (geometry, prism identification, scale,
+        filter statistics, consistency with the planned station).
+    """
+
+    status: Status
+    reason: str = ""
+    alpha: float = ALPHA
+    redundancy: int = 0
+    global_test: dict[str, Any] = field(default_factory=dict)
+    w_test: dict[str, Any] = field(default_factory=dict)
+    excluded: tuple[dict[str, Any], ...] = ()
+    mdb_max: float | None = None
+    protection_level: dict[str, float] = field(default_factory=dict)
+    checks: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def failed(self) -> bool:
+        """Whether the pose must not be used."""
+        return self.status == "failed"
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-compatible data (non-finite numbers as ``None``)."""
+        return _finite(
+            {
+                "status": self.status,
+                "reason": self.reason,
+                "alpha": self.alpha,
+                "redundancy": self.redundancy,
+                "global_test": self.global_test,
+                "w_test": self.w_test,
+                "excluded": list(self.excluded),
+                "mdb_max": self.mdb_max,
+                "protection_level": self.protection_level,
+                "checks": self.checks,
+            }
+        )
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Integrity:
+        """Inverse of :meth:`to_dict`."""
+        return cls(
+            status=d["status"],
+            reason=d.get("reason", ""),
+            alpha=float(d.get("alpha", ALPHA)),
+            redundancy=int(d.get("redundancy", 0)),
+            global_test=dict(d.get("global_test", {})),
+            w_test=dict(d.get("w_test", {})),
+            excluded=tuple(d.get("excluded", ())),
+            mdb_max=d.get("mdb_max"),
+            protection_level=dict(d.get("protection_level", {})),
+            checks=dict(d.get("checks", {})),
+        )
+
+    def failing(self, reason: str, **checks: Any) -> Integrity:
+        """This record with status ``"failed"``, the reason, and further checks."""
+        return Integrity(
+            status="failed",
+            reason=reason if not self.reason else f"{reason}; {self.reason}",
+            alpha=self.alpha,
+            redundancy=self.redundancy,
+            global_test=self.global_test,
+            w_test=self.w_test,
+            excluded=self.excluded,
+            mdb_max=self.mdb_max,
+            protection_level=self.protection_level,
+            checks={**self.checks, **checks},
+        )
+
+    def with_checks(self, **checks: Any) -> Integrity:
+        """This record with further checks recorded (status unchanged)."""
+        return Integrity(
+            status=self.status,
+            reason=self.reason,
+            alpha=self.alpha,
+            redundancy=self.redundancy,
+            global_test=self.global_test,
+            w_test=self.w_test,
+            excluded=self.excluded,
+            mdb_max=self.mdb_max,
+            protection_level=self.protection_level,
+            checks={**self.checks, **checks},
+        )
+
+
+def _finite(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_finite(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _finite(x.tolist())
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def record(
+    test: TestResult,
+    excluded: Sequence[dict[str, Any]] = (),
+    alpha: float = ALPHA,
+    checks: dict[str, Any] | None = None,
+) -> Integrity:
+    """The integrity record of a final solution and the exclusions that led to it."""
+    k = test.worst
+    w_max = float(test.w[k]) if k is not None and np.isfinite(test.w[k]) else None
+    w_thr = float(test.thresholds[k]) if k is not None else None
+    suspect = test.labels[k] if k is not None else None
+    w_passed = w_max is None or w_thr is None or w_max <= w_thr
+    h, vert = test.protection_level()
+    finite_mdb = test.mdb[np.isfinite(test.mdb)]
+    if test.passed:
+        status: Status = "excluded" if excluded else "ok"
+        reason = (
+            "left out " + ", ".join(str(e["observation"]) for e in excluded) if excluded else ""
+        )
+    else:
+        status = "failed"
+        if not test.global_passed and w_passed:
+            reason = (
+                f"global test failed: variance factor {test.variance_factor:.2f} "
+                f"(T = {test.statistic:.1f} > {test.threshold:.1f}, {test.redundancy} dof)"
+            )
+        else:
+            reason = f"{suspect} fails its w-test ({w_max:.1f} > {w_thr:.1f})"
+            if excluded:
+                reason += " after leaving out " + ", ".join(str(e["observation"]) for e in excluded)
+    return Integrity(
+        status=status,
+        reason=reason,
+        alpha=alpha,
+        redundancy=test.redundancy,
+        global_test={
+            "statistic": test.statistic,
+            "threshold": test.threshold,
+            "p_value": test.p_value,
+            "variance_factor": test.variance_factor,
+            "passed": test.global_passed,
+        },
+        w_test={"max": w_max, "threshold": w_thr, "suspect": suspect, "passed": w_passed},
+        excluded=tuple(excluded),
+        mdb_max=float(finite_mdb.max()) if finite_mdb.size else None,
+        protection_level={"horizontal": h, "vertical": vert},
+        checks=dict(checks or {}),
+    )
+
+
+def identify(test: TestResult) -> int | None:
+    """The hypothesis to exclude next: the worst one failing, if it can be excluded.
+
+    Returns ``None`` when the tests pass, when nothing is left to test, or when
+    the worst hypothesis cannot be excluded (the solution then stays failed).
+    """
+    if test.passed or test.redundancy <= 0:
+        return None
+    k = test.worst
+    if k is None or not np.isfinite(test.w[k]) or not test.excludable[k]:
+        return None
+    return k
+
+
+def unchecked(reason: str, alpha: float = ALPHA, **checks: Any) -> Integrity:
+    """A failed record for a pose that could not be tested (no redundancy, bad input)."""
+    return Integrity(status="failed", reason=reason, alpha=alpha, checks=dict(checks))
+
+
+def exact(note: str) -> Integrity:
+    """The record of a pose that is exact by construction (a noise-free simulation)."""
+    return Integrity(status="ok", reason="", checks={"exact": note})

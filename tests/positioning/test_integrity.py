@@ -1,0 +1,106 @@
+"""The adjustment tests: exact against dense formulas, calibrated false alarms, MDB power."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fabflow.positioning.integrity import (
+    Covariance,
+    Hypothesis,
+    Integrity,
+    adjustment_test,
+    identify,
+    noncentrality,
+    record,
+)
+
+
+def _dense(Q: Covariance) -> np.ndarray:
+    m = Q.size
+    return np.linalg.inv(Q.solve(np.eye(m)))
+
+
+def _model(rng: np.random.Generator, m: int, u: int, shared: bool):
+    A = rng.normal(size=(m, u))
+    d = rng.uniform(0.5, 2.0, m) ** 2 * 1e-4
+    groups = rng.integers(0, 3, m)
+    U = (groups[:, None] == np.arange(3)[None]).astype(float)
+    Q = Covariance(diag=d, low_rank=U, low_rank_var=np.full(3, 4e-5) if shared else None)
+    if not shared:
+        Q = Covariance(diag=d)
+    return A, Q, U
+
+
+@settings(deadline=None, max_examples=30)
+@given(seed=st.integers(0, 2**31), m=st.integers(6, 30), shared=st.booleans())
+def test_woodbury_solve_and_w_match_dense_formulas(seed: int, m: int, shared: bool) -> None:
+    rng = np.random.default_rng(seed)
+    A, Q, _ = _model(rng, m, 3, shared)
+    Qd = _dense(Q)
+    x = rng.normal(size=(m, 2))
+    np.testing.assert_allclose(Q.solve(x), np.linalg.solve(Qd, x), rtol=1e-8, atol=1e-6)
+    np.testing.assert_allclose(Q.inverse_diag(), np.diag(np.linalg.inv(Qd)), rtol=1e-8)
+    v = rng.normal(size=m) * 0.01
+    hyps = [Hypothesis(f"obs {i}", np.eye(m)[:, i]) for i in range(m)]
+    res = adjustment_test(A, Q, v, hyps, alpha=0.01)
+    Qi = np.linalg.inv(Qd)
+    N = A.T @ Qi @ A
+    Qvv = Qd - A @ np.linalg.inv(N) @ A.T
+    w = np.abs(Qi @ v) / np.sqrt(np.diag(Qi @ Qvv @ Qi))
+    np.testing.assert_allclose(res.w, w, rtol=1e-6)
+    assert res.redundancy == m - 3
+    np.testing.assert_allclose(res.statistic, v @ Qi @ v, rtol=1e-9)
+
+
+def test_false_alarm_rate_is_alpha_and_mdb_is_found_with_its_power() -> None:
+    rng = np.random.default_rng(3)
+    m, u, trials, alpha = 12, 3, 4000, 0.05
+    A = rng.normal(size=(m, u))
+    sigma = rng.uniform(0.005, 0.02, m)
+    Q = Covariance(diag=sigma**2)
+    hyps = [Hypothesis(f"obs {i}", np.eye(m)[:, i]) for i in range(m)]
+    N = A.T @ (A / sigma[:, None] ** 2)
+    P = np.eye(m) - A @ np.linalg.solve(N, (A / sigma[:, None] ** 2).T)
+    noise = rng.normal(size=(trials, m)) * sigma
+    alarms = 0
+    for e in noise:
+        res = adjustment_test(A, Q, P @ e, hyps, alpha=alpha)
+        alarms += any(res.w > res.thresholds)
+    rate = alarms / trials
+    assert abs(rate - alpha) < 0.015, rate
+    # a bias of exactly the MDB of observation 4 is found about POWER of the time
+    mdb = adjustment_test(A, Q, np.zeros(m), hyps, alpha=alpha).mdb[4]
+    found = 0
+    for e in noise[:2000]:
+        e = e.copy()
+        e[4] += mdb
+        res = adjustment_test(A, Q, P @ e, hyps, alpha=alpha)
+        found += res.w[4] > res.thresholds[4]
+    assert 0.75 < found / 2000 < 0.85
+
+
+def test_noncentrality_matches_baarda() -> None:
+    assert noncentrality(0.001, 0.8, 1) == pytest.approx(17.07, abs=0.01)
+    assert noncentrality(0.05, 0.8, 1) == pytest.approx(7.85, abs=0.01)
+
+
+def test_a_gross_error_is_identified_and_recorded() -> None:
+    rng = np.random.default_rng(5)
+    m = 10
+    A = rng.normal(size=(m, 2))
+    Q = Covariance(diag=np.full(m, 1e-4))
+    e = rng.normal(size=m) * 0.01
+    e[7] += 0.2
+    N = A.T @ A
+    v = e - A @ np.linalg.solve(N, A.T @ e)
+    hyps = [Hypothesis(f"obs {i}", np.eye(m)[:, i]) for i in range(m)]
+    res = adjustment_test(A, Q, v, hyps)
+    assert not res.passed and identify(res) == 7
+    rec = record(res)
+    assert rec.status == "failed" and "obs 7" in rec.reason
+    back = Integrity.from_dict(rec.to_dict())
+    assert back.status == "failed" and back.w_test["suspect"] == "obs 7"
+    assert rec.protection_level["horizontal"] > 0
