@@ -211,7 +211,7 @@ class TestResult:
 
 @functools.lru_cache(maxsize=256)
 def noncentrality(alpha0: float, power: float = POWER, dof: int = 1) -> float:
-    """Non-centrality ``lambda_0`` at which a chi-square(dof) test at level ``alpha0`` has ``power``.
+    """Non-centrality ``lambda_0`` at which a chi-square(dof) test at ``alpha0`` has ``power``.
 
     For one degree of freedom this is ``(z_{1-alpha0/2} + z_{power})^2``, Baarda's
     ``lambda_0`` (17.07 for ``alpha0 = 0.001``, ``power = 0.8``).
