@@ -165,6 +165,12 @@ class TestResult:
     shift
         (h, 3) base position shift (metres) a bias of MDB size causes, in its worst
         direction.
+    bias
+        Per hypothesis, the estimated bias ``S^-1 b`` (its ``k`` components): for
+        one observation or point, what it would read had it been left out
+        (measured minus predicted from the others).
+    excludable
+        (h,) whether each hypothesis names observations that can be left out.
     """
 
     redundancy: int
@@ -177,6 +183,7 @@ class TestResult:
     thresholds: np.ndarray
     mdb: np.ndarray
     shift: np.ndarray
+    bias: tuple[np.ndarray, ...] = ()
     excludable: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     @property
@@ -277,6 +284,7 @@ def adjustment_test(
     thr = np.full(h, np.inf)
     mdb = np.full(h, np.inf)
     shift = np.full((h, 3), np.inf)
+    bias = [np.full(np.asarray(hyp.columns).reshape(m, -1).shape[1], np.nan) for hyp in hypotheses]
     if h and r > 0:
         alpha0 = alpha / h
         lam = {}
@@ -296,6 +304,7 @@ def adjustment_test(
             if not ok.any():
                 continue
             Sinv = (V[:, ok] / ev[ok]) @ V[:, ok].T
+            bias[i] = Sinv @ b
             w[i] = math.sqrt(max(float(b @ Sinv @ b), 0.0))
             thr[i] = math.sqrt(float(special.chdtri(int(ok.sum()), alpha0)))
             # worst direction: the eigenvector of the smallest eigenvalue of S
@@ -314,6 +323,7 @@ def adjustment_test(
         thresholds=thr,
         mdb=mdb,
         shift=shift,
+        bias=tuple(bias),
         excludable=np.array([hyp.excludable for hyp in hypotheses], dtype=bool),
     )
 

@@ -16,13 +16,26 @@ residuals, RMSE and a leave-one-out test for a single bad prism reading
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
 from scipy import special
 
 from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.integrity import (
+    ALPHA,
+    Covariance,
+    Hypothesis,
+    Integrity,
+    TestResult,
+    adjustment_test,
+    identify,
+    record,
+    unchecked,
+)
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.rigid_fit import (
     as_points,
@@ -34,6 +47,9 @@ from fabflow.positioning.rigid_fit import (
     refine_registration,
 )
 from fabflow.transforms.se3 import make_T
+
+MAX_PERMUTED = 7
+"""Up to this many points every order of the readings is tried; beyond, pairwise swaps."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,6 +128,9 @@ class Registration:
         Indices of points left out of the final fit.
     iterations
         Gauss-Newton or optimizer iterations.
+    integrity
+        The tests of the final fit (global test, w-tests of every point and of
+        the scale, reliability) and the prism identification.
     """
 
     T_world_base: np.ndarray
@@ -123,6 +142,7 @@ class Registration:
     outlier_test: OutlierTest | None = None
     rejected: tuple[int, ...] = ()
     iterations: int = 0
+    integrity: Integrity | None = None
 
     @property
     def n_points(self) -> int:
@@ -157,6 +177,7 @@ class Registration:
             rmse=self.rmse,
             station=station,
             quality={**self.quality(), **(quality or {})},
+            integrity=self.integrity,
         )
 
 
@@ -233,7 +254,9 @@ def register_points(
     base_sigma: float = 0.0,
     method: Literal["closed_form", "optimize"] = "closed_form",
     reject_outlier: bool = False,
-    alpha: float = 1e-3,
+    alpha: float = ALPHA,
+    point_labels: Sequence[str] | None = None,
+    identify_prisms: bool = True,
 ) -> Registration:
     """Localize the robot base from prism points known in the base frame and measured in the world.
 
@@ -260,10 +283,17 @@ def register_points(
         ``"closed_form"`` (weighted Kabsch, then Gauss-Newton on the full
         covariances) or ``"optimize"`` (the paper's SLSQP problem, eqs 7-8).
     reject_outlier
-        Refit without the point the leave-one-out test flags (needs n >= 4, and
-        the other points must not be collinear; otherwise it is only reported).
+        Leave out the point the tests identify and fit again, while the tests
+        fail and the remaining points still span a plane (Baarda's iterative
+        data snooping); otherwise a failed test is only reported.
     alpha
-        Significance level of the outlier test (Bonferroni-corrected over n).
+        Significance level of the tests (the w-tests are Bonferroni-corrected).
+    point_labels
+        Names of the points (``"prism P3"``), used in the integrity record.
+    identify_prisms
+        With known covariances and at least 4 points, check that the readings
+        belong to the points by their distances, and reassign a swap
+        (:func:`match_prisms`).
 
     Returns
     -------
@@ -280,6 +310,9 @@ def register_points(
     P = as_points(points_base, "points_base")
     M = as_points(points_world, "points_world", n=P.shape[0])
     n = P.shape[0]
+    labels = list(point_labels) if point_labels is not None else [f"prism {i}" for i in range(n)]
+    if len(labels) != n:
+        raise InputError(f"point_labels must name the {n} points, got {len(labels)}")
     check_geometry(P, "points_base")
     check_geometry(M, "points_world")
     if method not in ("closed_form", "optimize"):
@@ -303,37 +336,63 @@ def register_points(
     keep = w > 0
     if not keep.all():
         check_geometry(P[keep], "points_base with positive weight")
+    identification: dict[str, Any] = {}
+    if known_sigma and identify_prisms:
+        order, identification = match_prisms(P, M, C, labels, alpha)
+        M, C, w = M[order], C[order], w[order]
+        keep = w > 0
     W = np.zeros_like(C)
     W[keep] = np.linalg.inv(C[keep])
 
     def solve(sel: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         if method == "optimize":
             return optimize_registration(P[sel], M[sel], w[sel])
-        R, t = kabsch(P[sel], M[sel], w[sel])
+        R, t, iters = (*kabsch(P[sel], M[sel], w[sel]), 0)
         if point_cov is not None:
             return refine_registration(R, t, P[sel], M[sel], W[sel])
-        return R, t, 0
+        return R, t, iters
 
     R, t, iters = solve(keep)
-    sel_idx = np.flatnonzero(keep)
-    test = _loo_test(P[keep], M[keep], W[keep], R, t, known_sigma, alpha)
-    rejected: tuple[int, ...] = tuple(int(i) for i in np.flatnonzero(~keep))
-    if test is not None:
-        test = OutlierTest(
-            index=int(sel_idx[test.index]),
-            flagged=test.flagged,
-            statistics=_scatter(test.statistics, sel_idx, n, np.nan),
-            threshold=test.threshold,
-            p_value=test.p_value,
-            loo_residuals=_scatter(test.loo_residuals, sel_idx, n, np.nan),
-            known_sigma=test.known_sigma,
-        )
-        trial = keep.copy()
-        trial[test.index] = False
-        if reject_outlier and test.flagged and _spans_plane(P[trial]):
+    excluded: list[dict[str, Any]] = []
+    integrity: Integrity
+    if known_sigma:
+        tests = point_tests(P, M, C, R, t, keep, labels, alpha)
+        outlier = _outlier_report(tests, keep)
+        while reject_outlier:
+            k = identify(tests)
+            trial = keep.copy()
+            if k is not None:
+                trial[np.flatnonzero(keep)[k]] = False
+            if k is None or not _spans_plane(P[trial]):
+                break
+            excluded.append(
+                {
+                    "observation": tests.labels[k],
+                    "w": float(tests.w[k]),
+                    "threshold": float(tests.thresholds[k]),
+                }
+            )
             keep = trial
             R, t, iters = solve(keep)
-            rejected = tuple(int(i) for i in np.flatnonzero(~keep))
+            tests = point_tests(P, M, C, R, t, keep, labels, alpha)
+        integrity = record(tests, excluded, alpha)
+    else:
+        outlier = _loo_outliers(P, M, W, R, t, keep, alpha)
+        if outlier is not None and outlier.flagged and reject_outlier:
+            trial = keep.copy()
+            trial[outlier.index] = False
+            if _spans_plane(P[trial]):
+                keep = trial
+                R, t, iters = solve(keep)
+                excluded.append({"observation": labels[outlier.index], "w": None})
+        integrity = _relative_integrity(outlier, excluded, labels, alpha)
+    if identification:
+        integrity = integrity.with_checks(prism_identification=identification)
+        if identification.get("reassigned"):
+            integrity = replace(
+                integrity,
+                reason="; ".join(x for x in (identification["reassigned"], integrity.reason) if x),
+            )
 
     J = point_jacobians(R, P[keep])
     info = normal_matrices(J, W[keep]).sum(axis=0)
@@ -353,7 +412,195 @@ def register_points(
         rmse=float(np.sqrt(np.mean(np.einsum("ni,ni->n", r_in, r_in)))),
         method=method,
         variance_factor=vf,
-        outlier_test=test,
-        rejected=rejected,
+        outlier_test=outlier,
+        rejected=tuple(int(i) for i in np.flatnonzero(~keep)),
         iterations=iters,
+        integrity=integrity,
     )
+
+
+def point_tests(
+    P: np.ndarray,
+    M: np.ndarray,
+    C: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    keep: np.ndarray,
+    labels: Sequence[str],
+    alpha: float,
+) -> TestResult:
+    """The adjustment tests of a point registration (the points in ``keep``).
+
+    Observations are the measured points (world, metres) with covariances ``C``;
+    the parameters the pose error ``[d, r]``. The hypotheses are one per point
+    (a bias of its three coordinates: chi-square(3), the leave-one-out test) and
+    a scale error between the instrument and the robot geometry (a wrong
+    distance unit or a robot model of the wrong size), which cannot be left out.
+    """
+    sel = np.flatnonzero(keep)
+    n = len(sel)
+    A = point_jacobians(R, P[sel]).reshape(3 * n, 6)
+    v = (M[sel] - (P[sel] @ R.T + t)).reshape(-1)
+    hyps = [Hypothesis(labels[i], np.kron(np.eye(n)[:, [k]], np.eye(3))) for k, i in enumerate(sel)]
+    hyps.append(
+        Hypothesis("scale (instrument vs robot)", (P[sel] @ R.T).reshape(-1), excludable=False)
+    )
+    return adjustment_test(A, Covariance(blocks=C[sel]), v, hyps, alpha)
+
+
+def _outlier_report(tests: TestResult, keep: np.ndarray) -> OutlierTest | None:
+    """The per-point part of the tests in the form of :class:`OutlierTest`."""
+    n_points = len(tests.w) - 1
+    if n_points < 4:
+        return None
+    sel = np.flatnonzero(keep)
+    stat = tests.w[:n_points] ** 2
+    k = int(np.nanargmax(stat))
+    threshold = float(tests.thresholds[k] ** 2)
+    n = len(keep)
+    return OutlierTest(
+        index=int(sel[k]),
+        flagged=bool(stat[k] > threshold),
+        statistics=_scatter(stat, sel, n, np.nan),
+        threshold=threshold,
+        p_value=float(special.chdtrc(3, stat[k])),
+        loo_residuals=_scatter(np.stack(tests.bias[:n_points]), sel, n, np.nan),
+        known_sigma=True,
+    )
+
+
+def _loo_outliers(
+    P: np.ndarray,
+    M: np.ndarray,
+    W: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    keep: np.ndarray,
+    alpha: float,
+) -> OutlierTest | None:
+    """The leave-one-out F-test when the noise level is estimated from the residuals."""
+    sel = np.flatnonzero(keep)
+    test = _loo_test(P[keep], M[keep], W[keep], R, t, False, alpha)
+    if test is None:
+        return None
+    n = len(keep)
+    return OutlierTest(
+        index=int(sel[test.index]),
+        flagged=test.flagged,
+        statistics=_scatter(test.statistics, sel, n, np.nan),
+        threshold=test.threshold,
+        p_value=test.p_value,
+        loo_residuals=_scatter(test.loo_residuals, sel, n, np.nan),
+        known_sigma=False,
+    )
+
+
+def _relative_integrity(
+    test: OutlierTest | None,
+    excluded: list[dict[str, Any]],
+    labels: Sequence[str],
+    alpha: float,
+) -> Integrity:
+    """Integrity with relative weights only: no global test, the F-test identifies."""
+    note = {"noise": "estimated from the residuals: no global test, F-test per point"}
+    if test is None:
+        return unchecked("fewer than 4 points and no known noise level: untested", alpha, **note)
+    if test.flagged and not excluded:
+        return Integrity(
+            status="failed",
+            reason=f"{labels[test.index]} fails the F-test (p = {test.p_value:.2g})",
+            alpha=alpha,
+            checks=note,
+        )
+    return Integrity(
+        status="excluded" if excluded else "ok",
+        reason="left out " + labels[test.index] if excluded else "",
+        alpha=alpha,
+        excluded=tuple(excluded),
+        checks=note,
+    )
+
+
+def match_prisms(
+    P: np.ndarray, M: np.ndarray, C: np.ndarray, labels: Sequence[str], alpha: float
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Which reading belongs to which robot point, from the distances between the points.
+
+    Distances between prisms are the same in the robot base frame and in the
+    world, so a reading given under the wrong point id shows as distances that
+    do not fit. The readings are kept as given when their distances pass a
+    chi-square test at ``alpha``; otherwise the one order of the readings whose
+    distances fit (over every permutation up to :data:`MAX_PERMUTED` points,
+    pairwise swaps beyond) is taken and reported. Two orders fitting equally
+    well cannot be told apart: that is refused.
+
+    Parameters
+    ----------
+    P
+        (n, 3) robot points, base frame (metres).
+    M
+        (n, 3) measured points, world frame (metres), in the order given.
+    C
+        (n, 3, 3) their covariances (robot and instrument errors, m^2).
+    labels
+        Point names, for the report.
+    alpha
+        Level of the distance test.
+
+    Returns
+    -------
+    order, report
+        ``M[order]`` matches ``P``; the report says what was tested and done.
+
+    Raises
+    ------
+    LocalizationError
+        When the readings do not fit as given and several orders fit them.
+    """
+    n = len(P)
+    if n < 4:
+        return np.arange(n), {}
+    iu, ju = np.triu_indices(n, 1)
+    d_P = np.linalg.norm(P[iu] - P[ju], axis=1)
+    dof = len(iu)
+    threshold = float(special.chdtri(dof, alpha))
+
+    def statistic(orders: np.ndarray) -> np.ndarray:
+        Mi, Mj = M[orders[:, iu]], M[orders[:, ju]]
+        diff = Mi - Mj
+        d_M = np.linalg.norm(diff, axis=-1)
+        u = diff / np.maximum(d_M, 1e-12)[..., None]
+        Csum = C[orders[:, iu]] + C[orders[:, ju]]
+        var = np.einsum("...i,...ij,...j->...", u, Csum, u)
+        return np.sum((d_M - d_P) ** 2 / var, axis=-1)
+
+    identity = np.arange(n)[None]
+    t0 = float(statistic(identity)[0])
+    report: dict[str, Any] = {"distance_test": t0, "threshold": threshold, "dof": dof}
+    if t0 <= threshold:
+        return np.arange(n), {**report, "assignment": "as given"}
+    if n <= MAX_PERMUTED:
+        orders = np.array(list(itertools.permutations(range(n))))
+    else:
+        swaps = [(a, b) for a in range(n) for b in range(a + 1, n)]
+        orders = np.tile(np.arange(n), (len(swaps), 1))
+        for k, (a, b) in enumerate(swaps):
+            orders[k, [a, b]] = orders[k, [b, a]]
+    stats = statistic(orders)
+    fits = np.flatnonzero(stats <= threshold)
+    if len(fits) > 1:
+        raise LocalizationError(
+            f"the prism readings do not fit the robot points as given (distance test "
+            f"{t0:.0f} > {threshold:.1f}) and {len(fits)} orders of the readings fit them: "
+            "the prisms cannot be identified; check the point ids"
+        )
+    if len(fits) == 0:
+        return np.arange(n), {**report, "assignment": "as given (no order fits)"}
+    order = orders[fits[0]]
+    moved = [f"{labels[i]} <- reading of {labels[order[i]]}" for i in range(n) if order[i] != i]
+    return order, {
+        **report,
+        "assignment": "reassigned",
+        "reassigned": "readings reassigned by their distances: " + ", ".join(moved),
+        "distance_test_after": float(stats[fits[0]]),
+    }
