@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+from scipy import special
 
 from fabflow.errors import InputError, LocalizationError
 
@@ -75,6 +76,10 @@ class UwbFix:
         (N,) whether the iterations met the tolerance (True for ``ls``/``wls``).
     method
         The estimator used.
+    excluded
+        (N, n_anchors) ranges left out by the tests (with ``alpha``).
+    test_failed
+        (N,) epochs whose tests still fail after the exclusions (then invalid).
     """
 
     positions: np.ndarray
@@ -86,6 +91,8 @@ class UwbFix:
     iterations: np.ndarray
     converged: np.ndarray
     method: str
+    excluded: np.ndarray | None = None
+    test_failed: np.ndarray | None = None
 
 
 def sigma_of(sigma: Sigma, d: np.ndarray) -> np.ndarray:
@@ -220,6 +227,10 @@ def _wls(
     return theta[:, :dim], Minv[:, :dim, :dim]
 
 
+LINE_SEARCH = 0.5 ** np.arange(8)
+"""Step fractions tried by the damped Gauss-Newton, largest first."""
+
+
 def _gauss_newton(
     A: np.ndarray,
     r: np.ndarray,
@@ -229,6 +240,17 @@ def _gauss_newton(
     max_iter: int,
     tol: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Damped Newton / Gauss-Newton on the weighted range residuals, batched over epochs.
+
+    Each step is scaled by the largest of :data:`LINE_SEARCH` that
+    lowers the cost, so a fix never ends at a worse cost than its start (an
+    undamped step can overshoot on a flat, near-coplanar geometry). An epoch has
+    converged when a step is below ``tol`` or negligible against its own
+    uncertainty (``step^T N step < 1e-6``: a thousandth of its sigma); one that has
+    not after ``max_iter`` iterations, or finds no step that lowers the cost
+    before converging, is reported as not converged (and :func:`locate` marks it
+    invalid).
+    """
     d = np.where(mask, r, 0.0)
     s = sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT))
     w = np.where(mask, 1.0 / s**2, 0.0)
@@ -237,34 +259,52 @@ def _gauss_newton(
     ok = np.all(np.isfinite(x), axis=1)
     active = ok.copy()
     iterations = np.zeros(len(x), dtype=int)
-    converged = ~ok
-    # the covariance is (J^T W J)^-1 of the last iteration: its step was below tol, so
-    # the Jacobian is that of the solution to well within the noise
+    converged = np.zeros(len(x), dtype=bool)
     cov = np.full((len(x), dim, dim), np.nan)
+
+    def cost_of(xs: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        diff = xs[..., None, :] - A
+        res = d[rows] - np.sqrt(np.einsum("...ij,...ij->...i", diff, diff))
+        return np.einsum("...i,...i->...", w[rows] * res, res)
+
     for _ in range(max_iter):
         if not active.any():
             break
         idx = np.flatnonzero(active)
-        all_active = idx.size == len(x)
-        xa = x if all_active else x[idx]
+        xa = x[idx]
         diff = xa[:, None, :] - A[None]
         dist = np.maximum(np.sqrt(np.einsum("nij,nij->ni", diff, diff)), 1e-9)
         J = diff / dist[..., None]
-        res = (d if all_active else d[idx]) - dist
-        wi = w if all_active else w[idx]
-        Jw = J * wi[..., None]
+        res = d[idx] - dist
+        cost = np.einsum("ni,ni->n", w[idx] * res, res)
+        Jw = J * w[idx][..., None]
         M = np.matmul(Jw.transpose(0, 2, 1), J)
         g = np.einsum("nij,ni->nj", Jw, res)
-        step, Minv = _solve_batched(M, g, np.ones(idx.size, dtype=bool))
+        # Newton's Hessian adds the curvature of the ranges, which Gauss-Newton
+        # drops; it converges in a few steps where the residuals are not small
+        # against the curvature (a flat, near-coplanar geometry). Where it is not
+        # positive definite the Gauss-Newton matrix is used.
+        curv = np.einsum("ni,nij,nik->njk", w[idx] * res / dist, J, J)
+        H = M - (np.einsum("ni->n", w[idx] * res / dist)[:, None, None] * np.eye(dim) - curv)
+        H_ok = np.all(np.linalg.eigvalsh(H) > 1e-9 * np.trace(M, axis1=1, axis2=2)[:, None], 1)
+        step, _ = _solve_batched(np.where(H_ok[:, None, None], H, M), g, np.ones(idx.size, bool))
+        _, Minv = _solve_batched(M, g, np.ones(idx.size, dtype=bool))
         bad = ~np.all(np.isfinite(step), axis=1)
         step[bad] = 0.0
-        x[idx] = xa + step
         cov[idx] = Minv
         iterations[idx] += 1
-        done = np.einsum("ni,ni->n", step, step) < tol * tol
-        converged[idx] = done & ~bad
+        tiny = (np.einsum("ni,nij,nj->n", step, M, step) < 1e-6) | (
+            np.einsum("ni,ni->n", step, step) < tol * tol
+        )
+        trials = xa[None] + LINE_SEARCH[:, None, None] * step[None]
+        lower = cost_of(trials, idx[None].repeat(len(LINE_SEARCH), 0)) <= cost[None]
+        best = np.argmax(lower, axis=0)
+        found = lower[best, np.arange(idx.size)]
+        move = found & ~tiny & ~bad
+        x[idx[move]] = trials[best[move], np.flatnonzero(move)]
+        converged[idx] = tiny & ~bad
         ok[idx[bad]] = False
-        active[idx[done | bad]] = False
+        active[idx[tiny | bad | ~found]] = False
     ok &= np.all(np.isfinite(cov), axis=(1, 2))
     return x, cov, ok, iterations, converged
 
@@ -274,8 +314,9 @@ def locate(
     ranges: np.ndarray,
     method: Method = "wls-t",
     sigma: Sigma = 0.05,
-    max_iter: int = 10,
+    max_iter: int = 50,
     tol: float = 1e-5,
+    alpha: float | None = None,
 ) -> UwbFix:
     """Multilaterate tag positions from anchor ranges, one fix per epoch.
 
@@ -293,7 +334,15 @@ def locate(
         Range noise standard deviation (metres), a constant or a function of the
         range; used for the weights and the reported covariances.
     max_iter, tol
-        Gauss-Newton iteration cap and step tolerance (metres) for ``wls-t``.
+        Iteration cap and step tolerance (metres) of the damped Gauss-Newton
+        (Levenberg-Marquardt) refinement of ``wls-t``; an epoch that has not
+        converged within ``max_iter`` is invalid.
+    alpha
+        With ``wls-t``: test every fix (global test and a w-test per range, at
+        level ``alpha``, Bonferroni over the ranges) and leave out the worst range
+        while the tests fail and two degrees of freedom remain (Baarda's data
+        snooping: one faulty range, e.g. a non-line-of-sight delay, is found and
+        excluded). Fixes that still fail are invalid. ``None``: no tests.
 
     Returns
     -------
@@ -328,7 +377,13 @@ def locate(
         converged = np.ones(len(r), dtype=bool)
         if method == "wls-t":
             x, cov, _, iterations, converged = _gauss_newton(A, r, mask, x, sigma, max_iter, tol)
-    valid = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
+    excluded = test_failed = None
+    if alpha is not None and method == "wls-t":
+        x, cov, converged, mask, excluded, test_failed = _snoop(
+            A, r, mask, x, cov, converged, sigma, alpha, max_iter, tol
+        )
+        converged = converged & ~test_failed
+    valid = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(cov), axis=(1, 2)) & converged
     x[~valid] = np.nan
     cov[~valid] = np.nan
     dist = np.linalg.norm(x[:, None, :] - A[None], axis=-1)
@@ -343,7 +398,93 @@ def locate(
         iterations=iterations,
         converged=converged & valid,
         method=method,
+        excluded=excluded,
+        test_failed=test_failed,
     )
+
+
+def range_tests(
+    A: np.ndarray, r: np.ndarray, mask: np.ndarray, x: np.ndarray, sigma: Sigma, alpha: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Global test and w-test of every range of every fix, batched over epochs.
+
+    Parameters
+    ----------
+    A
+        (n, dim) anchors; ``r`` (N, n) ranges; ``mask`` (N, n) the ranges used;
+        ``x`` (N, dim) the fixes (metres).
+    sigma
+        Range noise standard deviation (constant or function of the range).
+    alpha
+        Level of the global test; the w-tests share it over the ranges of a fix.
+
+    Returns
+    -------
+    w
+        (N, n) ``|w|`` of each used range (NaN elsewhere), standard normal without a fault.
+    w_threshold
+        (N,) critical ``|w|`` of each fix.
+    failed
+        (N,) fixes whose global test or a w-test fails.
+    redundancy
+        (N,) degrees of freedom of each fix.
+    """
+    dim = A.shape[1]
+    d = np.where(mask, r, 0.0)
+    s = sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT))
+    wgt = np.where(mask, 1.0 / s**2, 0.0)
+    diff = x[:, None, :] - A[None]
+    dist = np.maximum(np.linalg.norm(diff, axis=-1), 1e-9)
+    J = diff / dist[..., None]
+    v = np.where(mask, d - dist, 0.0)
+    Ninv, _ = _inv_batched(np.einsum("ni,nij,nik->njk", wgt, J, J))
+    q_vv = np.where(mask, s**2 - np.einsum("nij,njk,nik->ni", J, Ninv, J), np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.abs(v) / np.sqrt(np.where(q_vv > 1e-12 * s**2, q_vv, np.nan))
+    count = mask.sum(axis=1)
+    redundancy = count - dim
+    statistic = np.einsum("ni,ni->n", wgt * v, v)
+    ok_r = redundancy > 0
+    threshold_T = np.full(len(x), np.inf)
+    threshold_T[ok_r] = special.chdtri(redundancy[ok_r], alpha)
+    w_threshold = np.sqrt(special.chdtri(1, alpha / np.maximum(count, 1)))
+    w_max = np.nanmax(np.where(mask, w, -np.inf), axis=1)
+    failed = ok_r & ((statistic > threshold_T) | (w_max > w_threshold))
+    return np.where(mask, w, np.nan), w_threshold, failed, redundancy
+
+
+def _snoop(
+    A: np.ndarray,
+    r: np.ndarray,
+    mask: np.ndarray,
+    x: np.ndarray,
+    cov: np.ndarray,
+    converged: np.ndarray,
+    sigma: Sigma,
+    alpha: float,
+    max_iter: int,
+    tol: float,
+) -> tuple[np.ndarray, ...]:
+    """Iterative data snooping of every fix: leave out the worst range while tests fail."""
+    mask = mask.copy()
+    excluded = np.zeros_like(mask)
+    x, cov, converged = x.copy(), cov.copy(), converged.copy()
+    fixable = np.all(np.isfinite(x), axis=1)
+    while True:
+        w, _, failed, redundancy = range_tests(
+            A, r, mask, np.where(fixable[:, None], x, 0), sigma, alpha
+        )
+        failed &= fixable
+        again = failed & (redundancy >= 2) & np.any(np.isfinite(w), axis=1)
+        if not again.any():
+            return x, cov, converged, mask, excluded, failed
+        rows = np.flatnonzero(again)
+        worst = np.nanargmax(w[rows], axis=1)
+        mask[rows, worst] = False
+        excluded[rows, worst] = True
+        xr, covr, _, _, conv = _gauss_newton(A, r[rows], mask[rows], x[rows], sigma, max_iter, tol)
+        x[rows], cov[rows], converged[rows] = xr, covr, conv
+        fixable[rows] &= np.all(np.isfinite(xr), axis=1)
 
 
 def crlb(anchors: np.ndarray, position: np.ndarray, sigma: Sigma) -> np.ndarray:
