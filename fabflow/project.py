@@ -160,6 +160,10 @@ class UwbSetup(StrictModel):
     calibration: dict[str, tuple[float, PositiveFloat]] = {}
     """Ranging calibration per anchor id: (offset a in metres, scale b) of the fit
     measured = a + b * true; ranges are corrected as (measured - a) / b."""
+    calibration_sigma: NonNegativeFloat = 0.01
+    """Range error the calibration leaves per anchor (metres, shared by all its
+    ranges); enters the covariance and the tests of measured ranges (a simulated
+    calibration campaign knows its own)."""
 
     @model_validator(mode="after")
     def _calibrated_anchors_exist(self) -> UwbSetup:
@@ -235,6 +239,29 @@ class IcpSetup(StrictModel):
     """Add the blocks built so far (at their design poses) to the map before localizing."""
 
 
+class IntegrityPolicy(StrictModel):
+    """How every base pose is tested, and what happens to one that fails.
+
+    Every localization is an adjustment with a global test, w-tests of the
+    observations that may be wrong (a prism, an anchor, a range) and a
+    protection level (docs/integrity.md). A pose is also checked against the
+    station the platform was sent to: farther off than the parking accuracy
+    allows means a wrong map, a wrong anchor survey or a wrong station.
+    """
+
+    alpha: Annotated[float, Field(gt=0, lt=0.5)] = 0.001
+    """Significance level of the tests: the false-alarm probability of one visit."""
+    on_failure: Literal["refuse", "warn"] = "refuse"
+    """``refuse``: a failed visit stops the build (exit 2); ``warn``: the build goes
+    on, the failed visit is reported and gets no program."""
+    parking_sigma: NonNegativeFloat | None = None
+    """Standard deviation of the platform's parking position per axis (metres), for
+    the check against the planned station; default ``simulation.driving_error``."""
+    parking_sigma_deg: NonNegativeFloat | None = None
+    """The same for the heading (degrees); default
+    ``simulation.driving_heading_error_deg``."""
+
+
 class Localization(StrictModel):
     """Which method localizes the platform at each station, with that method's setup."""
 
@@ -242,6 +269,7 @@ class Localization(StrictModel):
     uwb: UwbSetup | None = None
     total_station: TotalStationSetup | None = None
     icp: IcpSetup | None = None
+    integrity: IntegrityPolicy = IntegrityPolicy()
 
     @model_validator(mode="after")
     def _setup_present(self) -> Localization:

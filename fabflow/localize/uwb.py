@@ -9,6 +9,7 @@ which the mounting turns into the arm base pose with its covariance.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -20,7 +21,7 @@ from fabflow.positioning.result import BasePose
 from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Method
 from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers_static
 from fabflow.positioning.uwb_platform import locate_platform, platform_to_base_covariance
-from fabflow.project import Project
+from fabflow.project import Project, UwbSetup
 from fabflow.robots import platform
 from fabflow.sensors.uwb import (
     UwbErrorModel,
@@ -29,6 +30,34 @@ from fabflow.sensors.uwb import (
     segments_occluded,
     simulate_ranges,
 )
+
+
+@dataclass(frozen=True)
+class StationRanges:
+    """What the tags of a parked platform measured (simulated), and the truth behind it.
+
+    Attributes
+    ----------
+    anchor_ids
+        Anchor names.
+    anchors_true
+        (n, 3) where the anchors really are (world, metres).
+    ranges
+        (rounds, tags, anchors) measured ranges, uncorrected (metres).
+    calibration
+        The ranging calibration fitted by the simulated calibration campaign.
+    nlos
+        (rounds, tags, anchors) which ranges carry a simulated NLOS excess.
+    occluded
+        (tags, anchors) lines of sight blocked by built blocks, or ``None``.
+    """
+
+    anchor_ids: list[str]
+    anchors_true: np.ndarray
+    ranges: np.ndarray
+    calibration: RangeCalibration
+    nlos: np.ndarray
+    occluded: np.ndarray | None
 
 
 def localize_station(
@@ -41,15 +70,13 @@ def localize_station(
 ) -> BasePose:
     """Simulate UWB localization of a parked platform and return the estimated base pose.
 
-    The platform stands still for ``uwb.dwell_s`` seconds at the true pose; its
-    tags (``uwb.tags``, platform frame) range to every anchor at ``uwb.rate_hz``
-    with the simulator's error model (:class:`fabflow.sensors.uwb.UwbErrorModel` with
-    ``sigma_1m = uwb.sigma``): distance-dependent noise, a per-anchor linear bias
-    (fitted by a simulated calibration campaign and corrected), 2 % NLOS outliers,
-    and NLOS with probability 0.5 on lines of sight blocked by ``built`` blocks.
-    Outliers are rejected around each link's robust centre
-    (:func:`~fabflow.positioning.uwb_calibration.reject_outliers_static`), then
-    :func:`locate_platform` gives ``x, y, z, yaw``.
+    :func:`simulate_station` then :func:`estimate_station`: the platform stands
+    still for ``uwb.dwell_s`` seconds at the true pose; its tags (``uwb.tags``,
+    platform frame) range to every anchor at ``uwb.rate_hz`` with the simulator's
+    error model (:class:`fabflow.sensors.uwb.UwbErrorModel` with ``sigma_1m =
+    uwb.sigma``): distance-dependent noise, a per-anchor linear bias (fitted by a
+    simulated calibration campaign and corrected), 2 % NLOS outliers, and NLOS
+    with probability 0.5 on lines of sight blocked by ``built`` blocks.
 
     Parameters
     ----------
@@ -70,14 +97,29 @@ def localize_station(
     Returns
     -------
     BasePose
-        ``T_world_base`` estimate with a 6x6 covariance; roll and pitch are not
-        observed (level platform assumed) and carry ``UNOBSERVED_VARIANCE``, as
-        ``quality["unobserved"]`` says.
+        ``T_world_base`` estimate with a 6x6 covariance and its integrity record;
+        roll and pitch are not observed (level platform assumed) and carry
+        ``UNOBSERVED_VARIANCE``, as ``quality["unobserved"]`` says.
     """
+    data = simulate_station(project, T_world_base, rng, built)
+    return estimate_station(project, data, station_id, heading_prior)
 
+
+def _setup(project: Project) -> UwbSetup:
     setup = project.localization.uwb
     if setup is None:
         raise InputError("the project has no 'localization.uwb' section", location="localization")
+    return setup
+
+
+def simulate_station(
+    project: Project,
+    T_world_base: np.ndarray,
+    rng: np.random.Generator,
+    built: Sequence[Element] = (),
+) -> StationRanges:
+    """The ranges the platform's tags measure at ``T_world_base`` (see :func:`localize_station`)."""
+    setup = _setup(project)
     ids, A = anchors_world(setup)
     T_platform_base = project.robot.platform.T_platform_base.matrix()
     # the tags are placed from the base pose as given, without the station's lift
@@ -108,10 +150,49 @@ def localize_station(
         if occluded is None
         else np.broadcast_to(occluded, (n_rounds, *occluded.shape)),
     )
-    ranges = cal.apply(sim.ranges)
+    return StationRanges(ids, A, sim.ranges, cal, sim.nlos, occluded)
+
+
+def estimate_station(
+    project: Project,
+    data: StationRanges,
+    station_id: str | None = None,
+    heading_prior: tuple[float, float] | None = None,
+    anchors: np.ndarray | None = None,
+) -> BasePose:
+    """The base pose from a station's ranges: calibrate, clean, locate the platform, test.
+
+    Outliers are rejected around each link's robust centre
+    (:func:`~fabflow.positioning.uwb_calibration.reject_outliers_static`), then
+    :func:`~fabflow.positioning.uwb_platform.locate_platform` gives ``x, y, z,
+    yaw`` with the tests of its integrity record (at
+    ``localization.integrity.alpha``).
+
+    Parameters
+    ----------
+    project
+        The project (``localization.uwb``, the arm mounting, the integrity level).
+    data
+        What the tags measured.
+    station_id
+        Stored in the result.
+    heading_prior
+        ``(yaw, sigma)`` of the platform heading (radians); needed with one tag.
+    anchors
+        (n, 3) the anchor positions the estimate uses (world, metres): the
+        surveyed ones; default where they really are.
+    """
+    setup = _setup(project)
+    ids = data.anchor_ids
+    A = data.anchors_true if anchors is None else np.asarray(anchors, dtype=float)
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
+    L = np.asarray(setup.tags, dtype=float)
+    model = UwbErrorModel(sigma_1m=setup.sigma)
+    cal = data.calibration
+    ranges = cal.apply(data.ranges)
     rej = reject_outliers_static(ranges, model.sigma(ranges))
     method: Method = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
-    dist = np.linalg.norm(tags_world.mean(axis=0) - A, axis=1)
+    first_guess = np.nanmedian(ranges, axis=(0, 1))
     fix = locate_platform(
         A,
         rej.ranges,
@@ -119,7 +200,11 @@ def localize_station(
         model.sigma,
         method=method,
         heading_prior=heading_prior,
-        anchor_bias_sigma=cal.bias_sigma(dist),
+        anchor_bias_sigma=cal.bias_sigma(np.where(np.isfinite(first_guess), first_guess, 0.0)),
+        alpha=project.localization.integrity.alpha,
+        anchor_ids=ids,
+        base_lever=T_platform_base[:3, 3],
+        alert_limit=project.tolerances.position,
     )
     T_world_platform_est = fix.T
     T_world_base_est = platform.T_world_base(T_world_platform_est, 0.0, T_platform_base)
@@ -133,13 +218,13 @@ def localize_station(
         else f"median of {method} fixes",
         "n_tags": len(L),
         "n_anchors": len(ids),
-        "n_rounds": n_rounds,
-        "n_ranges": int(sim.ranges.size),
+        "n_rounds": int(data.ranges.shape[0]),
+        "n_ranges": int(data.ranges.size),
         "n_rejected_robust_centre": int(rej.rejected.sum()),
         "n_rejected_residual": fix.n_ranges - fix.n_used,
         "n_used": fix.n_used,
-        "n_nlos_simulated": int(sim.nlos.sum()),
-        "n_occluded_links": 0 if occluded is None else int(occluded.sum()),
+        "n_nlos_simulated": int(data.nlos.sum()),
+        "n_occluded_links": 0 if data.occluded is None else int(data.occluded.sum()),
         "per_anchor_rms": dict(zip(ids, [float(v) for v in fix.per_anchor_rms], strict=True)),
         "calibration": cal.to_dict(ids),
         "std_xyz_yaw": [float(v) for v in np.sqrt(np.diag(fix.covariance))],
@@ -156,4 +241,5 @@ def localize_station(
         rmse=rmse,
         station=station_id,
         quality=quality,
+        integrity=fix.integrity,
     )

@@ -480,6 +480,8 @@ def record(
                 f"global test failed: variance factor {test.variance_factor:.2f} "
                 f"(T = {test.statistic:.1f} > {test.threshold:.1f}, {test.redundancy} dof)"
             )
+        elif w_max is None or w_thr is None:
+            reason = "the tests could not be evaluated (singular geometry)"
         else:
             reason = f"{suspect} fails its w-test ({w_max:.1f} > {w_thr:.1f})"
             if excluded:
@@ -502,6 +504,32 @@ def record(
         protection_level={"horizontal": h, "vertical": vert},
         checks=dict(checks or {}),
     )
+
+
+def guard_exclusion(integrity: Integrity, alert_limit: float) -> Integrity:
+    """Fail a solution that passed only by leaving observations out, unless it stays reliable.
+
+    Leaving out the observation with the largest w is right when the fault is
+    really there; when the tests' hypotheses are alike (few anchors, weak
+    geometry) another one may have been left out, and the remaining solution
+    may no longer see the real fault. It is accepted only when its protection
+    level is within ``alert_limit`` (metres): a fault it cannot see then moves
+    the base by less than that. A solution that needed no exclusion keeps its
+    status; a protection level beyond the limit is recorded as ``degraded``.
+    """
+    pl = max(
+        integrity.protection_level.get("horizontal", math.inf) or math.inf,
+        integrity.protection_level.get("vertical", math.inf) or math.inf,
+    )
+    if not math.isfinite(alert_limit) or pl <= alert_limit:
+        return integrity
+    note = (
+        f"protection level {1e3 * pl:.0f} mm exceeds the alert limit "
+        f"{1e3 * alert_limit:.0f} mm: a fault the tests cannot see could move the base that far"
+    )
+    if integrity.status == "excluded":
+        return integrity.failing(f"{integrity.reason}, but {note}")
+    return integrity.with_checks(degraded=note)
 
 
 def identify(test: TestResult) -> int | None:

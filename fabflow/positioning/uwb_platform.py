@@ -11,11 +11,25 @@ covariance to the arm base. Metres and radians; anchors in the world frame.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.integrity import (
+    ALPHA,
+    Covariance,
+    Hypothesis,
+    Integrity,
+    TestResult,
+    adjustment_test,
+    guard_exclusion,
+    identify,
+    record,
+)
 from fabflow.positioning.uwb import (
     COND_LIMIT,
     MIN_RANGE_FOR_WEIGHT,
@@ -54,6 +68,11 @@ class PlatformFix:
         Whether the yaw is determined by the measurements (or a prior).
     per_anchor_rms
         (n_anchors,) RMS residual of the used ranges per anchor (metres).
+    integrity
+        The tests of the fix (global test, w-test per anchor and per tag-anchor
+        link, reliability), what was left out, and the geometry checks.
+    converged
+        Whether the final Gauss-Newton solve converged.
     """
 
     state: np.ndarray
@@ -64,6 +83,8 @@ class PlatformFix:
     iterations: int
     heading_observed: bool
     per_anchor_rms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    integrity: Integrity | None = None
+    converged: bool = True
 
     @property
     def T(self) -> np.ndarray:
@@ -84,6 +105,10 @@ def locate_platform(
     outlier_k: float = 4.0,
     max_iter: int = 20,
     anchor_bias_sigma: np.ndarray | None = None,
+    alpha: float = ALPHA,
+    anchor_ids: Sequence[str] | None = None,
+    base_lever: np.ndarray | None = None,
+    alert_limit: float = math.inf,
 ) -> PlatformFix:
     """Estimate a standing platform's ``x, y, z, yaw`` from the ranges of its tags.
 
@@ -116,6 +141,20 @@ def locate_platform(
         (n_anchors,) standard deviation (metres) of a range error shared by every
         range to an anchor (what the calibration leaves); added to the covariance,
         since averaging over epochs does not reduce it.
+    alpha
+        Level of the tests. The fix is tested with the global test and a w-test
+        per anchor (a bias shared by all its ranges: a mis-surveyed anchor, an
+        antenna delay, a wall in the way) and per tag-anchor link; while they fail,
+        the worst anchor or link is left out and the pose solved again, as long
+        as three anchors and the heading remain (:mod:`fabflow.positioning.integrity`).
+    anchor_ids
+        Anchor names for the integrity record (default ``A1``, ``A2``, ...).
+    base_lever
+        (3,) the arm base in the platform frame (metres): the protection level is
+        given for the base, which a heading error moves too.
+    alert_limit
+        Largest acceptable protection level (metres) of a fix that passed only by
+        leaving ranges out (:func:`~fabflow.positioning.integrity.guard_exclusion`).
 
     Raises
     ------
@@ -167,18 +206,51 @@ def locate_platform(
     anc_idx = np.broadcast_to(np.arange(A.shape[0])[None, None, :], R.shape)[finite]
     d = R[finite]
     s = sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT))
+    ids = list(anchor_ids) if anchor_ids is not None else [f"A{j + 1}" for j in range(A.shape[0])]
+    bias_sigma = (
+        np.zeros(A.shape[0])
+        if anchor_bias_sigma is None
+        else np.asarray(anchor_bias_sigma, dtype=float)
+    )
+    lever = np.zeros(3) if base_lever is None else np.asarray(base_lever, dtype=float)
     use = np.ones(d.size, dtype=bool)
-    iterations = 0
-    if method == "wls-t" or not heading_observed or n_tags == 1:
-        for _pass in range(2):
-            state, iterations = _platform_gn(
-                A, L, d[use], s[use], tag_idx[use], anc_idx[use], state, heading_prior, max_iter
-            )
-            res = d - _platform_h(A, L, state, tag_idx, anc_idx)
-            keep = np.abs(res) <= outlier_k * s
-            if np.array_equal(keep, use):
-                break
-            use = keep
+    left_out = np.zeros(d.size, dtype=bool)
+    iterations, converged = 0, True
+    excluded: list[dict[str, Any]] = []
+    while True:
+        if method == "wls-t" or not heading_observed or n_tags == 1:
+            for _pass in range(2):
+                state, iterations, converged = _platform_gn(
+                    A, L, d[use], s[use], tag_idx[use], anc_idx[use], state, heading_prior,
+                    max_iter,
+                )  # fmt: skip
+                res = d - _platform_h(A, L, state, tag_idx, anc_idx)
+                keep = (np.abs(res) <= outlier_k * s) & ~left_out
+                if np.array_equal(keep, use):
+                    break
+                use = keep
+        tests = _platform_tests(
+            A, L, d, s, tag_idx, anc_idx, use, state, heading_prior, heading_observed,
+            bias_sigma, ids, lever, alpha,
+        )  # fmt: skip
+        k = identify(tests)
+        if k is None:
+            break
+        drop = _hypothesis_ranges(tests.labels[k], ids, tag_idx, anc_idx)
+        rest = use & ~drop
+        if len(np.unique(anc_idx[rest])) < 3 or not _determined(
+            A, L, s[rest], tag_idx[rest], anc_idx[rest], state, heading_prior, heading_observed
+        ):
+            break
+        excluded.append(
+            {
+                "observation": tests.labels[k],
+                "w": float(tests.w[k]),
+                "threshold": float(tests.thresholds[k]),
+            }
+        )
+        left_out |= drop
+        use &= ~drop
     info = _platform_info(A, L, s[use], tag_idx[use], anc_idx[use], state, heading_prior)
     yaw_fixed = heading_observed
     if not yaw_fixed:
@@ -194,7 +266,7 @@ def locate_platform(
         if not yaw_fixed:
             J[:, 3] = 0.0
         G = cov @ (J / s[use][:, None] ** 2).T
-        for j, sb in enumerate(np.asarray(anchor_bias_sigma, dtype=float)):
+        for j, sb in enumerate(bias_sigma):
             g = G[:, anc_idx[use] == j].sum(axis=1)
             cov = cov + sb**2 * np.outer(g, g)
     res = d - _platform_h(A, L, state, tag_idx, anc_idx)
@@ -207,6 +279,16 @@ def locate_platform(
         ]
     )
     state[3] = (state[3] + np.pi) % (2 * np.pi) - np.pi
+    integrity = record(tests, excluded, alpha, _geometry(A[np.unique(anc_idx[use])], state))
+    integrity = guard_exclusion(integrity, alert_limit)
+    if not converged:
+        integrity = integrity.failing(f"the pose did not converge in {max_iter} iterations")
+    elif integrity.checks["outside_coverage_m"] > COVERAGE_MARGIN:
+        integrity = integrity.failing(
+            f"the platform stands {integrity.checks['outside_coverage_m']:.1f} m outside the "
+            f"anchors' coverage (their convex hull in plan, PDOP "
+            f"{integrity.checks['pdop']:.1f}): move anchors around the station"
+        )
     return PlatformFix(
         state=state,
         covariance=cov,
@@ -216,7 +298,123 @@ def locate_platform(
         iterations=iterations,
         heading_observed=yaw_fixed,
         per_anchor_rms=per_anchor,
+        integrity=integrity,
+        converged=converged,
     )
+
+
+COVERAGE_MARGIN = 0.5
+"""How far (metres, in plan) a platform may stand outside the anchors' convex hull
+before its fix fails: outside, the geometry degrades fast and the linearized
+covariance no longer describes the error."""
+
+
+def _platform_tests(
+    A: np.ndarray,
+    L: np.ndarray,
+    d: np.ndarray,
+    s: np.ndarray,
+    tag_idx: np.ndarray,
+    anc_idx: np.ndarray,
+    use: np.ndarray,
+    state: np.ndarray,
+    heading_prior: tuple[float, float] | None,
+    heading_observed: bool,
+    bias_sigma: np.ndarray,
+    ids: Sequence[str],
+    lever: np.ndarray,
+    alpha: float,
+) -> TestResult:
+    """The adjustment tests of a platform fix over the used ranges.
+
+    Observations are the ranges, each with its white noise, plus the bias every
+    range to one anchor shares (what the calibration leaves: ``bias_sigma``),
+    so ``Q = diag(s^2) + U diag(bias_sigma^2) U^T``. Hypotheses: a bias of all
+    ranges to one anchor (``anchor A3``) and, with two or more tags, of one
+    tag-anchor link (``anchor A3 from tag 1``).
+    """
+    tg, an = tag_idx[use], anc_idx[use]
+    J = _platform_jac(A, L, state, tg, an)
+    if not heading_observed:
+        J = J[:, :3]
+    anchors = np.unique(an)
+    U = (an[:, None] == anchors[None, :]).astype(float)
+    Q = Covariance(
+        diag=s[use] ** 2,
+        low_rank=U if np.any(bias_sigma[anchors] > 0) else None,
+        low_rank_var=np.maximum(bias_sigma[anchors], 1e-9) ** 2,
+    )
+    v = d[use] - _platform_h(A, L, state, tg, an)
+    hyps = [Hypothesis(f"anchor {ids[j]}", U[:, k]) for k, j in enumerate(anchors)]
+    n_tags = L.shape[0]
+    if n_tags >= 2:
+        for k in range(n_tags):
+            for j in anchors:
+                c = ((tg == k) & (an == j)).astype(float)
+                if c.any():
+                    hyps.append(Hypothesis(f"anchor {ids[j]} from tag {k + 1}", c))
+    R = _rotz(float(state[3]))
+    G = np.zeros((3, J.shape[1]))
+    G[:, :3] = np.eye(3)
+    if heading_observed:
+        G[:2, 3] = np.array([-(R @ lever)[1], (R @ lever)[0]])
+    prior = None
+    if heading_prior is not None and heading_observed:
+        prior = np.zeros((4, 4))
+        prior[3, 3] = 1.0 / heading_prior[1] ** 2
+    return adjustment_test(J, Q, v, hyps, alpha, position_map=G, prior_information=prior)
+
+
+def _determined(
+    A: np.ndarray,
+    L: np.ndarray,
+    s: np.ndarray,
+    tag_idx: np.ndarray,
+    anc_idx: np.ndarray,
+    state: np.ndarray,
+    heading_prior: tuple[float, float] | None,
+    heading_observed: bool,
+) -> bool:
+    """Whether these ranges still determine the platform pose (well-conditioned information)."""
+    info = _platform_info(A, L, s, tag_idx, anc_idx, state, heading_prior)
+    if not heading_observed:
+        info = info[:3, :3]
+    ev = np.linalg.eigvalsh(info)
+    return bool(ev[0] > ev[-1] / COND_LIMIT)
+
+
+def _hypothesis_ranges(
+    label: str, ids: Sequence[str], tag_idx: np.ndarray, anc_idx: np.ndarray
+) -> np.ndarray:
+    """The ranges a hypothesis label names (``anchor A3`` or ``anchor A3 from tag 1``)."""
+    words = label.split()
+    j = list(ids).index(words[1])
+    drop = anc_idx == j
+    if len(words) > 2:
+        drop &= tag_idx == int(words[-1]) - 1
+    return drop
+
+
+def _geometry(A: np.ndarray, state: np.ndarray) -> dict[str, float]:
+    """PDOP of the anchors used at the platform, and how far outside their plan hull it stands."""
+    p = state[:3]
+    u = p - A
+    u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
+    info = u.T @ u
+    pdop = float(np.sqrt(np.trace(np.linalg.pinv(info))))
+    xy = A[:, :2]
+    outside = 0.0
+    if len(xy) >= 3 and np.linalg.matrix_rank(xy - xy.mean(axis=0)) == 2:
+        hull = ConvexHull(xy)
+        eq = hull.equations
+        dist = eq[:, :2] @ p[:2] + eq[:, 2]
+        if np.any(dist > 0):
+            v = xy[hull.vertices]
+            a, b = v, np.roll(v, -1, axis=0)
+            ab = b - a
+            tt = np.clip(np.einsum("ij,ij->i", p[:2] - a, ab) / np.einsum("ij,ij->i", ab, ab), 0, 1)
+            outside = float(np.min(np.linalg.norm(a + tt[:, None] * ab - p[:2], axis=1)))
+    return {"pdop": pdop, "outside_coverage_m": outside}
 
 
 def _platform_h(
@@ -263,11 +461,25 @@ def _platform_gn(
     state: np.ndarray,
     heading_prior: tuple[float, float] | None,
     max_iter: int,
-) -> tuple[np.ndarray, int]:
+) -> tuple[np.ndarray, int, bool]:
+    """Damped Gauss-Newton on all ranges: the state, the iterations, whether it converged.
+
+    Each step is scaled back (halved, up to 7 times) until it lowers the cost; the
+    solve has converged when a step is negligible against its own uncertainty.
+    """
     state = state.copy()
-    iterations = 0
-    while iterations < max_iter:
-        iterations += 1
+
+    def cost_of(x: np.ndarray) -> float:
+        r = (d - _platform_h(A, L, x, tag_idx, anc_idx)) / s
+        c = float(r @ r)
+        if heading_prior is not None:
+            c += (
+                float(np.angle(np.exp(1j * (heading_prior[0] - x[3])))) ** 2 / heading_prior[1] ** 2
+            )
+        return c
+
+    cost = cost_of(state)
+    for iteration in range(1, max_iter + 1):
         J = _platform_jac(A, L, state, tag_idx, anc_idx)
         r = d - _platform_h(A, L, state, tag_idx, anc_idx)
         Wj = J / s[:, None] ** 2
@@ -283,10 +495,17 @@ def _platform_gn(
             raise LocalizationError(
                 "the tag and anchor geometry does not determine the platform pose"
             ) from None
-        state += step
-        if np.linalg.norm(step) < 1e-8:
-            break
-    return state, iterations
+        if float(step @ M @ step) < 1e-10 or np.linalg.norm(step) < 1e-8:
+            return state, iteration, True
+        for scale in 0.5 ** np.arange(8):
+            trial = state + scale * step
+            new = cost_of(trial)
+            if new <= cost:
+                state, cost = trial, new
+                break
+        else:
+            return state, iteration, False
+    return state, max_iter, False
 
 
 def platform_to_base_covariance(
