@@ -25,6 +25,7 @@ from fabflow.errors import FabflowError
 from fabflow.version import __version__
 
 if TYPE_CHECKING:
+    from fabflow.positioning.integrity import Integrity
     from fabflow.positioning.result import BasePose
     from fabflow.project import Project
 
@@ -249,9 +250,59 @@ def report_base_pose(pose: BasePose, out: Path, method: str, rows: list[tuple[st
         ("sigma xyz (mm)", ", ".join(f"{1e3 * v:.2f}" for v in sd[:3])),
         ("sigma heading (deg)", f"{np.degrees(sd[5]):.4f}"),
         ("rmse (mm)", f"{1e3 * pose.rmse:.2f}"),
+        *integrity_rows(pose.integrity),
     ]
     print_summary([(method, i, v) for i, v in rows], title=f"fabflow localize {method}")
-    console.print(f"[green]wrote[/] {(Path(out) / 'base_pose.json').resolve()}")
+    written = (Path(out) / "base_pose.json").resolve()
+    console.print(f"[green]wrote[/] {written}")
+    if pose.integrity is None or pose.integrity.failed:
+        from fabflow.errors import LocalizationError
+
+        reason = "untested" if pose.integrity is None else pose.integrity.reason
+        raise LocalizationError(
+            f"integrity failed: {reason}; do not build from this pose (its tests are in {written})"
+        )
+
+
+def integrity_rows(integrity: Integrity | None) -> list[tuple[str, str]]:
+    """Rows of the integrity block: status, tests, exclusions, protection level."""
+    if integrity is None:
+        return [("integrity", "untested")]
+    rows = [("integrity", integrity.status + (f": {integrity.reason}" if integrity.reason else ""))]
+    g = integrity.global_test
+    if g.get("statistic") is not None and g.get("threshold") is not None:
+        rows.append(
+            (
+                "global test",
+                f"{g['statistic']:.1f} {'<=' if g['passed'] else '>'} {g['threshold']:.1f} "
+                f"({integrity.redundancy} dof, variance factor {g['variance_factor']:.2f})",
+            )
+        )
+    w = integrity.w_test
+    if w.get("max") is not None:
+        rows.append(
+            (
+                "largest w-test",
+                f"{w['max']:.2f} {'<=' if w['passed'] else '>'} {w['threshold']:.2f} "
+                f"({w['suspect']})",
+            )
+        )
+    for e in integrity.excluded:
+        rows.append(("left out", str(e["observation"])))
+    pl = integrity.protection_level
+    if pl.get("horizontal") is not None:
+        rows.append(
+            (
+                "protection level (mm)",
+                f"horizontal {1e3 * pl['horizontal']:.1f}, vertical {1e3 * pl['vertical']:.1f}",
+            )
+        )
+    ident = integrity.checks.get("prism_identification", {})
+    if ident.get("reassigned"):
+        rows.append(("prisms", ident["reassigned"]))
+    if integrity.checks.get("degraded"):
+        rows.append(("degraded", integrity.checks["degraded"]))
+    return rows
 
 
 @localize_app.command("total-station")

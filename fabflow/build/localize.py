@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 
 from fabflow.build.context import BuildContext
-from fabflow.localize.plan import localize_plan
+from fabflow.localize.plan import VisitPoses, enforce_integrity, localize_plan
 from fabflow.output import write_json
 from fabflow.transforms.se3 import pose_error
 
@@ -23,6 +25,7 @@ def stage_localize(ctx: BuildContext) -> None:
     plan = ctx.need_plan()
     rng = np.random.default_rng(project.simulation.seed)
     results = localize_plan(project, plan, ctx.need_elements(), rng)
+    warnings = enforce_integrity(project, plan, results)
     ctx.localization = results
     folder = ctx.out / "localization"
     folder.mkdir()
@@ -51,3 +54,23 @@ def stage_localize(ctx: BuildContext) -> None:
         f"{1000 * np.mean(errors):.1f} / {1000 * np.max(errors):.1f} mm",
     )
     ctx.add("localize", "XY sigma, predicted (mean)", f"{1000 * np.mean(sigma):.1f} mm")
+    for item, value in integrity_rows(results):
+        ctx.add("localize", item, value)
+    for message in warnings:
+        ctx.add("localize", "warning", message)
+
+
+def integrity_rows(results: VisitPoses) -> list[tuple[str, str]]:
+    """Summary rows: visits by integrity status, and the largest protection level."""
+    visits = [est for est, _ in results.values() if "measured_in_package" not in est.quality]
+    status = Counter("untested" if e.integrity is None else e.integrity.status for e in visits)
+    rows = [("integrity", ", ".join(f"{n} {s}" for s, n in sorted(status.items())))]
+    levels = [
+        e.integrity.protection_level.get("horizontal")
+        for e in visits
+        if e.integrity is not None and e.integrity.protection_level
+    ]
+    levels = [v for v in levels if v is not None and np.isfinite(v)]
+    if levels:
+        rows.append(("protection level XY (max)", f"{1000 * max(levels):.1f} mm"))
+    return rows

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from fabflow.build.context import BuildContext
+from fabflow.localize.plan import VisitPoses, failed_visits
 from fabflow.programs.compile import write_programs
 
 
@@ -12,7 +13,8 @@ def stage_program(ctx: BuildContext) -> None:
     Needs the plan, the elements and the localization; sets ``ctx.programs``.
     """
     project = ctx.project
-    base_poses = {i: pose for i, (pose, _) in ctx.need_localization().items()}
+    localized = ctx.need_localization()
+    base_poses = {i: pose for i, (pose, _) in localized.items() if i not in failed(localized)}
     programs, files = write_programs(ctx.need_plan(), ctx.need_elements(), project, base_poses)
     folder = ctx.out / "programs"
     folder.mkdir()
@@ -23,3 +25,12 @@ def stage_program(ctx: BuildContext) -> None:
     ctx.add("program", "programs / files", f"{len(programs)} / {len(files)}")
     ctx.add("program", "motions", sum(len(p.moves) for p in programs))
     ctx.add("program", "robot time (planned)", f"{sum(p.duration for p in programs) / 60:.1f} min")
+    skipped = sorted(failed(localized))
+    if skipped:
+        visits = ", ".join(str(i + 1) for i in skipped)
+        ctx.add("program", "no program (localization failed)", f"visits {visits}")
+
+
+def failed(localized: VisitPoses) -> set[int]:
+    """Work packages whose base pose failed its integrity tests."""
+    return {i for i, _ in failed_visits(localized)}

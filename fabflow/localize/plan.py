@@ -15,12 +15,14 @@ from dataclasses import replace
 import numpy as np
 
 from fabflow.design.elements import Element
+from fabflow.errors import LocalizationError
 from fabflow.localize.methods import LOCALIZERS, LocalizeStation, localizer_arguments
+from fabflow.positioning.integrity import consistency_test, exact, unchecked
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project
 from fabflow.robots import platform
 from fabflow.tasks.plan import Plan, Station
-from fabflow.transforms.se3 import compose_covariance
+from fabflow.transforms.se3 import compose_covariance, pose_error
 from fabflow.transforms.so3 import exp_so3
 
 VisitPoses = dict[int, tuple[BasePose, np.ndarray]]
@@ -43,6 +45,7 @@ def exact_localizer(method: str) -> LocalizeStation:
             method=method,
             station=station_id,
             quality={"simulated": "exact (simulation.sensor_noise is false)"},
+            integrity=exact("simulation.sensor_noise is false: the pose is the true one"),
         )
 
     return localize
@@ -135,7 +138,7 @@ def localize_plan(
                 quality={**estimate.quality, "measured_in_package": previous.index},
             )
         else:
-            _, T_true = parked_pose(project, wp.station, rng)
+            T_planned, T_true = parked_pose(project, wp.station, rng)
             built = prebuilt + [by_id[i] for i in built_ids]
             estimate = localize(
                 project,
@@ -145,7 +148,128 @@ def localize_plan(
                 built=built,
                 **localizer_arguments(project, method, wp.station),
             )
+            estimate = check_visit(project, estimate, T_planned)
         results[wp.index] = (estimate, T_true)
         built_ids += list(wp.elements)
         previous = wp
     return results
+
+
+def parking_covariance(project: Project, T_world_base: np.ndarray) -> np.ndarray:
+    """3x3 covariance of the base ``[x, y, yaw]`` from the platform's parking accuracy.
+
+    The platform parks within ``parking_sigma`` per axis and ``parking_sigma_deg``
+    in heading (``localization.integrity``; defaults: the simulation's driving
+    error); a heading error also moves the base by the lever of the arm mounting.
+    """
+    policy = project.localization.integrity
+    sim = project.simulation
+    s_xy = sim.driving_error if policy.parking_sigma is None else policy.parking_sigma
+    s_deg = (
+        sim.driving_heading_error_deg
+        if policy.parking_sigma_deg is None
+        else policy.parking_sigma_deg
+    )
+    s_yaw = np.radians(s_deg)
+    lever = np.asarray(T_world_base, dtype=float)[:3, :3] @ (
+        -project.robot.platform.T_platform_base.matrix()[:3, 3]
+    )
+    # the base moves by e_z x (base - platform) for a yaw about the platform origin
+    J = np.array([lever[1], -lever[0]])
+    C = np.zeros((3, 3))
+    C[:2, :2] = s_xy**2 * np.eye(2) + s_yaw**2 * np.outer(J, J)
+    C[:2, 2] = C[2, :2] = s_yaw**2 * J
+    C[2, 2] = s_yaw**2
+    return C
+
+
+def check_visit(project: Project, estimate: BasePose, T_world_base_planned: np.ndarray) -> BasePose:
+    """The estimate with its integrity completed for the build: finite, tested, where planned.
+
+    - A pose or covariance holding NaN or infinity fails.
+    - A method that returned no integrity record fails as untested.
+    - The estimate must agree with the station the platform was sent to: the
+      difference in ``x, y, yaw`` is tested against the parking accuracy plus
+      the estimate's own covariance (chi-square, 3 dof, at the integrity level).
+      A pose farther off means a wrong map, a wrong anchor survey, a wrong
+      station, or a platform parked elsewhere: in every case not the pose to
+      build from.
+    """
+    integrity = estimate.integrity
+    if integrity is None:
+        integrity = unchecked(f"the {estimate.method} result carries no tests")
+    finite = np.all(np.isfinite(estimate.T_world_base)) and np.all(np.isfinite(estimate.covariance))
+    if not finite:
+        return replace(
+            estimate,
+            integrity=integrity.failing("the pose or its covariance is not finite"),
+        )
+    if "exact" in integrity.checks:
+        return replace(estimate, integrity=integrity)
+    planned = np.asarray(T_world_base_planned, dtype=float)
+    err = pose_error(estimate.T_world_base, planned)
+    e = np.array([err[0], err[1], err[5]])
+    sel = [0, 1, 5]
+    C = parking_covariance(project, planned) + estimate.covariance[np.ix_(sel, sel)]
+    alpha = project.localization.integrity.alpha
+    statistic, threshold, passed = consistency_test(e, C, alpha)
+    check = {
+        "offset_xy_m": float(np.hypot(e[0], e[1])),
+        "offset_heading_deg": float(np.degrees(e[2])),
+        "statistic": statistic,
+        "threshold": threshold,
+        "passed": passed,
+    }
+    integrity = integrity.with_checks(planned_station=check)
+    if not passed:
+        integrity = integrity.failing(
+            f"the pose is {1e3 * check['offset_xy_m']:.0f} mm and "
+            f"{abs(check['offset_heading_deg']):.2f} deg from the planned station, more than "
+            "the parking accuracy allows: wrong map, anchor survey or station?"
+        )
+    return replace(estimate, integrity=integrity)
+
+
+def failed_visits(results: VisitPoses) -> list[tuple[int, BasePose]]:
+    """The work packages whose pose failed its integrity tests, in order."""
+    return [
+        (i, est)
+        for i, (est, _) in sorted(results.items())
+        if est.integrity is None or est.integrity.failed
+    ]
+
+
+def enforce_integrity(project: Project, plan: Plan, results: VisitPoses) -> list[str]:
+    """Apply ``localization.integrity.on_failure`` to the localized visits.
+
+    Returns
+    -------
+    list of str
+        One warning per failed visit (``warn``); empty when all passed.
+
+    Raises
+    ------
+    LocalizationError
+        With ``refuse`` (the default), at the first failed visit: naming the
+        visit, its station, the method, the test and the suspect observation.
+    """
+    failed = failed_visits(results)
+    if not failed:
+        return []
+    by_index = {wp.index: wp for wp in plan.work_packages}
+    messages = []
+    for i, est in failed:
+        wp = by_index[i]
+        integ = est.integrity
+        reason = "untested" if integ is None else integ.reason
+        messages.append(
+            f"visit {i + 1} at station {wp.station.id} ({est.method}): integrity failed: {reason}"
+        )
+    if project.localization.integrity.on_failure == "refuse":
+        raise LocalizationError(
+            messages[0]
+            + (f" (and {len(messages) - 1} more visit(s))" if len(messages) > 1 else "")
+            + "; no program is written from a failed pose (localization.integrity.on_failure "
+            "'warn' builds the others)"
+        )
+    return messages

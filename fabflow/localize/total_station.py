@@ -22,6 +22,7 @@ import numpy as np
 
 from fabflow.design.elements import Element, element_boxes
 from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.integrity import guard_exclusion
 from fabflow.positioning.point_selection import (
     Boxes,
     ClearanceRules,
@@ -202,12 +203,24 @@ def localize_station(
         T_world_instrument, polar_to_cartesian(hz, v, sd), polar_covariance(hz, v, sd, instrument)
     )
     assert C is not None
+    policy = project.localization.integrity
+    labels = [f"prism P{i + 1}" for i in range(len(P_base))]
     if setup.procedure == "three_point":
-        reg = localize_three_point(M, P_base[0], setup.three_point_step, C, sigma_robot)
+        reg = localize_three_point(
+            M, P_base[0], setup.three_point_step, C, sigma_robot, policy.alpha
+        )
     else:
         reg = register_points(
-            P_base, M, point_cov=C, base_sigma=sigma_robot, reject_outlier=len(P_base) >= 5
+            P_base,
+            M,
+            point_cov=C,
+            base_sigma=sigma_robot,
+            reject_outlier=True,
+            alpha=policy.alpha,
+            point_labels=labels,
         )
+    if reg.integrity is not None:
+        reg = replace(reg, integrity=guard_exclusion(reg.integrity, project.tolerances.position))
     reg = add_instrument_uncertainty(reg, T_world_instrument, C_setup)
     quality = {
         "procedure": setup.procedure,

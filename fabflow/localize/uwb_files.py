@@ -114,7 +114,7 @@ def localize_from_files(
     if imu_csv is None:
         rej = reject_outliers_static(epochs, sigma(epochs))
         T_world_platform, cov, residuals, more = _static_pose(
-            setup, A, L, rej, sigma, T_platform_base
+            setup, A, L, rej, sigma, T_platform_base, ids
         )
     else:
         rej = reject_outliers(epochs, sigma(epochs))
@@ -122,6 +122,7 @@ def localize_from_files(
         T_world_platform, cov, residuals, more = _eskf_pose(
             setup, A, L, rej, sigma, T_platform_base, log, corrected, imu_csv
         )
+    integrity = more.pop("integrity", None)
     quality.update(more)
     T_world_base = platform.T_world_base(T_world_platform, 0.0, T_platform_base)
     rmse = float(np.sqrt(np.mean(residuals**2))) if residuals.size else 0.0
@@ -132,6 +133,7 @@ def localize_from_files(
         residuals=np.asarray(residuals)[:, None],
         rmse=rmse,
         quality=quality,
+        integrity=integrity,
     )
 
 
@@ -142,10 +144,20 @@ def _static_pose(
     rej: Any,
     sigma: Sigma,
     T_platform_base: np.ndarray,
+    anchor_ids: list[str],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-    """Platform pose, base covariance, residuals and quality of a standing platform."""
+    """Platform pose, base covariance, residuals and quality (with the integrity record)."""
     estimator = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
-    fix = locate_platform(A, rej.ranges, L, sigma, method=estimator)
+    fix = locate_platform(
+        A,
+        rej.ranges,
+        L,
+        sigma,
+        method=estimator,
+        anchor_bias_sigma=np.full(len(A), setup.calibration_sigma),
+        anchor_ids=anchor_ids,
+        base_lever=T_platform_base[:3, 3],
+    )
     cov = platform_to_base_covariance(fix.T, T_platform_base, fix.covariance)
     quality = {
         "estimator": estimator,
@@ -155,6 +167,7 @@ def _static_pose(
         "std_xyz_yaw": [float(v) for v in np.sqrt(np.diag(fix.covariance))],
         "unobserved": ["rx", "ry"] + ([] if fix.heading_observed else ["rz"]),
         "unobserved_variance_rad2": UNOBSERVED_VARIANCE,
+        "integrity": fix.integrity,
     }
     return fix.T, cov, fix.residuals, quality
 

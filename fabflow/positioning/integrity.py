@@ -546,6 +546,14 @@ def identify(test: TestResult) -> int | None:
     return k
 
 
+def consistency_test(e: np.ndarray, C: np.ndarray, alpha: float) -> tuple[float, float, bool]:
+    """Chi-square test of a difference ``e`` with covariance ``C``: statistic, threshold, passed."""
+    e = np.asarray(e, dtype=float)
+    statistic = float(e @ np.linalg.pinv(np.asarray(C, dtype=float)) @ e)
+    threshold = float(special.chdtri(len(e), alpha))
+    return statistic, threshold, bool(statistic <= threshold)
+
+
 def unchecked(reason: str, alpha: float = ALPHA, **checks: Any) -> Integrity:
     """A failed record for a pose that could not be tested (no redundancy, bad input)."""
     return Integrity(status="failed", reason=reason, alpha=alpha, checks=dict(checks))

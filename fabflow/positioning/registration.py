@@ -16,7 +16,6 @@ residuals, RMSE and a leave-one-out test for a single bad prism reading
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Literal
@@ -36,6 +35,7 @@ from fabflow.positioning.integrity import (
     record,
     unchecked,
 )
+from fabflow.positioning.prism_match import match_prisms
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.rigid_fit import (
     as_points,
@@ -47,9 +47,6 @@ from fabflow.positioning.rigid_fit import (
     refine_registration,
 )
 from fabflow.transforms.se3 import make_T
-
-MAX_PERMUTED = 7
-"""Up to this many points every order of the readings is tried; beyond, pairwise swaps."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -293,7 +290,7 @@ def register_points(
     identify_prisms
         With known covariances and at least 4 points, check that the readings
         belong to the points by their distances, and reassign a swap
-        (:func:`match_prisms`).
+        (:func:`~fabflow.positioning.prism_match.match_prisms`).
 
     Returns
     -------
@@ -519,88 +516,3 @@ def _relative_integrity(
         excluded=tuple(excluded),
         checks=note,
     )
-
-
-def match_prisms(
-    P: np.ndarray, M: np.ndarray, C: np.ndarray, labels: Sequence[str], alpha: float
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """Which reading belongs to which robot point, from the distances between the points.
-
-    Distances between prisms are the same in the robot base frame and in the
-    world, so a reading given under the wrong point id shows as distances that
-    do not fit. The readings are kept as given when their distances pass a
-    chi-square test at ``alpha``; otherwise the one order of the readings whose
-    distances fit (over every permutation up to :data:`MAX_PERMUTED` points,
-    pairwise swaps beyond) is taken and reported. Two orders fitting equally
-    well cannot be told apart: that is refused.
-
-    Parameters
-    ----------
-    P
-        (n, 3) robot points, base frame (metres).
-    M
-        (n, 3) measured points, world frame (metres), in the order given.
-    C
-        (n, 3, 3) their covariances (robot and instrument errors, m^2).
-    labels
-        Point names, for the report.
-    alpha
-        Level of the distance test.
-
-    Returns
-    -------
-    order, report
-        ``M[order]`` matches ``P``; the report says what was tested and done.
-
-    Raises
-    ------
-    LocalizationError
-        When the readings do not fit as given and several orders fit them.
-    """
-    n = len(P)
-    if n < 4:
-        return np.arange(n), {}
-    iu, ju = np.triu_indices(n, 1)
-    d_P = np.linalg.norm(P[iu] - P[ju], axis=1)
-    dof = len(iu)
-    threshold = float(special.chdtri(dof, alpha))
-
-    def statistic(orders: np.ndarray) -> np.ndarray:
-        Mi, Mj = M[orders[:, iu]], M[orders[:, ju]]
-        diff = Mi - Mj
-        d_M = np.linalg.norm(diff, axis=-1)
-        u = diff / np.maximum(d_M, 1e-12)[..., None]
-        Csum = C[orders[:, iu]] + C[orders[:, ju]]
-        var = np.einsum("...i,...ij,...j->...", u, Csum, u)
-        return np.sum((d_M - d_P) ** 2 / var, axis=-1)
-
-    identity = np.arange(n)[None]
-    t0 = float(statistic(identity)[0])
-    report: dict[str, Any] = {"distance_test": t0, "threshold": threshold, "dof": dof}
-    if t0 <= threshold:
-        return np.arange(n), {**report, "assignment": "as given"}
-    if n <= MAX_PERMUTED:
-        orders = np.array(list(itertools.permutations(range(n))))
-    else:
-        swaps = [(a, b) for a in range(n) for b in range(a + 1, n)]
-        orders = np.tile(np.arange(n), (len(swaps), 1))
-        for k, (a, b) in enumerate(swaps):
-            orders[k, [a, b]] = orders[k, [b, a]]
-    stats = statistic(orders)
-    fits = np.flatnonzero(stats <= threshold)
-    if len(fits) > 1:
-        raise LocalizationError(
-            f"the prism readings do not fit the robot points as given (distance test "
-            f"{t0:.0f} > {threshold:.1f}) and {len(fits)} orders of the readings fit them: "
-            "the prisms cannot be identified; check the point ids"
-        )
-    if len(fits) == 0:
-        return np.arange(n), {**report, "assignment": "as given (no order fits)"}
-    order = orders[fits[0]]
-    moved = [f"{labels[i]} <- reading of {labels[order[i]]}" for i in range(n) if order[i] != i]
-    return order, {
-        **report,
-        "assignment": "reassigned",
-        "reassigned": "readings reassigned by their distances: " + ", ".join(moved),
-        "distance_test_after": float(stats[fits[0]]),
-    }

@@ -12,8 +12,9 @@ from typing import Any
 import numpy as np
 
 from fabflow.errors import InputError
-from fabflow.positioning.registration import Registration
-from fabflow.positioning.rigid_fit import as_points, check_geometry
+from fabflow.positioning.integrity import ALPHA, record, unchecked
+from fabflow.positioning.registration import Registration, point_tests
+from fabflow.positioning.rigid_fit import as_points, check_geometry, refine_registration
 from fabflow.transforms.se3 import make_T
 from fabflow.transforms.so3 import log_so3
 
@@ -65,6 +66,7 @@ def localize_three_point(
     d: float,
     point_cov: Any = None,
     base_sigma: float = 0.0,
+    alpha: float = ALPHA,
 ) -> Registration:
     """Three-point localization (eqs 1-6) with first-order covariance.
 
@@ -80,6 +82,11 @@ def localize_three_point(
         ``(3, 3, 3)`` covariances of the measured points (m^2); zero when None.
     base_sigma
         Robot positioning standard deviation (metres), added to each point.
+    alpha
+        Level of the tests. The three points give nine coordinates for six
+        unknowns: the least-squares fit through them is tested (global test,
+        w-tests per point and for scale); a wrong or swapped reading shows there,
+        since it cannot be fitted by a rigid motion.
     """
     M = as_points(points_world, "points_world", n=3)
     if not d > 0:
@@ -101,10 +108,18 @@ def localize_three_point(
         C9[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = C[k]
     cov = Jn @ C9 @ Jn.T
     residuals = M - (P @ R.T + t)
+    if np.all(np.linalg.eigvalsh(C)[:, 0] > 0):
+        R_fit, t_fit, _ = refine_registration(R, t, P, M, np.linalg.inv(C))
+        labels = ["prism P1", "prism P2", "prism P3"]
+        tests = point_tests(P, M, C, R_fit, t_fit, np.ones(3, bool), labels, alpha)
+        integrity = record(tests, (), alpha)
+    else:
+        integrity = unchecked("no point covariances: the readings cannot be tested", alpha)
     return Registration(
         T_world_base=make_T(R, t),
         covariance=0.5 * (cov + cov.T),
         residuals=residuals,
         rmse=float(np.sqrt(np.mean(np.einsum("ni,ni->n", residuals, residuals)))),
         method="three_point",
+        integrity=integrity,
     )

@@ -17,6 +17,7 @@ from typing import Literal
 import numpy as np
 
 from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.integrity import ALPHA
 from fabflow.positioning.polar import ARCSEC, Instrument, Observations
 from fabflow.positioning.registration import Registration, register_points
 from fabflow.transforms.se3 import compose_covariance, inv_T
@@ -33,6 +34,7 @@ def localize_observations(
     base_sigma: float = 0.0,
     method: Literal["closed_form", "optimize"] = "closed_form",
     reject_outlier: bool = True,
+    alpha: float = ALPHA,
 ) -> tuple[Registration, tuple[str, ...]]:
     """Register measured observations against robot points matched by point id.
 
@@ -48,7 +50,7 @@ def localize_observations(
         Instrument pose in the world (identity: the instrument frame is the world).
     base_sigma
         Robot positioning standard deviation (metres).
-    method, reject_outlier
+    method, reject_outlier, alpha
         As in :func:`register_points`.
 
     Returns
@@ -84,6 +86,8 @@ def localize_observations(
         base_sigma=base_sigma,
         method=method,
         reject_outlier=reject_outlier,
+        alpha=alpha,
+        point_labels=[f"prism {pid}" for pid in matched],
     )
     return reg, tuple(matched)
 

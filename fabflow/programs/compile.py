@@ -15,6 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from fabflow.design.elements import Element
+from fabflow.errors import LocalizationError
 from fabflow.positioning.result import BasePose
 from fabflow.programs.feasibility import TOOL_ROTATION_SPEED, move_lengths, solve_moves
 from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
@@ -173,7 +174,8 @@ def write_programs(
     project
         The project (robot, tool, program settings).
     base_poses
-        Localized base pose per visit (``WorkPackage.index``).
+        Localized base pose per visit (``WorkPackage.index``); a work package
+        without one gets no program (a visit whose localization failed).
     fmt
         ``krl``, ``rapid``, ``urscript`` or ``json`` (default: the project's format).
 
@@ -181,6 +183,12 @@ def write_programs(
     -------
     programs, files
         The programs and a mapping of file name to text (all packages).
+
+    Raises
+    ------
+    LocalizationError
+        When a given base pose failed its integrity tests (or was never tested):
+        no program is written from it.
     """
     fmt = fmt or project.program.format
     writer = writer_for(fmt, project.robot.model)
@@ -188,9 +196,16 @@ def write_programs(
     programs: list[Program] = []
     files: dict[str, str] = {}
     for wp in plan.work_packages:
-        if not wp.elements:
+        if not wp.elements or wp.index not in base_poses:
             continue
-        program = work_package_program(wp, by_id, project, base_poses[wp.index])
+        pose = base_poses[wp.index]
+        if pose.integrity is None or pose.integrity.failed:
+            why = "it was not tested" if pose.integrity is None else pose.integrity.reason
+            raise LocalizationError(
+                f"work package {wp.index + 1} (station {wp.station.id}): no program from a "
+                f"base pose that failed its integrity tests: {why}"
+            )
+        program = work_package_program(wp, by_id, project, pose)
         programs.append(program)
         files.update(writer.write(program))
     return programs, files

@@ -228,9 +228,14 @@ def calibrate_covariance(study: Study, n: int) -> np.ndarray:
 
 
 def _cholesky(C: np.ndarray) -> np.ndarray:
-    """Lower factors ``L @ L.T == C`` of PSD matrices (zero rows/columns allowed)."""
+    """Factors ``L @ L.T == C`` of PSD matrices (zero rows/columns allowed).
+
+    Components with zero variance get exactly zero rows: the eigenvectors of the
+    others may carry rounding-level entries there.
+    """
     w, U = np.linalg.eigh(C)
-    return U * np.sqrt(np.clip(w, 0.0, None))[..., None, :]
+    L = U * np.sqrt(np.clip(w, 0.0, None))[..., None, :]
+    return np.where((np.diagonal(C, axis1=-2, axis2=-1) == 0.0)[..., :, None], 0.0, L)
 
 
 def run_seed(seed: int, run: int) -> np.random.SeedSequence:
