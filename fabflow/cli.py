@@ -562,6 +562,7 @@ def simulate(
         table.add_column(name, justify="left" if name == "method" else "right")
     table.add_column("loc. xy RMSE mm", justify="right")
     table.add_column("sigma ratio xy", justify="right")
+    table.add_column("visits failed / silently wrong", justify="right")
     for r in rows:
         table.add_row(
             r["method"],
@@ -572,6 +573,7 @@ def simulate(
             f"{100 * r['within_tolerance']:.1f} %",
             f"{1e3 * r['localization_xy_rmse_m']:.2f}",
             f"{r['sigma_ratio_xy']:.2f}",
+            f"{r['visits_failed']} / {r['silently_wrong']}",
         )
     console.print(table)
     failed = sum(r["runs_failed"] for r in rows)

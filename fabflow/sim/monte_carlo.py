@@ -15,14 +15,15 @@ import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy import special
 
 from fabflow.errors import InputError
 from fabflow.positioning.result import BasePose
-from fabflow.sim.run import UNOBSERVED_SIGMA, RunResult, Study, simulate_run
+from fabflow.sim.run import STATUSES, UNOBSERVED_SIGMA, RunResult, Study, simulate_run
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -95,6 +96,9 @@ class StudyResult:
         (N, 4, 4) as-built element poses of run 0 (``None`` if it failed).
     elapsed_s
         Wall-clock time of the runs (seconds).
+    integrity
+        (R, V) integrity status per run and visit (index into
+        :data:`fabflow.sim.run.STATUSES`).
     """
 
     method: str
@@ -110,6 +114,7 @@ class StudyResult:
     base_poses: tuple[BasePose, ...]
     T_world_element_asbuilt_run0: np.ndarray | None
     elapsed_s: float
+    integrity: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int8))
 
 
 def collect(
@@ -140,6 +145,7 @@ def collect(
         base_poses=first.base_poses if first is not None else (),
         T_world_element_asbuilt_run0=None if first is None else first.T_world_element_asbuilt,
         elapsed_s=elapsed,
+        integrity=stack("integrity", (V,)).astype(np.int8),
     )
 
 
@@ -374,7 +380,46 @@ def summarize(study: Study, result: StudyResult) -> dict[str, Any]:
         "localization": _localization_stats(
             result.localization_error, result.localization_covariance
         ),
+        "integrity": integrity_stats(result),
         "per_station": per_station,
+    }
+
+
+def integrity_stats(result: StudyResult) -> dict[str, Any]:
+    """How the visits' integrity tests did against the truth the simulation knows.
+
+    A visit is *wrong* when its true error lies outside the 99.9 % ellipsoid of
+    its predicted covariance (over the observed axes). Against the status:
+    ``detected`` = wrong and failed; ``false_alarms`` = failed but not wrong;
+    ``silently_wrong`` = wrong with status ok or excluded (what must not happen);
+    ``excluded`` = passed after leaving observations out.
+    """
+    status = result.integrity.reshape(-1)
+    if status.size == 0:
+        return {"visits": 0}
+    e = result.localization_error.reshape(-1, 6)
+    C = result.localization_covariance.reshape(-1, 6, 6)
+    sigma = np.sqrt(np.clip(np.diagonal(C, axis1=-2, axis2=-1), 0.0, None))
+    observed = np.all(sigma < UNOBSERVED_SIGMA, axis=0) & np.any(sigma > 0, axis=0)
+    k = int(observed.sum())
+    wrong = np.zeros(len(e), dtype=bool)
+    if k:
+        Co = C[:, observed][:, :, observed]
+        eo = e[:, observed]
+        d2 = np.einsum(
+            "ni,ni->n", eo, np.linalg.solve(Co + 1e-30 * np.eye(k), eo[..., None])[..., 0]
+        )
+        wrong = d2 > float(special.chdtri(k, 1e-3))
+    tested = status != STATUSES.index("untested")
+    failed = status == STATUSES.index("failed")
+    return {
+        "visits": int(status.size),
+        "tested": int(tested.sum()),
+        **{name: int((status == i).sum()) for i, name in enumerate(STATUSES)},
+        "detected": int((failed & wrong).sum()),
+        "false_alarms": int((failed & ~wrong).sum()),
+        "silently_wrong": int((tested & ~failed & wrong).sum()),
+        "wrong": int(wrong.sum()),
     }
 
 
@@ -397,4 +442,6 @@ def comparison_row(summary: dict[str, Any]) -> dict[str, Any]:
         if {"x", "y"} <= ratio.keys()
         else math.nan,
         "seconds_per_run": summary["runs"]["elapsed_s"] / max(1, summary["runs"]["requested"]),
+        "visits_failed": summary["integrity"].get("failed", 0),
+        "silently_wrong": summary["integrity"].get("silently_wrong", 0),
     }

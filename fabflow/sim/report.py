@@ -48,6 +48,7 @@ from fabflow.sim.monte_carlo import (
 from fabflow.sim.plots import write_plots
 from fabflow.sim.run import (
     CALIBRATION_RUNS,
+    STATUSES,
     Fidelity,
     Study,
     calibrate_covariance,
@@ -199,12 +200,20 @@ def visit_rows(study: Study, result: StudyResult) -> tuple[list[str], list[list[
         "station",
         *(f"error_{a}_{u}" for a, u in zip(AXES, units, strict=True)),
         *(f"sigma_{a}_{u}" for a, u in zip(AXES, units, strict=True)),
+        "integrity",
     ]
     sigma = np.sqrt(
         np.clip(np.diagonal(result.localization_covariance, axis1=-2, axis2=-1), 0.0, None)
     )
     rows = [
-        [int(run), v + 1, s.id, *result.localization_error[k, v], *sigma[k, v]]
+        [
+            int(run),
+            v + 1,
+            s.id,
+            *result.localization_error[k, v],
+            *sigma[k, v],
+            STATUSES[int(result.integrity[k, v])],
+        ]
         for k, run in enumerate(result.runs)
         for v, s in enumerate(study.stations)
     ]

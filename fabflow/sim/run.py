@@ -34,7 +34,7 @@ from fabflow.design.elements import Element
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
 from fabflow.localize.methods import localizer_arguments
-from fabflow.localize.plan import LocalizeStation, parked_pose, station_localizer
+from fabflow.localize.plan import LocalizeStation, check_visit, parked_pose, station_localizer
 from fabflow.positioning.result import BasePose
 from fabflow.project import LOCALIZATION_METHODS, Project
 from fabflow.tasks.plan import Plan, Station
@@ -268,6 +268,8 @@ class RunResult:
         (N, 4, 4) as-built element poses, when the run was asked to keep them.
     base_poses
         Each visit's :class:`BasePose` estimate, when the run was asked to keep them.
+    integrity
+        (V,) each visit's integrity status as an index into :data:`STATUSES`.
     """
 
     run: int
@@ -279,6 +281,12 @@ class RunResult:
     localization_covariance: np.ndarray
     T_world_element_asbuilt: np.ndarray | None = None
     base_poses: tuple[BasePose, ...] = field(default_factory=tuple)
+    integrity: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int8))
+
+
+STATUSES: tuple[str, ...] = ("ok", "excluded", "failed", "untested")
+"""Integrity statuses a simulated visit can end with; ``untested`` for the covariance
+fidelity, whose drawn poses are not the result of a solve."""
 
 
 def study_localizer(study: Study) -> LocalizeStation:
@@ -320,8 +328,9 @@ def simulate_run(
     T_est = np.empty((V, 4, 4))
     cov = np.empty((V, 6, 6))
     estimates: list[BasePose] = []
+    status = np.full(V, STATUSES.index("untested"), dtype=np.int8)
     for v, station in enumerate(study.stations):
-        _, T_true[v] = parked_pose(study.project, station, rng)
+        T_planned, T_true[v] = parked_pose(study.project, station, rng)
         if study.visit_covariance is not None:
             continue
         estimate = localize(
@@ -332,6 +341,9 @@ def simulate_run(
             built=study.built_before[v],
             **localizer_arguments(study.project, study.method, station),
         )
+        estimate = check_visit(study.project, estimate, T_planned)
+        assert estimate.integrity is not None
+        status[v] = STATUSES.index(estimate.integrity.status)
         T_est[v] = estimate.T_world_base
         cov[v] = estimate.covariance
         if keep_poses:
@@ -371,6 +383,7 @@ def simulate_run(
         localization_covariance=cov,
         T_world_element_asbuilt=T_asbuilt if keep_poses else None,
         base_poses=tuple(estimates),
+        integrity=status,
     )
 
 
