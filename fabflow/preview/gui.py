@@ -12,6 +12,7 @@ import numpy as np
 import viser
 
 from fabflow.errors import FabflowError
+from fabflow.positioning.result import BasePose
 from fabflow.preview.model import PreviewModel
 from fabflow.preview.scene import PreviewScene
 
@@ -64,6 +65,29 @@ def legend_html(model: PreviewModel, mode: str) -> str:
     return f'<div style="font-size:0.8em;padding:2px 4px">{rows}</div>'
 
 
+def integrity_line(result: BasePose) -> str:
+    """One markdown line on a localization's integrity; failed and degraded ones in red."""
+    integ = result.integrity
+    if integ is None:
+        return '<span style="color:#c00000">**Integrity: untested**</span>'
+    if integ.failed:
+        return (
+            f'<span style="color:#c00000">**Integrity FAILED**: {html.escape(integ.reason)}</span>'
+        )
+    degraded = integ.checks.get("degraded")
+    pl = integ.protection_level.get("horizontal")
+    level = f", protection level {1000 * pl:.1f} mm" if pl is not None else ""
+    if degraded:
+        return f'<span style="color:#c00000">**Integrity degraded**: {html.escape(degraded)}</span>'
+    if integ.status == "excluded":
+        return f"Integrity: passed after leaving out {html.escape(integ.reason[9:])}{level}"
+    return f"Integrity: ok{level}"
+
+
+def _red(text: str) -> str:
+    return f'<span style="color:#c00000">{text}</span>'
+
+
 def step_info(model: PreviewModel, step: int) -> str:
     """Markdown describing a step: element, station, localization, arm, deviation."""
     m = model
@@ -99,6 +123,7 @@ def step_info(model: PreviewModel, step: int) -> str:
             )
             if norms.size:
                 lines.append(f"Residuals (mm): {shown}{more}")
+            lines.append(integrity_line(result))
     if m.arm is not None and not m.arm_reached[step]:
         lines.append("**Arm: target not reachable**")
     if e is not None and m.deviation is not None:

@@ -375,11 +375,14 @@ class PreviewScene:
         for key, result in self.model.localization.items():
             T = np.asarray(result.T_world_base, dtype=float)
             name = f"visit_{key + 1}" if isinstance(key, int) else str(key)
+            integ = result.integrity
+            bad = integ is None or integ.failed or bool(integ.checks.get("degraded"))
             frame = scene.add_frame(
                 f"/localization/results/{name}",
                 axes_length=0.35,
                 axes_radius=0.012,
-                origin_color=(200, 40, 160),
+                # a failed or degraded localization is marked red
+                origin_color=(220, 0, 0) if bad else (200, 40, 160),
                 wxyz=tuple(_wxyz(T)),
                 position=tuple(T[:3, 3]),
                 visible=False,
