@@ -156,11 +156,13 @@ def localize_plan(
 
 
 def parking_covariance(project: Project, T_world_base: np.ndarray) -> np.ndarray:
-    """3x3 covariance of the base ``[x, y, yaw]`` from the platform's parking accuracy.
+    """4x4 covariance of the base ``[x, y, z, yaw]`` from the platform's parking accuracy.
 
     The platform parks within ``parking_sigma`` per axis and ``parking_sigma_deg``
     in heading (``localization.integrity``; defaults: the simulation's driving
     error); a heading error also moves the base by the lever of the arm mounting.
+    The platform stands on the ground, so the base height is known to about
+    ``parking_sigma`` too (ground and lift).
     """
     policy = project.localization.integrity
     sim = project.simulation
@@ -176,10 +178,11 @@ def parking_covariance(project: Project, T_world_base: np.ndarray) -> np.ndarray
     )
     # the base moves by e_z x (base - platform) for a yaw about the platform origin
     J = np.array([lever[1], -lever[0]])
-    C = np.zeros((3, 3))
+    C = np.zeros((4, 4))
     C[:2, :2] = s_xy**2 * np.eye(2) + s_yaw**2 * np.outer(J, J)
-    C[:2, 2] = C[2, :2] = s_yaw**2 * J
-    C[2, 2] = s_yaw**2
+    C[:2, 3] = C[3, :2] = s_yaw**2 * J
+    C[2, 2] = s_xy**2
+    C[3, 3] = s_yaw**2
     return C
 
 
@@ -189,8 +192,10 @@ def check_visit(project: Project, estimate: BasePose, T_world_base_planned: np.n
     - A pose or covariance holding NaN or infinity fails.
     - A method that returned no integrity record fails as untested.
     - The estimate must agree with the station the platform was sent to: the
-      difference in ``x, y, yaw`` is tested against the parking accuracy plus
-      the estimate's own covariance (chi-square, 3 dof, at the integrity level).
+      difference in ``x, y, z, yaw`` is tested against the parking accuracy plus
+      the estimate's own covariance (chi-square, 4 dof, at the integrity level).
+      The height catches a mirrored solution (tags above anchors that lie almost
+      in one plane fit their ranges as well below it).
       A pose farther off means a wrong map, a wrong anchor survey, a wrong
       station, or a platform parked elsewhere: in every case not the pose to
       build from.
@@ -208,14 +213,15 @@ def check_visit(project: Project, estimate: BasePose, T_world_base_planned: np.n
         return replace(estimate, integrity=integrity)
     planned = np.asarray(T_world_base_planned, dtype=float)
     err = pose_error(estimate.T_world_base, planned)
-    e = np.array([err[0], err[1], err[5]])
-    sel = [0, 1, 5]
+    e = np.array([err[0], err[1], err[2], err[5]])
+    sel = [0, 1, 2, 5]
     C = parking_covariance(project, planned) + estimate.covariance[np.ix_(sel, sel)]
     alpha = project.localization.integrity.alpha
     statistic, threshold, passed = consistency_test(e, C, alpha)
     check = {
         "offset_xy_m": float(np.hypot(e[0], e[1])),
-        "offset_heading_deg": float(np.degrees(e[2])),
+        "offset_z_m": float(e[2]),
+        "offset_heading_deg": float(np.degrees(e[3])),
         "statistic": statistic,
         "threshold": threshold,
         "passed": passed,
@@ -223,9 +229,10 @@ def check_visit(project: Project, estimate: BasePose, T_world_base_planned: np.n
     integrity = integrity.with_checks(planned_station=check)
     if not passed:
         integrity = integrity.failing(
-            f"the pose is {1e3 * check['offset_xy_m']:.0f} mm and "
-            f"{abs(check['offset_heading_deg']):.2f} deg from the planned station, more than "
-            "the parking accuracy allows: wrong map, anchor survey or station?"
+            f"the pose is {1e3 * check['offset_xy_m']:.0f} mm (height "
+            f"{1e3 * check['offset_z_m']:+.0f} mm) and {abs(check['offset_heading_deg']):.2f} deg "
+            "from the planned station, more than the parking accuracy allows: wrong map, anchor "
+            "survey or station?"
         )
     return replace(estimate, integrity=integrity)
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -111,6 +111,35 @@ def instrument_covariance(setup: TotalStationSetup) -> np.ndarray:
     return setup_covariance(setup.setup_sigma_mm, setup.setup_sigma_arcsec)
 
 
+@dataclass(frozen=True)
+class StationReadings:
+    """What a (simulated) total station measured of the prisms at one station.
+
+    Attributes
+    ----------
+    points_base
+        (n, 3) prism positions the robot reports in its base frame (metres).
+    points_world
+        (n, 3) the measured prism positions in the world (metres).
+    covariances
+        (n, 3, 3) their covariances (m^2).
+    slope_distances
+        (n,) measured slope distances (metres).
+    T_world_instrument
+        4x4 set-up pose of the instrument the readings were turned to the world with.
+    moved, dropped
+        How the chosen points were moved clear of obstacles, and which were dropped.
+    """
+
+    points_base: np.ndarray
+    points_world: np.ndarray
+    covariances: np.ndarray
+    slope_distances: np.ndarray
+    T_world_instrument: np.ndarray
+    moved: np.ndarray
+    dropped: tuple[tuple[int, str], ...]
+
+
 def localize_station(
     project: Project,
     T_world_base: np.ndarray,
@@ -124,13 +153,14 @@ def localize_station(
     ``robot_points`` files, those are used instead (:func:`localize_files`)
     and ``T_world_base``, ``rng`` and ``built`` are not.
 
-    The prism points are chosen in the base frame (eqs 9-11 for the
-    ``arbitrary`` procedure, then moved clear of ``built`` and of the line of
-    sight; ``P1, P1 + d x, P1 + d y`` for ``three_point``), reached by
-    inverse kinematics and placed by forward kinematics of the project's robot.
-    The true prism positions (plus the robot's repeatability noise) are
-    observed from ``T_world_instrument`` with the instrument's noise, and the
-    base pose is estimated from the readings.
+    Otherwise :func:`simulate_readings` then :func:`estimate_from_readings`: the
+    prism points are chosen in the base frame (eqs 9-11 for the ``arbitrary``
+    procedure, then moved clear of ``built`` and of the line of sight; ``P1,
+    P1 + d x, P1 + d y`` for ``three_point``), reached by inverse kinematics and
+    placed by forward kinematics of the project's robot. The true prism
+    positions (plus the robot's repeatability noise) are observed from
+    ``T_world_instrument`` with the instrument's noise, and the base pose is
+    estimated and tested from the readings.
 
     Parameters
     ----------
@@ -148,7 +178,7 @@ def localize_station(
     Returns
     -------
     BasePose
-        Estimated pose with covariance, residuals and quality figures.
+        Estimated pose with covariance, residuals, quality figures and integrity.
     """
     setup = project.localization.total_station or TotalStationSetup()
     if setup.observations is not None and setup.robot_points is not None:
@@ -160,6 +190,25 @@ def localize_station(
             robot_sigma=project.simulation.robot_repeatability,
             station=station_id,
         )
+    readings = simulate_readings(project, T_world_base, rng, built, station_id)
+    return estimate_from_readings(project, readings, station_id)
+
+
+def simulate_readings(
+    project: Project,
+    T_world_base: np.ndarray,
+    rng: np.random.Generator,
+    built: Sequence[Element] = (),
+    station_id: str | None = None,
+) -> StationReadings:
+    """The prism readings of a simulated station (see :func:`localize_station`).
+
+    Raises
+    ------
+    LocalizationError
+        When a three-point localization point is blocked or out of reach.
+    """
+    setup = project.localization.total_station or TotalStationSetup()
     instrument = instrument_for(setup)
     T_world_instrument = trunnion_pose(setup.T_world_instrument.matrix(), setup.instrument_height)
     T_world_base = np.asarray(T_world_base, dtype=float)
@@ -203,6 +252,16 @@ def localize_station(
         T_world_instrument, polar_to_cartesian(hz, v, sd), polar_covariance(hz, v, sd, instrument)
     )
     assert C is not None
+    return StationReadings(P_base, M, C, sd, T_world_instrument, moved, dropped)
+
+
+def estimate_from_readings(
+    project: Project, readings: StationReadings, station_id: str | None = None
+) -> BasePose:
+    """The base pose from a station's prism readings, tested (see :func:`localize_station`)."""
+    setup = project.localization.total_station or TotalStationSetup()
+    sigma_robot = project.simulation.robot_repeatability
+    P_base, M, C = readings.points_base, readings.points_world, readings.covariances
     policy = project.localization.integrity
     labels = [f"prism P{i + 1}" for i in range(len(P_base))]
     if setup.procedure == "three_point":
@@ -221,15 +280,15 @@ def localize_station(
         )
     if reg.integrity is not None:
         reg = replace(reg, integrity=guard_exclusion(reg.integrity, project.tolerances.position))
-    reg = add_instrument_uncertainty(reg, T_world_instrument, C_setup)
+    reg = add_instrument_uncertainty(reg, readings.T_world_instrument, instrument_covariance(setup))
     quality = {
         "procedure": setup.procedure,
-        "instrument": instrument.name,
+        "instrument": instrument_for(setup).name,
         "points_base": P_base.tolist(),
         "points_world": M.tolist(),
-        "slope_distances": sd.tolist(),
-        "moved_for_obstacles": moved.tolist(),
-        "dropped_points": [why for _, why in dropped],
+        "slope_distances": readings.slope_distances.tolist(),
+        "moved_for_obstacles": readings.moved.tolist(),
+        "dropped_points": [why for _, why in readings.dropped],
     }
     return reg.to_base_pose(station=station_id, quality=quality)
 

@@ -42,7 +42,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -352,6 +352,8 @@ class Integrity:
         they were left out.
     mdb_max
         Largest minimal detectable bias over the tested hypotheses (metres).
+    mdb
+        The minimal detectable bias of each hypothesis tested (its units).
     protection_level
         ``{"horizontal": m, "vertical": m}``: the largest base shift a fault just
         below detection can cause.
@@ -370,6 +372,7 @@ class Integrity:
     mdb_max: float | None = None
     protection_level: dict[str, float] = field(default_factory=dict)
     checks: dict[str, Any] = field(default_factory=dict)
+    mdb: dict[str, float] = field(default_factory=dict)
 
     @property
     def failed(self) -> bool:
@@ -389,6 +392,7 @@ class Integrity:
                 "excluded": list(self.excluded),
                 "mdb_max": self.mdb_max,
                 "protection_level": self.protection_level,
+                "mdb": self.mdb,
                 "checks": self.checks,
             }
         )
@@ -407,37 +411,21 @@ class Integrity:
             mdb_max=d.get("mdb_max"),
             protection_level=dict(d.get("protection_level", {})),
             checks=dict(d.get("checks", {})),
+            mdb={k: v for k, v in d.get("mdb", {}).items() if v is not None},
         )
 
     def failing(self, reason: str, **checks: Any) -> Integrity:
         """This record with status ``"failed"``, the reason, and further checks."""
-        return Integrity(
+        return replace(
+            self,
             status="failed",
             reason=reason if not self.reason else f"{reason}; {self.reason}",
-            alpha=self.alpha,
-            redundancy=self.redundancy,
-            global_test=self.global_test,
-            w_test=self.w_test,
-            excluded=self.excluded,
-            mdb_max=self.mdb_max,
-            protection_level=self.protection_level,
             checks={**self.checks, **checks},
         )
 
     def with_checks(self, **checks: Any) -> Integrity:
         """This record with further checks recorded (status unchanged)."""
-        return Integrity(
-            status=self.status,
-            reason=self.reason,
-            alpha=self.alpha,
-            redundancy=self.redundancy,
-            global_test=self.global_test,
-            w_test=self.w_test,
-            excluded=self.excluded,
-            mdb_max=self.mdb_max,
-            protection_level=self.protection_level,
-            checks={**self.checks, **checks},
-        )
+        return replace(self, checks={**self.checks, **checks})
 
 
 def _finite(x: Any) -> Any:
@@ -503,6 +491,11 @@ def record(
         mdb_max=float(finite_mdb.max()) if finite_mdb.size else None,
         protection_level={"horizontal": h, "vertical": vert},
         checks=dict(checks or {}),
+        mdb={
+            label: float(v)
+            for label, v in zip(test.labels, test.mdb, strict=True)
+            if np.isfinite(v)
+        },
     )
 
 

@@ -258,9 +258,11 @@ def locate_platform(
         info[:, 3] = 0.0
         info[3, 3] = 1.0 / UNOBSERVED_VARIANCE
     ev = np.linalg.eigvalsh(info)
-    if ev[0] <= ev[-1] / COND_LIMIT:
+    determined = bool(ev[0] > ev[-1] / COND_LIMIT)
+    if not determined and not excluded and use.all():
         raise LocalizationError("the tag and anchor geometry does not determine the platform pose")
-    cov = np.linalg.inv(info)
+    # ranges left out by the residual test can leave the pose undetermined: it fails below
+    cov = np.linalg.inv(info) if determined else np.linalg.pinv(info) + np.diag(np.full(4, 1e6))
     if anchor_bias_sigma is not None:
         J = _platform_jac(A, L, state, tag_idx[use], anc_idx[use])
         if not yaw_fixed:
@@ -281,7 +283,11 @@ def locate_platform(
     state[3] = (state[3] + np.pi) % (2 * np.pi) - np.pi
     integrity = record(tests, excluded, alpha, _geometry(A[np.unique(anc_idx[use])], state))
     integrity = guard_exclusion(integrity, alert_limit)
-    if not converged:
+    if not determined:
+        integrity = integrity.failing(
+            "the ranges left after the outlier and residual tests do not determine the pose"
+        )
+    elif not converged:
         integrity = integrity.failing(f"the pose did not converge in {max_iter} iterations")
     elif integrity.checks["outside_coverage_m"] > COVERAGE_MARGIN:
         integrity = integrity.failing(
