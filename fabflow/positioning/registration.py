@@ -355,24 +355,49 @@ def register_points(
     if known_sigma:
         tests = point_tests(P, M, C, R, t, keep, labels, alpha)
         outlier = _outlier_report(tests, keep)
-        while reject_outlier:
-            k = identify(tests)
-            trial = keep.copy()
-            if k is not None:
-                trial[np.flatnonzero(keep)[k]] = False
-            if k is None or not _spans_plane(P[trial]):
+        ambiguous: list[str] = []
+        while reject_outlier and identify(tests) is not None:
+            # every point the w-tests could blame is tried: left out, fitted again, tested
+            trials = []
+            for i in np.flatnonzero(keep):
+                trial = keep.copy()
+                trial[i] = False
+                if not _spans_plane(P[trial]):
+                    continue
+                fit = solve(trial)
+                trials.append((i, trial, fit, point_tests(P, M, C, *fit[:2], trial, labels, alpha)))
+            passing = [x for x in trials if x[3].passed]
+            if len(passing) > 1:
+                # several single points explain the misfit: the faulty one is not identified
+                ambiguous = [labels[x[0]] for x in passing]
                 break
+            if passing:
+                i, keep, (R, t, iters), after = passing[0]
+            elif trials and keep.sum() > 4:
+                # no single point explains it: leave out the one the w-test blames, go on
+                k = identify(tests)
+                assert k is not None
+                i = int(np.flatnonzero(keep)[k])
+                i, keep, (R, t, iters), after = next(x for x in trials if x[0] == i)
+            else:
+                break
+            k = tests.labels.index(labels[i])
             excluded.append(
                 {
-                    "observation": tests.labels[k],
+                    "observation": labels[i],
                     "w": float(tests.w[k]),
                     "threshold": float(tests.thresholds[k]),
+                    "others_explain_it": len(passing) == 0,
                 }
             )
-            keep = trial
-            R, t, iters = solve(keep)
-            tests = point_tests(P, M, C, R, t, keep, labels, alpha)
+            tests = after
         integrity = record(tests, excluded, alpha)
+        if ambiguous:
+            integrity = integrity.failing(
+                "the misfit is explained by leaving out any one of "
+                + ", ".join(ambiguous)
+                + ": the faulty reading cannot be identified"
+            )
     else:
         outlier = _loo_outliers(P, M, W, R, t, keep, alpha)
         if outlier is not None and outlier.flagged and reject_outlier:
