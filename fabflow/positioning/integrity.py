@@ -572,7 +572,7 @@ def guard_exclusion(integrity: Integrity, alert_limit: float) -> Integrity:
         f"{1e3 * alert_limit:.0f} mm: a fault the tests cannot see could move the base that far"
     )
     if integrity.status == "excluded":
-        return integrity.failing(f"{integrity.reason}, but {note}")
+        return replace(integrity, status="failed", reason=f"{integrity.reason}, but {note}")
     return integrity.with_checks(degraded=note)
 
 
