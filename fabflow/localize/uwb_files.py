@@ -27,6 +27,9 @@ from fabflow.positioning.eskf import (
     pose_covariance_world,
     run_eskf,
 )
+from fabflow.positioning.eskf_input import coverage_problem
+from fabflow.positioning.eskf_integrity import eskf_integrity
+from fabflow.positioning.integrity import Integrity
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Sigma, locate
 from fabflow.positioning.uwb_calibration import (
@@ -45,7 +48,7 @@ from fabflow.robots import platform
 from fabflow.schema import PoseSpec
 from fabflow.sensors.uwb import UwbErrorModel
 from fabflow.transforms.se3 import compose_covariance
-from fabflow.transforms.so3 import matrix_from_quat
+from fabflow.transforms.so3 import matrix_from_quat, skew
 
 
 def load_anchors_file(path: str | Path) -> tuple[Any, np.ndarray]:
@@ -92,7 +95,10 @@ def localize_from_files(
     ``x, y, z, yaw`` (two or more tags needed for the heading). With an IMU the
     ESKF runs over the whole record and the pose at its end is returned; with a
     single tag its initial heading is the direction of the first motion (the
-    platform drives along its x axis).
+    platform drives along its x axis). The ESKF pose carries the filter's tests
+    as its integrity record (:mod:`fabflow.positioning.eskf_integrity`); an IMU
+    record beyond what an IMU measures, or one that does not cover the ranges,
+    is an InputError.
     """
     setup, T_platform_base = load_anchors_file(anchors_yaml)
     ids, A = anchors_world(setup)
@@ -111,6 +117,7 @@ def localize_from_files(
         "n_anchors": len(ids),
         "calibration": cal.to_dict(ids),
     }
+    integrity: Integrity | None = None
     if imu_csv is None:
         rej = reject_outliers_static(epochs, sigma(epochs))
         T_world_platform, cov, residuals, more = _static_pose(
@@ -119,7 +126,7 @@ def localize_from_files(
     else:
         rej = reject_outliers(epochs, sigma(epochs))
         corrected = cal.apply_indexed(log.range, log.anchor)
-        T_world_platform, cov, residuals, more = _eskf_pose(
+        T_world_platform, cov, residuals, more, integrity = _eskf_pose(
             setup, A, L, rej, sigma, T_platform_base, log, corrected, imu_csv
         )
     integrity = more.pop("integrity", None)
@@ -182,9 +189,13 @@ def _eskf_pose(
     log: RangeLog,
     corrected: np.ndarray,
     imu_csv: str | Path,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-    """Platform pose at the end of the record, base covariance, residuals and quality (ESKF)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any], Integrity]:
+    """Platform pose at the end of the record, covariance, residuals, quality, integrity (ESKF)."""
     t_imu, acc, gyr = read_imu_csv(imu_csv)
+    use = np.isfinite(log.range)
+    coverage = coverage_problem(t_imu, log.t[use])
+    if coverage is not None:
+        raise InputError(coverage, imu_csv)
     t0 = t_imu[0]
     first = rej.ranges[: max(10, int(setup.rate_hz))]
     if len(L) >= 2:
@@ -200,7 +211,6 @@ def _eskf_pose(
     rest = t_imu < t0 + 0.5
     q0 = initial_attitude(acc[rest] if rest.sum() >= 2 else acc[:2], yaw0)
     filt = Eskf(p0, np.zeros(3), q0, default_covariance(sigma_p=0.3, sigma_yaw=s_yaw), EskfParams())
-    use = np.isfinite(log.range)
     track = run_eskf(
         filt,
         t_imu,
@@ -234,4 +244,10 @@ def _eskf_pose(
         "std_xyz_rpy": [float(v) for v in np.sqrt(np.diag(cov))],
         "unobserved": [],
     }
-    return T_world_platform, cov, res_all[late], quality
+    # the base position's derivative by the error state: dp - R [t]x dtheta
+    t_pb = T_platform_base[:3, 3]
+    G = np.zeros((3, 15))
+    G[:, 0:3] = np.eye(3)
+    G[:, 6:9] = -R @ skew(t_pb)
+    integrity = eskf_integrity(track.consistency, list(setup.anchors), G, float(t_imu[-1]))
+    return T_world_platform, cov, res_all[late], quality, integrity

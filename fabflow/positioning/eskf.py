@@ -16,7 +16,9 @@ the error-state Kalman filter" (2017), sections 5.3-6.3 (local attitude error):
   coupled, equations 22-24), gated by its Mahalanobis distance (NLOS
   rejection), applied with the Joseph form so the covariance stays symmetric
   positive definite; injection and reset (equations 25-28) with
-  ``G = blockdiag(I, I, I - [dtheta/2]x, I, I)``.
+  ``G = blockdiag(I, I, I - [dtheta/2]x, I, I)``;
+* every range's normalized innovation squared and gate decision are recorded and
+  tested (:mod:`~fabflow.positioning.eskf_integrity`; input bounds: ``eskf_input``).
 
 The world z axis is up; gravity is ``(0, 0, -g)``. The baseline without an
 IMU is :mod:`fabflow.positioning.cv_ekf`.
@@ -31,6 +33,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from fabflow.errors import InputError
+from fabflow.positioning.eskf_input import check_input
+from fabflow.positioning.eskf_integrity import (
+    BiasMonitor,
+    EskfConsistency,
+    bias_onsets,
+    consistency,
+    rest_gyro_test,
+)
 from fabflow.transforms.so3 import matrix_from_quat, quat_from_matrix
 
 GRAVITY = 9.81
@@ -152,6 +162,8 @@ class Eskf:
         self._lever = tuple(float(x) for x in self.params.lever_arm)
         self.n_updates = 0
         self.n_rejected = 0
+        # gain, innovation and its variance of the last applied measurement (for BiasMonitor)
+        self.last_update: tuple[np.ndarray, float, float] = (np.zeros(15), 0.0, 1.0)
         self._F = np.eye(15)
         self._F_dt = -1.0
         self._eye3 = np.eye(3)
@@ -259,10 +271,11 @@ class Eskf:
         PHt = self.P @ H
         S = float(H @ PHt) + var
         nis = innovation * innovation / S
-        if nis > self.params.gate:
+        if not nis <= self.params.gate:  # also rejects a NaN innovation
             self.n_rejected += 1
             return nis
         K = PHt / S
+        self.last_update = (K, innovation, S)
         # P - K S K^T: equal to the Joseph form for the optimal gain. It is symmetric in
         # exact arithmetic; propagate_covariance symmetrizes once per IMU interval and
         # run_eskf checks positive definiteness.
@@ -363,7 +376,12 @@ class EskfTrack:
     P_final
         15x15 error covariance at the end.
     n_updates, n_rejected
-        Ranges applied and ranges rejected by the gate.
+        Updates applied (ranges and heights) and ranges rejected by the gate.
+    range_t, range_anchor, range_nis, range_gated
+        (K,) time (s), anchor index, normalized innovation squared ``nu^2 / S``
+        and gate decision of every range applied, in time order.
+    consistency
+        The run's statistics and tests (:func:`~fabflow.positioning.eskf_integrity.consistency`).
     n_covariance_repairs
         Times the covariance had lost positive definiteness and was repaired (checked
         every 100 IMU samples; expected 0).
@@ -379,6 +397,11 @@ class EskfTrack:
     P_final: np.ndarray
     n_updates: int
     n_rejected: int
+    range_t: np.ndarray
+    range_anchor: np.ndarray
+    range_nis: np.ndarray
+    range_gated: np.ndarray
+    consistency: EskfConsistency
     n_covariance_repairs: int = 0
 
 
@@ -448,17 +471,19 @@ def run_eskf(
 
     Each IMU sample is held until the next one; a range is applied at its own
     time after propagating to it. Output is recorded at every IMU sample time
-    (after the ranges up to that time).
+    (after the ranges up to that time), with every range's NIS and gate decision.
 
     Parameters
     ----------
     filt
         An initialized filter (state at ``imu_t[0]``).
     imu_t, accel, gyro
-        (M,) sample times (s) and (M, 3) readings; times strictly increasing.
+        (M,) sample times (s) and (M, 3) readings; times strictly increasing,
+        within the bounds of :mod:`~fabflow.positioning.eskf_input`.
     range_t, anchor_index, ranges
         (K,) range timestamps (s), anchor indices and calibrated ranges (m); NaN
-        ranges are skipped. Sorted by time here.
+        ranges are skipped. Sorted by time here. They must lie within the IMU
+        record (``RANGE_MARGIN_S``); those in the margin are not applied.
     anchors
         (n_anchors, 3) anchor positions in the world (m).
     sigma
@@ -469,15 +494,20 @@ def run_eskf(
     tag_index, lever_arms
         With several tags: (K,) tag index of each range and (n_tags, 3) tag
         positions in the body frame (metres). Otherwise ``params.lever_arm``.
+
+    Raises
+    ------
+    InputError
+        IMU times not increasing, samples beyond the bounds, ranges outside the IMU record.
     """
     imu_t = np.asarray(imu_t, dtype=float)
-    if imu_t.ndim != 1 or imu_t.size < 2 or np.any(np.diff(imu_t) <= 0):
-        raise InputError("IMU times must be strictly increasing (at least two samples)")
+    accel, gyro = np.asarray(accel, dtype=float), np.asarray(gyro, dtype=float)
     order = np.argsort(range_t, kind="stable")
     rt = np.asarray(range_t, dtype=float)[order]
     ai = np.asarray(anchor_index)[order]
     rv = np.asarray(ranges, dtype=float)[order]
-    keep = np.isfinite(rv) & (rt >= imu_t[0])
+    check_input(imu_t, accel, gyro, rt[np.isfinite(rv)])
+    keep = np.isfinite(rv) & (rt >= imu_t[0]) & (rt <= imu_t[-1])
     rt, ai, rv = rt[keep], ai[keep], rv[keep]
     levers: list[np.ndarray | None] = [None] * rt.size
     if lever_arms is not None:
@@ -496,26 +526,33 @@ def run_eskf(
     j = 0
     K = rt.size
     t_now = float(imu_t[0])
-    acc_l = [tuple(a) for a in np.asarray(accel, dtype=float).tolist()]
-    gyr_l = [tuple(g) for g in np.asarray(gyro, dtype=float).tolist()]
+    acc_l = [tuple(a) for a in accel.tolist()]
+    gyr_l = [tuple(g) for g in gyro.tolist()]
     anc_l = [tuple(a) for a in A.tolist()]
     rt_l, ai_l, rv_l, rs_l = rt.tolist(), ai.tolist(), rv.tolist(), rs.tolist()
+    nis_l = [math.nan] * K
+    gate = filt.params.gate
+    monitor = BiasMonitor(A.shape[0], bias_onsets(rt, float(imu_t[-1])))
     n_repairs = 0
     for i in range(M):
         t_next = float(imu_t[i])
         a_i = acc_l[i - 1] if i > 0 else acc_l[0]
         w_i = gyr_l[i - 1] if i > 0 else gyr_l[0]
         # covariance once per IMU interval; the nominal state to every range's timestamp
-        filt.propagate_covariance(a_i, w_i, t_next - t_now)
+        if i > 0:
+            filt.propagate_covariance(a_i, w_i, t_next - t_now)
+            monitor.propagate(filt._F)
         while j < K and rt_l[j] <= t_next:
             filt.propagate_nominal(a_i, w_i, rt_l[j] - t_now)
             t_now = rt_l[j]
-            filt.update_range(anc_l[ai_l[j]], rv_l[j], rs_l[j], levers[j])
+            nis_l[j] = filt.update_range(anc_l[ai_l[j]], rv_l[j], rs_l[j], levers[j])
+            if nis_l[j] <= gate:
+                monitor.correct(filt._H, *filt.last_update, ai_l[j], t_now)
             j += 1
         filt.propagate_nominal(a_i, w_i, t_next - t_now)
         t_now = t_next
-        if height is not None:
-            filt.update_height(*height)
+        if height is not None and filt.update_height(*height) <= gate:
+            monitor.correct(filt._H, *filt.last_update)
         if i % 100 == 0:
             n_repairs += filt.ensure_positive_definite()
         out_p[i] = filt._p
@@ -524,6 +561,9 @@ def run_eskf(
         out_ab[i] = filt._ab
         out_wb[i] = filt._wb
         out_P[i] = filt.P.ravel()[::16]
+    nis = np.array(nis_l)
+    gated = ~(nis <= gate)
+    rest = rest_gyro_test(imu_t, gyro, out_p, filt.wb, filt.P[12:15, 12:15], filt.params.gyro_noise)
     return EskfTrack(
         t=imu_t,
         p=out_p,
@@ -535,6 +575,11 @@ def run_eskf(
         P_final=filt.P.copy(),
         n_updates=filt.n_updates,
         n_rejected=filt.n_rejected,
+        range_t=rt,
+        range_anchor=ai,
+        range_nis=nis,
+        range_gated=gated,
+        consistency=consistency(float(imu_t[-1]), rt, nis, gated, monitor.tests(), rest),
         n_covariance_repairs=n_repairs,
     )
 

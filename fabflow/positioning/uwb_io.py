@@ -16,14 +16,22 @@ ANCHORS.yaml
     (a pose ``{xyz, abc_deg}``; identity when absent, which makes the result
     the platform pose).
 IMU.csv
-    Header ``t,ax,ay,az,gx,gy,gz``: time (s, strictly increasing), specific force
-    (m/s^2) and angular rate (rad/s) in the platform frame.
+    Header ``t,ax,ay,az,gx,gy,gz``: time (s, strictly increasing, gaps of at most
+    ``MAX_IMU_GAP_S``), specific force (m/s^2, norm at most
+    ``MAX_SPECIFIC_FORCE``) and angular rate (rad/s, norm at most
+    ``MAX_ANGULAR_RATE``) in the platform frame (bounds in
+    :mod:`fabflow.positioning.eskf_input`).
+
+Both are UTF-8 text (a byte order mark is allowed); every problem is an
+:class:`~fabflow.errors.InputError` naming the file and, where there is one, the line.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from fabflow.errors import InputError
+from fabflow.positioning.eskf_input import imu_problem
 
 RANGE_COLUMNS = ("t", "anchor", "range")
 IMU_COLUMNS = ("t", "ax", "ay", "az", "gx", "gy", "gz")
@@ -61,29 +70,61 @@ class RangeLog:
         return out
 
 
-def _open_csv(path: Path, required: tuple[str, ...]) -> tuple[Any, list[str], Any]:
-    if not path.exists():
-        raise InputError("file does not exist", path)
+def _show(value: str, limit: int = 40) -> str:
+    """``repr`` of a field, shortened for a message."""
+    return repr(value) if len(value) <= limit else repr(value[:limit]) + "..."
+
+
+def _read_csv(
+    path: Path, required: tuple[str, ...]
+) -> tuple[list[str], Iterator[tuple[int, list[str]]]]:
+    """The stripped header and an iterator over ``(line number, fields)`` of the data rows."""
     try:
-        fh = path.open(newline="", encoding="utf-8")
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError("file does not exist", path) from None
     except OSError as exc:
-        raise InputError(f"cannot read file: {exc}", path) from None
-    reader = csv.reader(fh)
-    header = next(reader, None)
-    if header is None:
-        fh.close()
+        raise InputError(f"cannot read file: {exc.strerror or exc}", path) from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise InputError(
+            f"not UTF-8 text (byte 0x{data[exc.start]:02x})", path, f"line {line}"
+        ) from None
+    rows = _rows(csv.reader(io.StringIO(text, newline="")), path)
+    first = next(rows, None)
+    if first is None:
         raise InputError("the file is empty; expected a header line", path, "line 1")
-    header = [h.strip() for h in header]
+    header = [h.strip() for h in first[1]]
     missing = [c for c in required if c not in header]
     if missing:
-        fh.close()
         raise InputError(
             f"missing column(s) {', '.join(missing)}; expected a header with "
-            f"{', '.join(required)} (got {', '.join(header)})",
+            f"{', '.join(required)} (got {_show(', '.join(header), 200)})",
             path,
-            "line 1",
+            f"line {first[0]}",
         )
-    return fh, header, reader
+    return header, rows
+
+
+def _rows(reader: Any, path: Path) -> Iterator[tuple[int, list[str]]]:
+    """Non-blank rows of a ``csv.reader`` with their line numbers.
+
+    A ``csv.Error`` (a field over ``csv.field_size_limit()``, 131,072 characters)
+    becomes an InputError naming the line.
+    """
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            raise InputError(
+                f"not a valid CSV line: {exc}", path, f"line {reader.line_num}"
+            ) from None
+        if row and any(c.strip() for c in row):
+            yield reader.line_num, row
 
 
 def _float(value: str, path: Path, line: int, column: str) -> float:
@@ -91,10 +132,10 @@ def _float(value: str, path: Path, line: int, column: str) -> float:
         x = float(value)
     except ValueError:
         raise InputError(
-            f"column '{column}': {value!r} is not a number", path, f"line {line}"
+            f"column '{column}': {_show(value)} is not a number", path, f"line {line}"
         ) from None
     if not math.isfinite(x):
-        raise InputError(f"column '{column}': {value!r} is not finite", path, f"line {line}")
+        raise InputError(f"column '{column}': {_show(value)} is not finite", path, f"line {line}")
     return x
 
 
@@ -104,67 +145,63 @@ def read_ranges_csv(path: str | Path, anchor_ids: list[str], n_tags: int) -> Ran
     Raises
     ------
     InputError
-        Missing columns, malformed numbers, unsorted or duplicate timestamps,
-        unknown anchor ids or tag indices, negative ranges; the message names the line.
+        A file that is not UTF-8 text or not CSV, missing columns, malformed
+        numbers, unsorted or duplicate timestamps, unknown anchor ids or tag
+        indices, negative ranges; the message names the file and the line.
     """
     path = Path(path)
     index = {a: i for i, a in enumerate(anchor_ids)}
-    fh, header, reader = _open_csv(path, RANGE_COLUMNS)
+    header, rows = _read_csv(path, RANGE_COLUMNS)
     col = {h: i for i, h in enumerate(header)}
     has_tag = "tag" in col
     ts, tags, anchors, ranges = [], [], [], []
     seen: set[tuple[int, int]] = set()
     t_prev = -math.inf
-    with fh:
-        for row in reader:
-            line = reader.line_num
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(header):
+    for line, row in rows:
+        if len(row) != len(header):
+            raise InputError(f"expected {len(header)} values, got {len(row)}", path, f"line {line}")
+        t = _float(row[col["t"]], path, line, "t")
+        a_id = row[col["anchor"]].strip()
+        if a_id not in index:
+            raise InputError(
+                f"unknown anchor id {_show(a_id)}; the anchors file has {', '.join(anchor_ids)}",
+                path,
+                f"line {line}",
+            )
+        r = _float(row[col["range"]], path, line, "range")
+        if r < 0:
+            raise InputError(f"range {r} is negative", path, f"line {line}")
+        tag = 0
+        if has_tag:
+            raw = row[col["tag"]].strip()
+            ok = raw.isascii() and raw.isdigit() and len(raw) < 10
+            if not ok or int(raw) >= n_tags:
                 raise InputError(
-                    f"expected {len(header)} values, got {len(row)}", path, f"line {line}"
-                )
-            t = _float(row[col["t"]], path, line, "t")
-            a_id = row[col["anchor"]].strip()
-            if a_id not in index:
-                raise InputError(
-                    f"unknown anchor id {a_id!r}; the anchors file has {', '.join(anchor_ids)}",
+                    f"tag {_show(raw)} is not an index into the {n_tags} tag(s) of the anchors "
+                    f"file (0..{n_tags - 1})",
                     path,
                     f"line {line}",
                 )
-            r = _float(row[col["range"]], path, line, "range")
-            if r < 0:
-                raise InputError(f"range {r} is negative", path, f"line {line}")
-            tag = 0
-            if has_tag:
-                raw = row[col["tag"]].strip()
-                if not raw.isdigit() or int(raw) >= n_tags:
-                    raise InputError(
-                        f"tag {raw!r} is not an index into the {n_tags} tag(s) of the anchors "
-                        f"file (0..{n_tags - 1})",
-                        path,
-                        f"line {line}",
-                    )
-                tag = int(raw)
-            if t < t_prev:
-                raise InputError(
-                    f"timestamps are not sorted: t = {t} after t = {t_prev}", path, f"line {line}"
-                )
-            if t > t_prev:
-                seen.clear()
-            key = (tag, index[a_id])
-            if key in seen:
-                raise InputError(
-                    f"duplicate timestamp t = {t} for tag {tag}, anchor {a_id}",
-                    path,
-                    f"line {line}",
-                )
-            seen.add(key)
-            t_prev = t
-            ts.append(t)
-            tags.append(tag)
-            anchors.append(index[a_id])
-            ranges.append(r)
+            tag = int(raw)
+        if t < t_prev:
+            raise InputError(
+                f"timestamps are not sorted: t = {t} after t = {t_prev}", path, f"line {line}"
+            )
+        if t > t_prev:
+            seen.clear()
+        key = (tag, index[a_id])
+        if key in seen:
+            raise InputError(
+                f"duplicate timestamp t = {t} for tag {tag}, anchor {a_id}",
+                path,
+                f"line {line}",
+            )
+        seen.add(key)
+        t_prev = t
+        ts.append(t)
+        tags.append(tag)
+        anchors.append(index[a_id])
+        ranges.append(r)
     if not ts:
         raise InputError("no ranges in the file", path)
     return RangeLog(
@@ -178,38 +215,39 @@ def read_imu_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Raises
     ------
     InputError
-        Missing columns, malformed numbers, timestamps not strictly increasing,
-        fewer than two samples; the message names the line.
+        A file that is not UTF-8 text or not CSV, missing columns, malformed or
+        non-finite numbers, timestamps not strictly increasing, gaps, values
+        beyond what an IMU measures (:func:`~fabflow.positioning.eskf_input.imu_problem`),
+        fewer than two samples; the message names the file and the line.
     """
     path = Path(path)
-    fh, header, reader = _open_csv(path, IMU_COLUMNS)
+    header, records = _read_csv(path, IMU_COLUMNS)
     col = [header.index(c) for c in IMU_COLUMNS]
-    rows = []
+    rows, lines = [], []
     t_prev = -math.inf
-    with fh:
-        for row in reader:
-            line = reader.line_num
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(header):
-                raise InputError(
-                    f"expected {len(header)} values, got {len(row)}", path, f"line {line}"
-                )
-            vals = [_float(row[i], path, line, c) for i, c in zip(col, IMU_COLUMNS, strict=True)]
-            if vals[0] < t_prev:
-                raise InputError(
-                    f"timestamps are not sorted: t = {vals[0]} after t = {t_prev}",
-                    path,
-                    f"line {line}",
-                )
-            if vals[0] == t_prev:
-                raise InputError(f"duplicate timestamp t = {vals[0]}", path, f"line {line}")
-            t_prev = vals[0]
-            rows.append(vals)
+    for line, row in records:
+        if len(row) != len(header):
+            raise InputError(f"expected {len(header)} values, got {len(row)}", path, f"line {line}")
+        vals = [_float(row[i], path, line, c) for i, c in zip(col, IMU_COLUMNS, strict=True)]
+        if vals[0] < t_prev:
+            raise InputError(
+                f"timestamps are not sorted: t = {vals[0]} after t = {t_prev}",
+                path,
+                f"line {line}",
+            )
+        if vals[0] == t_prev:
+            raise InputError(f"duplicate timestamp t = {vals[0]}", path, f"line {line}")
+        t_prev = vals[0]
+        rows.append(vals)
+        lines.append(line)
     if len(rows) < 2:
         raise InputError("an IMU file needs at least two samples", path)
     data = np.array(rows)
-    return data[:, 0], data[:, 1:4], data[:, 4:7]
+    t, accel, gyro = data[:, 0], data[:, 1:4], data[:, 4:7]
+    problem = imu_problem(t, accel, gyro)
+    if problem is not None:
+        raise InputError(problem[1], path, f"line {lines[problem[0]]}")
+    return t, accel, gyro
 
 
 def write_ranges_csv(

@@ -12,8 +12,14 @@ from typer.testing import CliRunner
 
 from fabflow.cli import app
 from fabflow.errors import InputError
+from fabflow.localize.uwb_files import localize_from_files
 from fabflow.positioning.result import BasePose
-from fabflow.positioning.uwb_io import read_imu_csv, read_ranges_csv
+from fabflow.positioning.uwb_io import (
+    read_imu_csv,
+    read_ranges_csv,
+    write_imu_csv,
+    write_ranges_csv,
+)
 from fabflow.positioning.uwb_platform import heading_from_motion
 
 DATA = ROOT / "tests" / "data" / "uwb"
@@ -76,6 +82,8 @@ def test_moving_with_imu_in_process(tmp_path: Path) -> None:
     assert abs(yaw) < np.radians(10.0)
     assert pose.quality["estimator"] == "eskf"
     assert pose.quality["n_rejected_gate"] > 0
+    assert pose.integrity is not None and pose.integrity.status == "ok"
+    assert "integrity" in result.output
 
 
 def test_bad_csv_exits_2_with_line_number(cli, tmp_path: Path) -> None:
@@ -180,3 +188,135 @@ def test_heading_from_motion() -> None:
     )
     xy = xy + 0.05 * rng.standard_normal(xy.shape)
     assert abs(heading_from_motion(xy) - 0.5) < 0.15
+
+
+# generate.py: the platform ends at (2.7, 1.5) at height 2.0, heading 0; base at +(0.3, 0, 0.6)
+MOVING_BASE = np.array([3.0, 1.5, 2.6])
+
+
+@pytest.fixture(scope="module")
+def moving():
+    return read_ranges_csv(MOVING / "ranges.csv", IDS, 1), read_imu_csv(MOVING / "imu.csv")
+
+
+def _localize(tmp_path: Path, moving, ranges=None, accel=None, gyro=None) -> BasePose:
+    log, (t, a, g) = moving
+    r_path = write_ranges_csv(
+        tmp_path / "ranges.csv",
+        log.t,
+        log.tag,
+        log.anchor,
+        log.range if ranges is None else ranges,
+        IDS,
+    )
+    imu = write_imu_csv(
+        tmp_path / "imu.csv", t, a if accel is None else accel, g if gyro is None else gyro
+    )
+    return localize_from_files(r_path, MOVING / "anchors.yaml", imu)
+
+
+def test_consistent_run_has_integrity_ok_and_nis_near_one() -> None:
+    pose = localize_from_files(MOVING / "ranges.csv", MOVING / "anchors.yaml", MOVING / "imu.csv")
+    integrity = pose.integrity
+    assert integrity is not None and integrity.status == "ok" and integrity.reason == ""
+    c = integrity.checks
+    assert c["n_updates"] + c["n_gated"] == 2280
+    assert 0.8 < c["nis_mean"] < 1.2  # measured 0.95 (truncated chi-square(1): 0.97)
+    assert 0.8 < c["nis_mean_window"] < c["nis_threshold_window"]
+    assert c["window_s"] == 2.0 and c["gated_share_window"] < 0.05
+    assert c["gyro_at_rest"]["at_rest"]
+    assert integrity.global_test["passed"] and integrity.w_test["passed"]
+    # the tests' protection level bounds the actual error, which is within the covariance
+    err = pose.T_world_base[:3, 3] - MOVING_BASE
+    sd = np.sqrt(np.diag(pose.covariance)[:3])
+    assert np.all(np.abs(err) < 4 * sd)
+    assert np.hypot(*err[:2]) < integrity.protection_level["horizontal"]
+    assert abs(err[2]) < integrity.protection_level["vertical"]
+    again = BasePose.from_dict(json.loads(json.dumps(pose.to_dict())))
+    assert again.integrity is not None and again.integrity.checks == json.loads(json.dumps(c))
+
+
+@pytest.mark.parametrize(
+    ("fault", "expect"),
+    [
+        # a bias the filter half absorbs (0.4 m off at the end): the w-test names the anchor
+        ({"anchor": 2, "offset": 0.2}, "anchor A3"),
+        # two anchors, far off: the gate rejects half the ranges
+        ({"anchor": (2, 3), "offset": 1.0}, "gate rejected"),
+        # a gyro bias 20 times the model's: the heading turns while standing still
+        ({"gyro_z": 0.1}, "gyro"),
+        # an accelerometer bias far beyond the model: the filter leaves its ranges behind
+        ({"accel_x": 10.0}, "gate rejected"),
+    ],
+)
+def test_faults_fail_the_integrity(tmp_path: Path, moving, fault: dict, expect: str) -> None:
+    log, (_, a, g) = moving
+    ranges = log.range.copy()
+    if "offset" in fault:
+        late = (log.t > log.t[-1] - 3.0) & np.isin(log.anchor, fault["anchor"])
+        ranges[late] += fault["offset"]
+    gyro = g + np.array([0.0, 0.0, fault.get("gyro_z", 0.0)])
+    accel = a + np.array([fault.get("accel_x", 0.0), 0.0, 0.0])
+    pose = _localize(tmp_path, moving, ranges, accel, gyro)
+    assert pose.integrity is not None and pose.integrity.failed
+    assert expect in pose.integrity.reason
+
+
+def test_a_blocked_anchor_is_gated_and_the_pose_holds(tmp_path: Path, moving) -> None:
+    log, _ = moving
+    late = (log.t > log.t[-1] - 3.0) & (log.anchor == 2)
+    pose = _localize(tmp_path, moving, log.range + 1.0 * late)
+    integrity = pose.integrity
+    assert integrity is not None and integrity.status == "ok"
+    assert 0.2 < integrity.checks["gated_share_window"] < 0.5  # one anchor of four
+    err = pose.T_world_base[:3, 3] - MOVING_BASE
+    assert np.all(np.abs(err) < 4 * np.sqrt(np.diag(pose.covariance)[:3]))
+
+
+@pytest.mark.parametrize(
+    ("change", "line", "what"),
+    [
+        ("value", "line 102", "specific force"),
+        ("gap", "line 402", "gap of 1e\\+09 s"),
+        ("shift", None, "does not cover the ranges"),
+        ("late", None, "does not cover the ranges"),
+    ],
+)
+def test_impossible_imu_records_are_refused(
+    tmp_path: Path, moving, change: str, line: str | None, what: str
+) -> None:
+    _, (t, a, g) = moving
+    t, a = t.copy(), a.copy()
+    if change == "value":
+        a[100, 0] = 1e308
+    elif change == "gap":
+        t[400:] += 1e9
+    elif change == "shift":
+        t += 100.0  # another run's record
+    else:
+        t = t[: t.size // 2]  # stops halfway through the ranges
+        a, g = a[: t.size], g[: t.size]
+    imu = write_imu_csv(tmp_path / "imu.csv", t, a, g)
+    with pytest.raises(InputError, match=what) as exc:
+        localize_from_files(MOVING / "ranges.csv", MOVING / "anchors.yaml", imu)
+    assert exc.value.source == str(imu) and exc.value.location == line
+
+
+def test_impossible_imu_exits_2_without_traceback(cli, tmp_path: Path) -> None:
+    imu = tmp_path / "imu.csv"
+    imu.write_text("t,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n0.01,1e308,0,9.8,0,0,0\n")
+    out = tmp_path / "out"
+    result = cli(
+        "localize",
+        "uwb",
+        str(MOVING / "ranges.csv"),
+        "--anchors",
+        str(MOVING / "anchors.yaml"),
+        "--imu",
+        str(imu),
+        "-o",
+        str(out),
+    )
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr and "line 3" in result.stderr
+    assert not out.exists()

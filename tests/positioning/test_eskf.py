@@ -20,6 +20,11 @@ from fabflow.positioning.eskf import (
     pose_covariance_world,
     run_eskf,
 )
+from fabflow.positioning.eskf_integrity import (
+    BiasMonitor,
+    consistency,
+    eskf_integrity,
+)
 from fabflow.positioning.uwb import locate
 from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers
 from fabflow.sensors.imu import ImuErrorModel, simulate_imu
@@ -90,6 +95,8 @@ def test_dead_reckoning_with_perfect_imu_follows_the_trajectory() -> None:
     err = np.linalg.norm(track.p - truth.p, axis=1)
     assert err.max() < 0.01
     assert track.n_updates == 0
+    # no range bounds the error: the pose is not measured
+    assert track.consistency.diverged and "dead reckoning" in track.consistency.reason
 
 
 def _scenario(seed: int, traj: PlanarTrajectory = LINE):
@@ -145,6 +152,121 @@ def test_eskf_beats_ls_by_40_percent_with_outliers() -> None:
     assert np.mean(z < 3.0) > 0.95
     C = pose_covariance_world(track.q[-1], P)
     assert C.shape == (6, 6) and np.all(np.linalg.eigvalsh(C) > 0)
+
+
+def _track(scenario, y=None, gyro_offset=(0.0, 0.0, 0.0)):
+    model, t, ai, y0, _, imu = scenario
+    start = locate(PAPER_ANCHORS_3D, y0[:60], method="wls-t", sigma=model.sigma)
+    p0 = np.nanmedian(start.positions, axis=0)
+    yaw0 = LINE.sample(np.zeros(1)).yaw[0]
+    f = Eskf(p0, np.zeros(3), initial_attitude(imu.accel[:100], yaw0), default_covariance())
+    return run_eskf(
+        f,
+        imu.t,
+        imu.accel,
+        imu.gyro + np.asarray(gyro_offset),
+        t.ravel(),
+        ai.ravel(),
+        (y0 if y is None else y).ravel(),
+        PAPER_ANCHORS_3D,
+        model.sigma,
+    )
+
+
+@pytest.fixture(scope="module")
+def clean_run():
+    scenario = _scenario(5)
+    return scenario, _track(scenario)
+
+
+def test_consistent_run_has_nis_near_one_and_passes(clean_run) -> None:
+    _, track = clean_run
+    assert track.range_nis.shape == track.range_t.shape == track.range_gated.shape
+    assert track.range_gated.sum() == track.n_rejected
+    assert np.all(np.diff(track.range_t) >= 0)
+    c = track.consistency
+    assert c.n_updates + c.n_gated == track.range_t.size
+    assert 0.8 < c.nis_mean < 1.15  # truncated chi-square(1): 0.97
+    assert 0.7 < c.nis_mean_window < c.nis_threshold_window < 1.3
+    assert c.n_updates_window > 400 and c.gated_share_window < 0.1
+    assert not c.diverged and c.reason == ""
+    assert c.rest is not None and c.rest.at_rest and c.rest.passed  # LINE ends standing
+    assert c.bias.passed
+    integrity = eskf_integrity(c)
+    assert integrity.status == "ok" and integrity.global_test["passed"]
+    pl = integrity.protection_level
+    assert 0 < pl["horizontal"] < 1.0 and 0 < pl["vertical"] < 1.0
+
+
+def test_anchor_bias_is_predicted_and_found(clean_run) -> None:
+    scenario, track = clean_run
+    _, t, ai, y, _, _ = scenario
+    t_end = track.t[-1]
+    b = track.consistency.bias
+    onset = t_end - 2.0  # on the grid of hypothesized onsets
+    k = int(np.flatnonzero((b.anchor == 2) & np.isclose(b.onset, onset))[0])
+    biased = y + 0.15 * ((ai == 2) & (t >= onset))
+    faulty = _track(scenario, biased)
+    # the linearized filter predicts what the bias does to the final position
+    moved = faulty.p[-1] - track.p[-1]
+    predicted = 0.15 * b.sensitivity[:3, k]
+    assert np.linalg.norm(moved - predicted) < 0.2 * np.linalg.norm(predicted)
+    integrity = eskf_integrity(faulty.consistency, ["A1", "A2", "A3", "A4"], t_end=t_end)
+    assert integrity.status == "failed"
+    assert integrity.w_test["suspect"].startswith("anchor A3")
+    assert "A3" in integrity.reason
+
+
+def test_gyro_fault_at_rest_fails(clean_run) -> None:
+    scenario, _ = clean_run
+    faulty = _track(scenario, gyro_offset=(0.0, 0.0, 0.05))
+    c = faulty.consistency
+    assert c.diverged and "gyro" in c.reason
+    assert c.rest is not None and c.rest.residual[2] > 0.03
+
+
+def test_consistency_rules() -> None:
+    rng = np.random.default_rng(7)
+    t = np.linspace(0.0, 10.0, 2400)
+    nis = rng.chisquare(1, t.size)
+    none = BiasMonitor(4, np.zeros(1)).tests()
+    ok = consistency(10.0, t, nis, nis > 8.81, none)
+    assert not ok.diverged and 0.9 < ok.nis_mean < 1.05
+    # an over-confident filter: innovations twice their predicted variance
+    big = consistency(10.0, t, 2 * nis, 2 * nis > 8.81, none)
+    assert big.diverged and "mean NIS" in big.reason and big.p_value_window < 1e-3
+    # most ranges of the last seconds rejected
+    gated = (nis > 8.81) | (t > 8.5)
+    assert "gate rejected" in consistency(10.0, t, nis, gated, none).reason
+    # the ranges stop 5 s before the pose
+    late = consistency(15.0, t, nis, nis > 8.81, none)
+    assert late.diverged and "dead reckoning" in late.reason
+    record = eskf_integrity(late)
+    assert record.status == "failed" and record.to_dict()["global_test"]["threshold"] is None
+
+
+def test_run_eskf_refuses_impossible_imu_and_foreign_ranges() -> None:
+    t = np.arange(200) * 0.01
+    acc = np.tile([0.0, 0.0, 9.81], (200, 1))
+    gyr = np.zeros((200, 3))
+
+    def run(t=t, acc=acc, gyr=gyr, rt=None):
+        rt = np.array([1.0]) if rt is None else rt
+        f = Eskf(np.ones(3), np.zeros(3), np.array([1.0, 0, 0, 0]), default_covariance())
+        n = rt.size
+        return run_eskf(
+            f, t, acc, gyr, rt, np.zeros(n, int), np.full(n, 3.0), PAPER_ANCHORS_3D, 0.05
+        )
+
+    assert run().range_t.size == 1
+    with pytest.raises(InputError, match="IMU sample 5: specific force"):
+        run(acc=np.where(np.arange(200)[:, None] == 5, 1e308, acc))
+    with pytest.raises(InputError, match="IMU sample 7: a value is not finite"):
+        run(gyr=np.where(np.arange(200)[:, None] == 7, np.nan, gyr))
+    with pytest.raises(InputError, match="IMU sample 100: gap of 1e\\+09 s"):
+        run(t=np.where(np.arange(200) >= 100, t + 1e9, t))
+    with pytest.raises(InputError, match="does not cover the ranges"):
+        run(rt=np.array([1.0, 30.0]))
 
 
 def test_gating_rejects_an_outlier_and_keeps_the_state() -> None:
