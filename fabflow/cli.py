@@ -407,9 +407,6 @@ def localize_uwb(
     rows = [("estimator", str(q["estimator"])), ("ranges", str(q["n_ranges"]))]
     if q.get("unobserved"):
         rows.append(("not observed", ", ".join(q["unobserved"])))
-    if pose.integrity is not None:
-        i = pose.integrity
-        rows.append(("integrity", i.status + (f": {i.reason}" if i.reason else "")))
     report_base_pose(pose, out, "uwb", rows)
 
 

@@ -123,13 +123,13 @@ def localize_from_files(
         T_world_platform, cov, residuals, more = _static_pose(
             setup, A, L, rej, sigma, T_platform_base, ids
         )
+        integrity = more.pop("integrity")
     else:
         rej = reject_outliers(epochs, sigma(epochs))
         corrected = cal.apply_indexed(log.range, log.anchor)
         T_world_platform, cov, residuals, more, integrity = _eskf_pose(
             setup, A, L, rej, sigma, T_platform_base, log, corrected, imu_csv
         )
-    integrity = more.pop("integrity", None)
     quality.update(more)
     T_world_base = platform.T_world_base(T_world_platform, 0.0, T_platform_base)
     rmse = float(np.sqrt(np.mean(residuals**2))) if residuals.size else 0.0

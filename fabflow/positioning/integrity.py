@@ -499,57 +499,6 @@ def record(
     )
 
 
-def confirms_exclusion(
-    v: np.ndarray, Q: Covariance, J: np.ndarray, cov: np.ndarray, alpha: float
-) -> tuple[float, float, bool]:
-    """Whether left-out observations really disagree with the solution made without them.
-
-    After leaving out the observations a w-test pointed at, they are predicted
-    from the new solution: ``v`` measured minus predicted, with covariance
-    ``Q + J cov J^T``. When they fit (the chi-square test passes at ``alpha``),
-    the w-test pointed at the wrong observations (a fault elsewhere can raise
-    their w too): the exclusion is not confirmed.
-
-    Parameters
-    ----------
-    v
-        (k,) prediction residuals of the left-out observations.
-    Q
-        Their own covariance (k observations).
-    J
-        (k, u) their derivative by the parameters.
-    cov
-        (u, u) covariance of the solution without them.
-    alpha
-        Level of the test.
-
-    Returns
-    -------
-    statistic, threshold, confirmed
-    """
-    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
-    JL = np.asarray(J, dtype=float) @ (V * np.sqrt(np.clip(w, 0.0, None)))
-    if Q.blocks is not None:
-        # a few points: the dense covariance of their joint prediction
-        Qd = np.zeros((len(v), len(v)))
-        b = Q.blocks.shape[1]
-        for i, block in enumerate(Q.blocks):
-            Qd[i * b : (i + 1) * b, i * b : (i + 1) * b] = block
-        statistic = float(v @ np.linalg.solve(Qd + JL @ JL.T, v))
-    else:
-        assert Q.diag is not None
-        U = np.empty((len(v), 0)) if Q.low_rank is None else Q.low_rank
-        var = np.zeros(0) if Q.low_rank_var is None else Q.low_rank_var
-        S = Covariance(
-            diag=Q.diag,
-            low_rank=np.concatenate([U, JL], axis=1),
-            low_rank_var=np.concatenate([var, np.ones(JL.shape[1])]),
-        )
-        statistic = float(v @ S.solve(v))
-    threshold = float(special.chdtri(len(v), alpha))
-    return statistic, threshold, statistic > threshold
-
-
 def guard_exclusion(integrity: Integrity, alert_limit: float) -> Integrity:
     """Fail a solution that passed only by leaving observations out, unless it stays reliable.
 
