@@ -69,6 +69,14 @@ ProjectArg = Annotated[
 OutOption = Annotated[
     Path, typer.Option("--out", "-o", help="Output folder (replaced atomically).")
 ]
+AlertLimitOption = Annotated[
+    float | None,
+    typer.Option(
+        "--alert-limit",
+        help="Largest protection level (m) a pose may have when it passed its tests only by "
+        "leaving observations out; default: the project's tolerances.position (0.01).",
+    ),
+]
 
 
 def _version(value: bool) -> None:
@@ -221,8 +229,35 @@ def _optional_numbers(
     return None if text is None else parse_numbers(text, option, names, units)
 
 
-def report_base_pose(pose: BasePose, out: Path, method: str, rows: list[tuple[str, str]]) -> None:
+def alert_limit_for(value: float | None, project: Project | None) -> float:
+    """The alert limit (metres): ``--alert-limit``, else the project's position tolerance.
+
+    Raises
+    ------
+    InputError
+        A limit that is not a positive finite number.
+    """
+    from fabflow.errors import InputError
+    from fabflow.project import Tolerances
+
+    if value is None:
+        return (Tolerances() if project is None else project.tolerances).position
+    if not (math.isfinite(value) and value > 0):
+        raise InputError(
+            f"expected a positive length in metres, got {value}", location="--alert-limit"
+        )
+    return value
+
+
+def report_base_pose(
+    pose: BasePose, out: Path, method: str, rows: list[tuple[str, str]], alert_limit: float
+) -> None:
     """Write ``OUT/base_pose.json`` atomically and print the pose with its uncertainty.
+
+    A pose that passed its tests only by leaving observations out fails when its
+    protection level exceeds ``alert_limit``
+    (:func:`~fabflow.positioning.integrity.guard_exclusion`); a failed or
+    untested pose is written (with its tests) and the command exits with 2.
 
     Parameters
     ----------
@@ -234,10 +269,18 @@ def report_base_pose(pose: BasePose, out: Path, method: str, rows: list[tuple[st
         Name shown in the summary (``uwb``, ``total-station``, ``icp``).
     rows
         Method-specific ``(item, value)`` rows shown first.
+    alert_limit
+        Largest acceptable protection level (metres).
     """
+    from dataclasses import replace
+
     import numpy as np
 
     from fabflow.output import atomic_output_dir
+    from fabflow.positioning.integrity import guard_exclusion
+
+    if pose.integrity is not None:
+        pose = replace(pose, integrity=guard_exclusion(pose.integrity, alert_limit))
 
     with atomic_output_dir(out) as staging:
         pose.write(staging / "base_pose.json")
@@ -297,9 +340,9 @@ def integrity_rows(integrity: Integrity | None) -> list[tuple[str, str]]:
                 f"horizontal {1e3 * pl['horizontal']:.1f}, vertical {1e3 * pl['vertical']:.1f}",
             )
         )
-    ident = integrity.checks.get("prism_identification", {})
-    if ident.get("reassigned"):
-        rows.append(("prisms", ident["reassigned"]))
+    reassigned = integrity.checks.get("prism_identification", {}).get("reassigned")
+    if reassigned and reassigned not in (integrity.reason or ""):
+        rows.append(("prisms", reassigned))
     if integrity.checks.get("degraded"):
         rows.append(("degraded", integrity.checks["degraded"]))
     return rows
@@ -348,16 +391,19 @@ def localize_total_station(
         str | None, typer.Option(help="Prism position 'x,y,z' in the flange frame (m).")
     ] = None,
     station: Annotated[str | None, typer.Option(help="Station id stored in the result.")] = None,
+    alert_limit: AlertLimitOption = None,
 ) -> None:
     """Localize the robot base from total station readings of prisms on the robot."""
 
     from fabflow.localize.total_station import localize_files
     from fabflow.project import load_project
 
+    loaded = None if project is None else load_project(project)
+    limit = alert_limit_for(alert_limit, loaded)
     pose = localize_files(
         observations,
         robot_points,
-        project=None if project is None else load_project(project),
+        project=loaded,
         instrument=instrument,
         distance_sigma_mm=distance_sigma_mm,
         distance_ppm=distance_ppm,
@@ -382,7 +428,7 @@ def localize_total_station(
     if test is not None and test["flagged"]:
         bad = q["point_ids"][test["index"]]
         rows.append(("bad reading", f"{bad} (p = {test['p_value']:.2g})"))
-    report_base_pose(pose, out, "total-station", rows)
+    report_base_pose(pose, out, "total-station", rows, limit)
 
 
 @localize_app.command("uwb")
@@ -397,17 +443,19 @@ def localize_uwb(
     imu: Annotated[
         Path | None, typer.Option("--imu", help="CSV t,ax,ay,az,gx,gy,gz: fuse with the ESKF.")
     ] = None,
+    alert_limit: AlertLimitOption = None,
 ) -> None:
     """Localize the robot base from UWB ranges (and an IMU); writes OUT/base_pose.json."""
 
     from fabflow.localize.uwb_files import localize_from_files
 
+    limit = alert_limit_for(alert_limit, None)
     pose = localize_from_files(ranges, anchors, imu)
     q = pose.quality
     rows = [("estimator", str(q["estimator"])), ("ranges", str(q["n_ranges"]))]
     if q.get("unobserved"):
         rows.append(("not observed", ", ".join(q["unobserved"])))
-    report_base_pose(pose, out, "uwb", rows)
+    report_base_pose(pose, out, "uwb", rows, limit)
 
 
 @localize_app.command("icp")
@@ -427,17 +475,20 @@ def localize_icp(
     ] = None,
     lift: Annotated[float, typer.Option(help="Lift height of the arm base (m).")] = 0.0,
     station: Annotated[str | None, typer.Option(help="Station id stored in the result.")] = None,
+    alert_limit: AlertLimitOption = None,
 ) -> None:
     """Localize the robot base by ICP of a LiDAR scan against a map; writes OUT/base_pose.json."""
 
     from fabflow.localize.icp import localize_files
     from fabflow.project import load_project
 
+    loaded = None if project is None else load_project(project)
+    limit = alert_limit_for(alert_limit, loaded)
     pose = localize_files(
         scan,
         map_file,
         parse_numbers(init, "--init", "x,y,yaw", " (metres, metres, degrees)"),
-        project=None if project is None else load_project(project),
+        project=loaded,
         lift=lift,
         station=station,
     )
@@ -446,7 +497,7 @@ def localize_icp(
         ("scan points", f"{q['n_points']} used of {q['n_scan_points']}"),
         ("fitness", f"{q['fitness']:.3f} (structure {q['structure_fitness']:.3f})"),
     ]
-    report_base_pose(pose, out, "icp", rows)
+    report_base_pose(pose, out, "icp", rows, limit)
 
 
 @app.command()

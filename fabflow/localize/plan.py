@@ -17,7 +17,7 @@ import numpy as np
 from fabflow.design.elements import Element
 from fabflow.errors import LocalizationError
 from fabflow.localize.methods import LOCALIZERS, LocalizeStation, localizer_arguments
-from fabflow.positioning.integrity import consistency_test, exact, unchecked
+from fabflow.positioning.integrity import consistency_test, exact, guard_exclusion, unchecked
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project
 from fabflow.robots import platform
@@ -191,6 +191,9 @@ def check_visit(project: Project, estimate: BasePose, T_world_base_planned: np.n
 
     - A pose or covariance holding NaN or infinity fails.
     - A method that returned no integrity record fails as untested.
+    - A pose that passed its tests only by leaving observations out fails when
+      its protection level exceeds the project's position tolerance (the alert
+      limit, :func:`~fabflow.positioning.integrity.guard_exclusion`).
     - The estimate must agree with the station the platform was sent to: the
       difference in ``x, y, z, yaw`` is tested against the parking accuracy plus
       the estimate's own covariance (chi-square, 4 dof, at the integrity level).
@@ -211,6 +214,7 @@ def check_visit(project: Project, estimate: BasePose, T_world_base_planned: np.n
         )
     if "exact" in integrity.checks:
         return replace(estimate, integrity=integrity)
+    integrity = guard_exclusion(integrity, project.tolerances.position)
     planned = np.asarray(T_world_base_planned, dtype=float)
     err = pose_error(estimate.T_world_base, planned)
     e = np.array([err[0], err[1], err[2], err[5]])

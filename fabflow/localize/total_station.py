@@ -22,7 +22,6 @@ import numpy as np
 
 from fabflow.design.elements import Element, element_boxes
 from fabflow.errors import InputError, LocalizationError
-from fabflow.positioning.integrity import guard_exclusion
 from fabflow.positioning.point_selection import (
     Boxes,
     ClearanceRules,
@@ -278,8 +277,6 @@ def estimate_from_readings(
             alpha=policy.alpha,
             point_labels=labels,
         )
-    if reg.integrity is not None:
-        reg = replace(reg, integrity=guard_exclusion(reg.integrity, project.tolerances.position))
     reg = add_instrument_uncertainty(reg, readings.T_world_instrument, instrument_covariance(setup))
     quality = {
         "procedure": setup.procedure,

@@ -204,7 +204,6 @@ def estimate_station(
         alpha=project.localization.integrity.alpha,
         anchor_ids=ids,
         base_lever=T_platform_base[:3, 3],
-        alert_limit=project.tolerances.position,
     )
     T_world_platform_est = fix.T
     T_world_base_est = platform.T_world_base(T_world_platform_est, 0.0, T_platform_base)

@@ -26,7 +26,6 @@ from fabflow.positioning.integrity import (
     Integrity,
     TestResult,
     adjustment_test,
-    guard_exclusion,
     identify,
     record,
 )
@@ -108,7 +107,6 @@ def locate_platform(
     alpha: float = ALPHA,
     anchor_ids: Sequence[str] | None = None,
     base_lever: np.ndarray | None = None,
-    alert_limit: float = math.inf,
 ) -> PlatformFix:
     """Estimate a standing platform's ``x, y, z, yaw`` from the ranges of its tags.
 
@@ -152,9 +150,6 @@ def locate_platform(
     base_lever
         (3,) the arm base in the platform frame (metres): the protection level is
         given for the base, which a heading error moves too.
-    alert_limit
-        Largest acceptable protection level (metres) of a fix that passed only by
-        leaving ranges out (:func:`~fabflow.positioning.integrity.guard_exclusion`).
 
     Raises
     ------
@@ -282,7 +277,6 @@ def locate_platform(
     )
     state[3] = (state[3] + np.pi) % (2 * np.pi) - np.pi
     integrity = record(tests, excluded, alpha, _geometry(A[np.unique(anc_idx[use])], state))
-    integrity = guard_exclusion(integrity, alert_limit)
     if not determined:
         integrity = integrity.failing(
             "the ranges left after the outlier and residual tests do not determine the pose"
@@ -337,7 +331,8 @@ def _platform_tests(
     range to one anchor shares (what the calibration leaves: ``bias_sigma``),
     so ``Q = diag(s^2) + U diag(bias_sigma^2) U^T``. Hypotheses: a bias of all
     ranges to one anchor (``anchor A3``) and, with two or more tags, of one
-    tag-anchor link (``anchor A3 from tag 1``).
+    tag-anchor link (``anchor A3 from tag 1``; tags are numbered from 0, as in
+    the ranges file's ``tag`` column).
     """
     tg, an = tag_idx[use], anc_idx[use]
     J = _platform_jac(A, L, state, tg, an)
@@ -358,7 +353,7 @@ def _platform_tests(
             for j in anchors:
                 c = ((tg == k) & (an == j)).astype(float)
                 if c.any():
-                    hyps.append(Hypothesis(f"anchor {ids[j]} from tag {k + 1}", c))
+                    hyps.append(Hypothesis(f"anchor {ids[j]} from tag {k}", c))
     R = _rotz(float(state[3]))
     G = np.zeros((3, J.shape[1]))
     G[:, :3] = np.eye(3)
@@ -397,7 +392,7 @@ def _hypothesis_ranges(
     j = list(ids).index(words[1])
     drop = anc_idx == j
     if len(words) > 2:
-        drop &= tag_idx == int(words[-1]) - 1
+        drop &= tag_idx == int(words[-1])
     return drop
 
 
