@@ -379,6 +379,7 @@ def localize_icp(
 ) -> None:
     """Localize the robot base by ICP of a LiDAR scan against a map; writes OUT/base_pose.json."""
 
+    from fabflow.errors import LocalizationError
     from fabflow.localize.icp import localize_files
     from fabflow.project import load_project
 
@@ -395,6 +396,11 @@ def localize_icp(
         ("scan points", f"{q['n_points']} used of {q['n_scan_points']}"),
         ("fitness", f"{q['fitness']:.3f} (structure {q['structure_fitness']:.3f})"),
     ]
+    if pose.integrity is not None and pose.integrity.failed:
+        # as before the integrity record: a scan that fails its checks writes nothing
+        raise LocalizationError(f"the scan fails its checks: {pose.integrity.reason}")
+    if pose.integrity is not None:
+        rows.append(("integrity", pose.integrity.status))
     report_base_pose(pose, out, "icp", rows)
 
 

@@ -105,12 +105,14 @@ def localize_station(
     Returns
     -------
     BasePose
-        The estimated ``T_world_base`` with covariance and quality figures.
+        The estimated ``T_world_base`` with covariance, quality figures and the
+        scan's integrity record unchanged: status ``"failed"`` (with the reason)
+        when the scan fails the fitness, RMSE, structure or geometry checks.
 
     Raises
     ------
     LocalizationError
-        When the scan fails the fitness, RMSE or geometry checks.
+        When no pose can be computed (too few scan points or correspondences).
     """
 
     setup = project.localization.icp or IcpSetup()
@@ -178,6 +180,19 @@ def localize_files(
         Lift height of the arm above its lowest position (metres).
     station
         Station id stored in the result.
+
+    Returns
+    -------
+    BasePose
+        The base pose with the scan's integrity record unchanged (status
+        ``"failed"`` with the reason when a check fails).
+
+    Raises
+    ------
+    InputError
+        An unreadable scan or map file.
+    LocalizationError
+        When no pose can be computed (too few scan points or correspondences).
     """
 
     setup = (project.localization.icp if project is not None else None) or IcpSetup()
