@@ -130,6 +130,9 @@ def accuracy(n: int, seed: int) -> None:
             except LocalizationError:
                 failures += mode == "station"
                 continue
+            if loc.integrity.failed:
+                failures += mode == "station"
+                continue
             dt, dc = time.perf_counter() - t1, time.process_time() - c1
             e = pose_error(loc.T_world_lidar, T_true)
             out.append((float(np.linalg.norm(e[:3])), float(abs(np.degrees(e[5]))), dt, dc))
@@ -172,7 +175,7 @@ def accuracy(n: int, seed: int) -> None:
                 widths,
             )
         )
-    print(f"station failures (LocalizationError raised): {failures}")
+    print(f"station failures (LocalizationError raised or integrity failed): {failures}")
     print("cpu ms: process CPU time (all threads) per localization; wall ms grows with load")
     print("target (issue 8): translation < 5 mm and heading < 0.1 deg, median over 100 poses\n")
 

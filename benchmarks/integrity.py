@@ -27,7 +27,7 @@ from fabflow.positioning.integrity import ALPHA
 from fabflow.positioning.uwb import crlb, locate
 from fabflow.project import load_project
 from fabflow.sensors.uwb import UwbErrorModel, simulate_ranges
-from fabflow.sim.faults import ELLIPSOID, FAULTS, fault_study
+from fabflow.sim.faults import ELLIPSOID, FAULTS, fault_study, with_method
 
 ROOT = Path(__file__).resolve().parents[1]
 ANCHORS_5 = np.array(
@@ -37,10 +37,9 @@ POINTS = np.array([[1.0, 1.5, 1.2], [2.4, 3.0, 1.0], [3.8, 4.5, 1.5], [1.5, 4.8,
 
 
 def projects():
-    """The cabin for UWB, and the cabin localized by a total station."""
+    """The cabin localized by each method."""
     cabin = load_project(ROOT / "projects" / "cabin")
-    loc = cabin.localization.model_copy(update={"method": "total_station"})
-    return {"uwb": cabin, "total_station": cabin.model_copy(update={"localization": loc})}
+    return {method: with_method(cabin, method) for method in FAULTS}
 
 
 def fault_table(n: int, console: Console) -> None:

@@ -1,8 +1,9 @@
 """The README's commands are run, so the docs cannot drift from the code.
 
-So are those of the docs in ``RUN_DOCS``. Every ``console`` block holds ``$ fabflow ...`` commands followed by the output
-they print; ``...`` in the expected output matches anything (including
-nothing). Outputs the README writes under ``out/`` go to a temporary folder.
+So are those of the docs in ``RUN_DOCS``. Every ``console`` block holds
+``$ fabflow ...`` commands followed by the output they print; ``...`` in the
+expected output matches anything (including nothing). Outputs the README
+writes under ``out/`` go to a temporary folder.
 """
 
 from __future__ import annotations

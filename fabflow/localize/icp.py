@@ -2,8 +2,10 @@
 
 :func:`localize_station` scans the simulated site (:mod:`fabflow.sensors`) from
 the true platform pose and registers the scan to the site map from the planned
-one (``fabflow build`` and the simulator); :func:`localize_files` registers a
-measured scan file to a map file (``fabflow localize icp``). The estimator is
+one (``fabflow build`` and the simulator; :func:`simulate_station` and
+:func:`estimate_station` are its two halves, for fault injection);
+:func:`localize_files` registers a measured scan file to a map file
+(``fabflow localize icp``). The estimator is
 :func:`fabflow.positioning.scan_matching.localize_scan`.
 """
 
@@ -11,7 +13,9 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -66,6 +70,31 @@ def _cached_file_map(path: str, voxel_size: float) -> ScanMap:
     return load_map(path, voxel_size)
 
 
+@dataclass(frozen=True)
+class StationScan:
+    """What the platform's LiDAR delivers at a station, and what it is matched to.
+
+    Attributes
+    ----------
+    scan
+        ``(N, 3)`` scan points in the LiDAR frame (metres).
+    scan_map
+        The map the scan is registered to (world frame).
+    T_init
+        4x4 initial guess of the LiDAR pose in the world: the planned station.
+    T_base_lidar
+        4x4 LiDAR pose in the arm base frame at the station's lift.
+    quality
+        Figures stored with the result (scan size, map source).
+    """
+
+    scan: np.ndarray
+    scan_map: ScanMap
+    T_init: np.ndarray
+    T_base_lidar: np.ndarray
+    quality: dict[str, Any]
+
+
 def localize_station(
     project: Project,
     T_world_base: ArrayLike,
@@ -76,9 +105,10 @@ def localize_station(
 ) -> BasePose:
     """Simulate LiDAR scan-to-map localization of a parked platform.
 
-    The platform's LiDAR (``localization.icp.T_platform_lidar``) scans the
-    simulated site (ground, landmarks, the project's box and polygon obstacles and
-    the blocks in ``built``) from the true pose; the scan is localized against the map
+    :func:`simulate_station` then :func:`estimate_station`: the platform's LiDAR
+    (``localization.icp.T_platform_lidar``) scans the simulated site (ground,
+    landmarks, the project's box and polygon obstacles and the blocks in
+    ``built``) from the true pose; the scan is localized against the map
     (``localization.icp.map``, or a simulated map of the site without blocks),
     starting from the true pose perturbed by the driving error
     (``simulation.driving_error``, ``simulation.driving_heading_error_deg``), i.e.
@@ -105,14 +135,27 @@ def localize_station(
     Returns
     -------
     BasePose
-        The estimated ``T_world_base`` with covariance and quality figures.
+        The estimated ``T_world_base`` with covariance, quality figures and the
+        scan's integrity record unchanged: status ``"failed"`` (with the reason)
+        when the scan fails the fitness, RMSE, structure or geometry checks.
 
     Raises
     ------
     LocalizationError
-        When the scan fails the fitness, RMSE or geometry checks.
+        When no pose can be computed (too few scan points or correspondences).
     """
+    data = simulate_station(project, T_world_base, rng, built, lift)
+    return estimate_station(project, data, station_id)
 
+
+def simulate_station(
+    project: Project,
+    T_world_base: ArrayLike,
+    rng: np.random.Generator,
+    built: Sequence[Element] = (),
+    lift: float = 0.0,
+) -> StationScan:
+    """The scan of a simulated station and its map (see :func:`localize_station`)."""
     setup = project.localization.icp or IcpSetup()
     T_platform_base = platform.T_platform_base_at(
         project.robot.platform.T_platform_base.matrix(), lift
@@ -138,11 +181,11 @@ def localize_station(
     scan_map = _project_map(setup, project)
     if setup.map_as_built:
         scan_map = with_as_built(scan_map, built, rng)
-    loc = _localize_scan(scan.points, scan_map, T_init, setup)
-    return to_base_pose(
-        loc,
-        T_base_lidar,
-        station=station_id,
+    return StationScan(
+        scan=scan.points,
+        scan_map=scan_map,
+        T_init=T_init,
+        T_base_lidar=T_base_lidar,
         quality={
             "n_scan_points": len(scan),
             "map": str(setup.map) if setup.map else "simulated",
@@ -151,6 +194,15 @@ def localize_station(
             else 0,
         },
     )
+
+
+def estimate_station(
+    project: Project, data: StationScan, station_id: str | None = None
+) -> BasePose:
+    """The base pose from a station's scan, with its checks (see :func:`localize_station`)."""
+    setup = project.localization.icp or IcpSetup()
+    loc = _localize_scan(data.scan, data.scan_map, data.T_init, setup)
+    return to_base_pose(loc, data.T_base_lidar, station=station_id, quality=data.quality)
 
 
 def localize_files(
@@ -178,6 +230,19 @@ def localize_files(
         Lift height of the arm above its lowest position (metres).
     station
         Station id stored in the result.
+
+    Returns
+    -------
+    BasePose
+        The base pose with the scan's integrity record unchanged (status
+        ``"failed"`` with the reason when a check fails).
+
+    Raises
+    ------
+    InputError
+        An unreadable scan or map file.
+    LocalizationError
+        When no pose can be computed (too few scan points or correspondences).
     """
 
     setup = (project.localization.icp if project is not None else None) or IcpSetup()

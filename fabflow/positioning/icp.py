@@ -16,6 +16,20 @@ step of the linearized point-to-plane problem. A stage ends when the relative
 changes of fitness and inlier RMSE both drop below their tolerances, or the step
 becomes negligible, or after ``max_iterations``.
 
+The covariance is the robust "sandwich" of an M-estimator (Huber 1967; White
+1980), ``C = N^-1 M N^-1`` with ``N = sum_i w_i J_i^T J_i`` and
+``M = sum_b g_b g_b^T``, ``g_b = sum_{i in b} w_i r_i J_i^T`` summed over blocks
+``b`` of correspondences (cubes of ``covariance_block`` metres; one block per
+correspondence when ``None``), times the small-sample factor
+``K / (K - 1) * (n - 1) / (n - 6)`` of ``K`` blocks and ``n`` correspondences. Unlike
+``sigma^2 N^-1`` it needs neither one residual variance for all points (the
+near ground, averaged over many LiDAR returns per voxel, has far smaller
+residuals than the far walls that fix x, y and heading) nor independent
+residuals: errors shared by the points of one block (a surface's share of the
+map error, voxel-centroid bias along edges and facets) add up in ``g_b``.
+:func:`weakest_direction` reads the least constrained direction off the
+information.
+
 Build the target once with :func:`prepare_target` when the same map is used for
 many registrations (scan-to-map localization): its KD-tree and normals are then
 not recomputed.
@@ -42,6 +56,11 @@ Kernel = Literal["none", "huber", "tukey", "cauchy"]
 
 MIN_CORRESPONDENCES = 10
 """Fewer inlier correspondences than this is a failed registration."""
+MIN_BLOCKS = 30
+"""Fewer occupied covariance blocks than this: the blocked sum is too coarse to
+estimate a 6x6 matrix (cluster-robust estimators want some tens of clusters), and
+each correspondence becomes its own block."""
+AXES = ("x", "y", "z")
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,19 +138,22 @@ class IcpResult:
         Total iterations over all stages.
     covariance
         6x6 covariance of ``T`` over ``[dx, dy, dz, rx, ry, rz]`` (target frame;
-        m^2, rad^2), from the Gauss-Newton information and the residual variance.
+        m^2, rad^2): the sandwich of the final correspondences (module docstring).
     information
-        The 6x6 information matrix (inverse covariance, from the final correspondences).
+        The 6x6 information matrix (inverse of ``covariance``; 1/m^2, 1/rad^2).
     n_inliers
         Number of inlier correspondences at the end.
     converged
         Whether the final stage met its convergence tolerances before ``max_iterations``.
     condition
-        Ratio of smallest to largest eigenvalue of the information matrix
-        (0 = degenerate geometry, e.g. a single plane).
+        Ratio of smallest to largest eigenvalue of the unit information
+        ``sum_i w_i J_i^T J_i`` (rotations in radians, so their rows carry the lever
+        arms in metres; 0 = degenerate geometry, e.g. a single plane).
     residuals
         ``(n_inliers,)`` final residuals (metres; signed point-to-plane distances or
         Euclidean distances).
+    n_blocks
+        Number of blocks the covariance summed the residuals over.
     """
 
     T: FloatArray
@@ -144,6 +166,7 @@ class IcpResult:
     converged: bool
     condition: float
     residuals: FloatArray
+    n_blocks: int = 0
 
     @property
     def transformation(self) -> FloatArray:
@@ -189,14 +212,120 @@ def _plane_system(
     return Jw.T @ J, Jw.T @ r
 
 
-def _covariance(info_unit: FloatArray, sigma2: float) -> tuple[FloatArray, FloatArray, float]:
+def _block_sums(scores: FloatArray, points: FloatArray, block: float | None) -> FloatArray:
+    """Sum the rows of ``scores`` over cubes of edge ``block`` of ``points`` (or keep them)."""
+    if not block:
+        return scores
+    keys = np.floor(points / block).astype(np.int64)
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    n = int(inverse.max()) + 1
+    if n < MIN_BLOCKS:
+        return scores
+    return np.stack(
+        [np.bincount(inverse, weights=scores[:, k], minlength=n) for k in range(6)], axis=1
+    )
+
+
+def _sandwich(
+    info_unit: FloatArray, sums: FloatArray, n: int, sigma2: float
+) -> tuple[FloatArray, FloatArray, float]:
+    """Covariance ``N^-1 M N^-1``, its inverse and the condition of ``N``.
+
+    ``info_unit`` is ``N``; ``sums`` the ``(K, 6)`` score sums of the blocks
+    (``M = sums^T sums``); ``n`` the number of correspondences. Along numerically
+    degenerate directions of ``N`` (eigenvalue below 1e-12 of the largest) the
+    scores carry nothing; there the covariance falls back to ``sigma2 / lambda``
+    with the eigenvalue floored, i.e. a huge variance.
+    """
     evals, evecs = np.linalg.eigh(info_unit)
     top = max(float(evals[-1]), 1e-300)
     condition = float(max(evals[0], 0.0) / top)
-    floor = top * 1e-12
-    inv = (evecs / np.maximum(evals, floor)) @ evecs.T
-    info = info_unit / max(sigma2, 1e-18)
-    return inv * sigma2, info, condition
+    lam = np.maximum(evals, top * 1e-12)
+    k = len(sums)
+    factor = k / max(k - 1, 1) * (n - 1) / max(n - 6, 1)
+    Mv = evecs.T @ (sums.T @ sums) @ evecs * factor
+    Cv = Mv / np.outer(lam, lam)
+    weak = evals <= top * 1e-12
+    Cv[weak, weak] = np.maximum(Cv[weak, weak], max(sigma2, 1e-18) / lam[weak])
+    cov = evecs @ Cv @ evecs.T
+    cov = 0.5 * (cov + cov.T)
+    cev, cvec = np.linalg.eigh(cov)
+    cev = np.maximum(cev, max(float(cev[-1]), 1e-300) * 1e-15)
+    return cov, (cvec / cev) @ cvec.T, condition
+
+
+@dataclass(frozen=True, eq=False)
+class WeakDirection:
+    """The least constrained direction of a pose, read off its information.
+
+    Translations (metres) and rotations (radians) are made comparable by the
+    ``lever``: a rotation counts as the displacement it causes at that distance.
+
+    Attributes
+    ----------
+    vector
+        ``(6,)`` unit vector over ``[dx, dy, dz, lever rx, lever ry, lever rz]``.
+    sigma
+        Standard deviation of the pose along ``vector`` (metres; for a rotation the
+        displacement at ``lever``).
+    lever
+        ``sqrt(tr(I_rot) / tr(I_trans))`` of the information ``I`` (metres): the RMS
+        lever arm of the constraints, at which rotation and translation are on
+        average equally well determined.
+    translation_share
+        ``|vector[:3]|^2``: 1 for a pure translation, 0 for a pure rotation.
+    label
+        ``"translation x"`` (``y``, ``z``) or ``"rotation about z (heading)"``
+        (``x (roll)``, ``y (pitch)``): the part and axis that dominate ``vector``.
+    condition
+        Smallest over largest eigenvalue of the scaled information.
+    eigenvalues
+        ``(6,)`` eigenvalues of the scaled information, ascending (1/m^2).
+    """
+
+    vector: FloatArray
+    sigma: float
+    lever: float
+    translation_share: float
+    label: str
+    condition: float
+    eigenvalues: FloatArray
+
+
+def weakest_direction(information: ArrayLike) -> WeakDirection:
+    """The eigenvector of the smallest eigenvalue of the (scaled) 6x6 information.
+
+    Parameters
+    ----------
+    information
+        6x6 information over ``[dx, dy, dz, rx, ry, rz]`` (1/m^2, 1/rad^2), e.g.
+        :attr:`IcpResult.information`.
+    """
+    info = np.asarray(information, dtype=float).reshape(6, 6)
+    t_tr = float(np.trace(info[:3, :3]))
+    lever = float(np.sqrt(np.trace(info[3:, 3:]) / t_tr)) if t_tr > 0 else 1.0
+    lever = lever if np.isfinite(lever) and lever > 0 else 1.0
+    scale = np.r_[np.ones(3), np.full(3, 1.0 / lever)]
+    scaled = info * np.outer(scale, scale)
+    evals, evecs = np.linalg.eigh(0.5 * (scaled + scaled.T))
+    v = evecs[:, 0] * (1.0 if evecs[np.argmax(np.abs(evecs[:, 0])), 0] >= 0 else -1.0)
+    share = float(np.sum(v[:3] ** 2))
+    if share >= 0.5:
+        label = f"translation {AXES[int(np.argmax(np.abs(v[:3])))]}"
+    else:
+        axis = int(np.argmax(np.abs(v[3:])))
+        label = f"rotation about {AXES[axis]} ({('roll', 'pitch', 'heading')[axis]})"
+    top = max(float(evals[-1]), 1e-300)
+    return WeakDirection(
+        vector=v,
+        sigma=float(1.0 / np.sqrt(max(float(evals[0]), 1e-300))),
+        lever=lever,
+        translation_share=share,
+        label=label,
+        condition=float(max(float(evals[0]), 0.0) / top),
+        eigenvalues=evals,
+    )
 
 
 def icp(
@@ -213,6 +342,7 @@ def icp(
     target_normals: ArrayLike | None = None,
     min_step: float = 1e-5,
     workers: int = -1,
+    covariance_block: float | None = None,
 ) -> IcpResult:
     """Register ``source`` to ``target`` with ICP.
 
@@ -250,6 +380,10 @@ def icp(
         source radius).
     workers
         Threads for the KD-tree queries (``-1``: all cores).
+    covariance_block
+        Edge (metres, target frame) of the cubes whose correspondences the
+        covariance treats as sharing their errors (module docstring); ``None``: each
+        correspondence alone (independent residuals of unequal variance).
 
     Returns
     -------
@@ -353,7 +487,16 @@ def icp(
                 break
 
     return _final_result(
-        src, tgt, T, float(schedule[-1]), plane, kernel, scale, iterations, converged, workers
+        src,
+        tgt,
+        T,
+        float(schedule[-1]),
+        plane,
+        (kernel, scale),
+        iterations,
+        converged,
+        workers,
+        covariance_block,
     )
 
 
@@ -363,11 +506,11 @@ def _final_result(
     T: FloatArray,
     dmax: float,
     plane: bool,
-    kernel: Kernel,
-    scale: float,
+    robust: tuple[Kernel, float],
     iterations: int,
     converged: bool,
     workers: int,
+    block: float | None,
 ) -> IcpResult:
     p = apply_T(T, src)
     d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=workers)
@@ -384,19 +527,17 @@ def _final_result(
         assert tgt.normals is not None
         nn = tgt.normals[ii]
         r = np.einsum("ij,ij->i", p - q, nn)
-        w = _kernel_weights(r, kernel, scale)
+        w = _kernel_weights(r, *robust)
         J = np.empty((n_ok, 6))
         J[:, :3] = nn
         J[:, 3:] = np.cross(Rs, nn)
         info_unit = (J * w[:, None]).T @ J
-        dof = max(n_ok - 6, 1)
-        sigma2 = float(np.sum(w * r * r) / dof)
-        rmse = float(np.sqrt(np.mean(r * r)))
-        residuals = r
+        scores = J * (w * r)[:, None]
+        sigma2 = float(np.sum(w * r * r) / max(n_ok - 6, 1))
     else:
         e = p - q
         r = np.linalg.norm(e, axis=1)
-        w = _kernel_weights(r, kernel, scale)
+        w = _kernel_weights(r, *robust)
         S = skew(Rs)
         sw = w.sum()
         Ssum = (w[:, None, None] * S).sum(axis=0)
@@ -406,20 +547,21 @@ def _final_result(
         info_unit[:3, 3:] = -Ssum
         info_unit[3:, :3] = -Ssum.T
         info_unit[3:, 3:] = StS
-        dof = max(3 * n_ok - 6, 1)
-        sigma2 = float(np.sum(w * r * r) / dof)
-        rmse = float(np.sqrt(np.mean(r * r)))
-        residuals = r
-    cov, info, condition = _covariance(info_unit, sigma2)
+        # J_i^T e_i with J_i = [I, -skew(R s_i)]
+        scores = w[:, None] * np.c_[e, np.cross(Rs, e)]
+        sigma2 = float(np.sum(w * r * r) / max(3 * n_ok - 6, 1))
+    sums = _block_sums(scores, p, block)
+    cov, info, condition = _sandwich(info_unit, sums, n_ok, sigma2)
     return IcpResult(
         T=T,
         fitness=n_ok / len(src),
-        inlier_rmse=rmse,
+        inlier_rmse=float(np.sqrt(np.mean(r * r))),
         iterations=iterations,
         covariance=cov,
         information=info,
         n_inliers=n_ok,
         converged=converged,
         condition=condition,
-        residuals=residuals,
+        residuals=r,
+        n_blocks=len(sums),
     )

@@ -5,9 +5,20 @@ Offline, :func:`build_map` registers several scans of the site into one map
 odometry guess; the first scan anchors the map frame), merges and voxelizes them
 and estimates normals. Online, :func:`localize_scan` aligns a new scan to the map
 from a rough initial pose (the platform's planned station) with a coarse-to-fine
-point-to-plane ICP and checks the result: too low a fitness, too high an inlier
-RMSE or degenerate geometry raise :class:`~fabflow.errors.LocalizationError`
-instead of returning a silently wrong pose.
+point-to-plane ICP and checks the result (fitness, inlier RMSE, structure fitness,
+the weakest direction of the information). The outcome is an
+:class:`~fabflow.positioning.integrity.Integrity` record on every result: a pose
+that was computed but fails a check is returned with status ``"failed"`` and the
+reason, never as a silently wrong pose; only a scan that yields no pose at all
+(too few points, no correspondences) raises
+:class:`~fabflow.errors.LocalizationError`.
+
+The covariance is the blocked sandwich of :mod:`fabflow.positioning.icp` over
+cubes of :data:`COVARIANCE_BLOCK`. A global test of the variance factor, as for
+the other methods, is not meaningful here: thousands of point-to-plane residuals
+whose errors are shared within surfaces are far from the independent
+observations of known variance it assumes, so the redundancy (inliers - 6) is
+recorded as information only.
 
 The simulated station and the files of ``fabflow localize icp`` are joined to
 these estimators in :mod:`fabflow.localize.icp`.
@@ -24,7 +35,15 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from fabflow.errors import InputError, LocalizationError
-from fabflow.positioning.icp import IcpResult, IcpTarget, icp, prepare_target
+from fabflow.positioning.icp import (
+    IcpResult,
+    IcpTarget,
+    WeakDirection,
+    icp,
+    prepare_target,
+    weakest_direction,
+)
+from fabflow.positioning.integrity import Integrity
 from fabflow.positioning.pointcloud import (
     as_points,
     estimate_normals,
@@ -42,6 +61,15 @@ FINE_SCHEDULE = (0.1,)
 """Correspondence distances (m) of the fine stage, on the scan voxel grid."""
 MIN_CONDITION = 1e-5
 """Smallest accepted ratio of smallest to largest information eigenvalue."""
+COVARIANCE_BLOCK = 1.0
+"""Edge (m) of the cubes of scan points whose residual errors the covariance treats
+as shared: the scale of the surfaces of a site (a column, a pallet, a stretch of
+wall or railing). Errors that do not average over the points of one surface (the
+map's error there, voxel-centroid bias along edges, facets and noisy grazing
+returns) correlate residuals metres apart; see docs/icp.md for the measurement."""
+WEAK_SIGMA_FRACTION = 1.0 / 3.0
+"""A direction whose sigma exceeds this fraction of the last correspondence
+distance (the Huber kernel's inlier scale) is not held by the inliers."""
 MAX_STORED_RESIDUALS = 1000
 MIN_STEP = 1e-4
 """ICP stops when an update moves no scan point by more than this (metres)."""
@@ -98,6 +126,26 @@ def map_from_points(
         target=prepare_target(p, n),
         coarse=prepare_target(pc, nc) if len(pc) >= 100 else prepare_target(p, n),
         voxel_size=voxel_size,
+    )
+
+
+def transform_map(scan_map: ScanMap, T: ArrayLike) -> ScanMap:
+    """The map moved by the rigid motion ``T`` (4x4): points, normals and trees.
+
+    For a map surveyed in another frame (``T`` = the pose of that frame in the
+    world), or to study a map that is off.
+    """
+    T = np.asarray(T, dtype=float)
+
+    def moved(target: IcpTarget) -> IcpTarget:
+        normals = None if target.normals is None else target.normals @ T[:3, :3].T
+        return prepare_target(apply_T(T, target.points), normals)
+
+    return ScanMap(
+        target=moved(scan_map.target),
+        coarse=moved(scan_map.coarse),
+        voxel_size=scan_map.voxel_size,
+        T_world_scans=tuple(T @ np.asarray(P) for P in scan_map.T_world_scans),
     )
 
 
@@ -184,6 +232,11 @@ class ScanLocalization:
     structure_fitness
         Fitness of the points near non-horizontal map surfaces (see
         :func:`structure_fitness`).
+    integrity
+        The checks and their outcome: status ``"ok"``, or ``"failed"`` with the
+        reason (do not use the pose); the figures are in ``integrity.checks``.
+    weakest
+        The least constrained direction of the pose (world frame).
     """
 
     T_world_lidar: FloatArray
@@ -191,6 +244,8 @@ class ScanLocalization:
     icp: IcpResult
     n_points: int
     structure_fitness: float
+    integrity: Integrity
+    weakest: WeakDirection
 
 
 def localize_scan(
@@ -204,6 +259,7 @@ def localize_scan(
     fine_schedule: Sequence[float] = FINE_SCHEDULE,
     max_points: int = 6000,
     min_structure_fitness: float = 0.5,
+    covariance_block: float | None = COVARIANCE_BLOCK,
 ) -> ScanLocalization:
     """Localize one scan in the map from a rough initial pose.
 
@@ -239,12 +295,25 @@ def localize_scan(
     min_structure_fitness
         Required fitness of the points on walls, columns and other non-horizontal
         surfaces (see :func:`structure_fitness`).
+    covariance_block
+        Edge of the covariance blocks (metres; ``None``: independent points).
+
+    Returns
+    -------
+    ScanLocalization
+        The pose, its covariance and its integrity: status ``"failed"`` (with the
+        check, its value and its threshold in the reason) when the fitness is below
+        ``min_fitness``, the inlier RMSE above ``max_rmse``, the structure fitness
+        below ``min_structure_fitness``, the information condition below
+        :data:`MIN_CONDITION`, or the sigma of the weakest direction above
+        :data:`WEAK_SIGMA_FRACTION` of the last fine correspondence distance
+        (e.g. only the ground in view, or a corridor).
 
     Raises
     ------
     LocalizationError
-        Too few correspondences, fitness below ``min_fitness``, inlier RMSE above
-        ``max_rmse`` or degenerate geometry (e.g. only the ground in view).
+        No pose at all: fewer than 100 scan points after voxelizing, or too few
+        correspondences for ICP to run.
     """
     if isinstance(scan_map, ScanMap):
         target, coarse_target = scan_map.target, scan_map.coarse
@@ -272,35 +341,112 @@ def localize_scan(
         max_correspondence_distance=fine_schedule,
         kernel="huber",
         min_step=MIN_STEP,
+        covariance_block=covariance_block,
     )
     structure = structure_fitness(fine, target, res.T, float(fine_schedule[-1]))
-    if res.fitness < min_fitness:
-        raise LocalizationError(
-            f"ICP fitness {res.fitness:.3f} is below the required {min_fitness:.3f}: the scan "
-            "does not match the map (wrong initial pose, wrong map, or the site has changed)"
-        )
-    if res.inlier_rmse > max_rmse:
-        raise LocalizationError(
-            f"ICP inlier RMSE {res.inlier_rmse * 1000:.1f} mm exceeds the allowed "
-            f"{max_rmse * 1000:.1f} mm"
-        )
-    if structure < min_structure_fitness:
-        raise LocalizationError(
-            f"only {structure:.0%} of the scan points on walls and other non-horizontal "
-            f"surfaces match the map (required {min_structure_fitness:.0%}): the pose is "
-            "held by the ground alone and is likely wrong in x, y and heading"
-        )
-    if res.condition < MIN_CONDITION:
-        raise LocalizationError(
-            f"scan geometry does not constrain all six degrees of freedom "
-            f"(information condition {res.condition:.2e})"
-        )
+    weak = weakest_direction(res.information)
+    limits = {
+        "min_fitness": min_fitness,
+        "max_rmse": max_rmse,
+        "min_structure_fitness": min_structure_fitness,
+        "max_weakest_sigma": WEAK_SIGMA_FRACTION * float(fine_schedule[-1]),
+    }
     return ScanLocalization(
         T_world_lidar=res.T,
         covariance=res.covariance,
         icp=res,
         n_points=len(fine),
         structure_fitness=structure,
+        integrity=scan_integrity(res, structure, weak, limits, covariance_block),
+        weakest=weak,
+    )
+
+
+def scan_integrity(
+    res: IcpResult,
+    structure: float,
+    weak: WeakDirection,
+    limits: dict[str, float],
+    covariance_block: float | None = COVARIANCE_BLOCK,
+) -> Integrity:
+    """The integrity record of a scan localization: every check, and which failed.
+
+    Parameters
+    ----------
+    res
+        The final ICP.
+    structure
+        Its structure fitness.
+    weak
+        The weakest direction of its information.
+    limits
+        ``min_fitness``, ``max_rmse`` (m), ``min_structure_fitness`` and
+        ``max_weakest_sigma`` (m).
+    covariance_block
+        Recorded with the figures.
+
+    Returns
+    -------
+    Integrity
+        Status ``"ok"``, or ``"failed"`` with a reason naming each failed check, its
+        value and its threshold. ``redundancy`` is ``n_inliers - 6``, for
+        information only (no global test; see the module docstring).
+    """
+    failed: dict[str, str] = {}
+    if res.fitness < limits["min_fitness"]:
+        failed["fitness"] = (
+            f"ICP fitness {res.fitness:.3f} is below the required {limits['min_fitness']:.3f} "
+            "(the scan does not match the map: wrong initial pose, wrong map, or the site "
+            "has changed)"
+        )
+    if res.inlier_rmse > limits["max_rmse"]:
+        failed["inlier_rmse"] = (
+            f"ICP inlier RMSE {res.inlier_rmse * 1000:.1f} mm exceeds the allowed "
+            f"{limits['max_rmse'] * 1000:.1f} mm"
+        )
+    if structure < limits["min_structure_fitness"]:
+        failed["structure_fitness"] = (
+            f"only {structure:.0%} of the scan points on walls and other non-horizontal "
+            f"surfaces match the map (required {limits['min_structure_fitness']:.0%}), so the "
+            "pose is held by the ground alone and is likely wrong in x, y and heading"
+        )
+    top = max(float(weak.eigenvalues[-1]), 1e-300)
+    n_weak = int(np.sum(weak.eigenvalues < MIN_CONDITION * top))
+    if res.condition < MIN_CONDITION:
+        more = f" and {n_weak - 1} more direction(s)" if n_weak > 1 else ""
+        failed["condition"] = (
+            f"the scan geometry does not constrain {weak.label}{more} (information "
+            f"condition {res.condition:.1e} below {MIN_CONDITION:.0e})"
+        )
+    elif weak.sigma > limits["max_weakest_sigma"]:
+        failed["weakest_sigma"] = (
+            f"the scan geometry hardly constrains {weak.label} (sigma "
+            f"{weak.sigma * 1000:.1f} mm along it, allowed "
+            f"{limits['max_weakest_sigma'] * 1000:.1f} mm)"
+        )
+    checks: dict[str, Any] = {
+        "fitness": float(res.fitness),
+        "structure_fitness": float(structure),
+        "inlier_rmse": float(res.inlier_rmse),
+        "condition": float(res.condition),
+        "min_condition": MIN_CONDITION,
+        **{k: float(v) for k, v in limits.items()},
+        "weakest_direction": [float(x) for x in weak.vector],
+        "weakest_axis": weak.label,
+        "weakest_translation_share": weak.translation_share,
+        "weakest_sigma": weak.sigma,
+        "weakest_lever": weak.lever,
+        "unconstrained_directions": n_weak,
+        "n_inliers": int(res.n_inliers),
+        "covariance_block": covariance_block,
+        "covariance_blocks": int(res.n_blocks),
+        "failed_checks": list(failed),
+    }
+    return Integrity(
+        status="failed" if failed else "ok",
+        reason="; ".join(failed.values()),
+        redundancy=int(res.n_inliers) - 6,
+        checks=checks,
     )
 
 
@@ -347,6 +493,14 @@ def to_base_pose(
         The localized sensor pose.
     T_base_lidar
         4x4 sensor mounting in the base frame (taken as exact).
+    station, quality
+        Stored in the result (``quality`` extends the ICP figures).
+
+    Returns
+    -------
+    BasePose
+        ``T_world_base`` with its covariance; ``integrity`` is ``loc.integrity``
+        unchanged (a failed scan gives a failed base pose).
     """
     T_lidar_base = inv_T(np.asarray(T_base_lidar, dtype=float))
     T_world_base = loc.T_world_lidar @ T_lidar_base
@@ -374,4 +528,5 @@ def to_base_pose(
         rmse=float(loc.icp.inlier_rmse),
         station=station,
         quality=q,
+        integrity=loc.integrity,
     )

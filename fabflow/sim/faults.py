@@ -26,10 +26,11 @@ import numpy as np
 from scipy import special
 
 from fabflow.errors import LocalizationError
+from fabflow.localize import icp, uwb
 from fabflow.localize import total_station as ts
-from fabflow.localize import uwb
 from fabflow.localize.plan import check_visit, parking_covariance
 from fabflow.positioning.result import BasePose
+from fabflow.positioning.scan_matching import transform_map
 from fabflow.project import Project
 from fabflow.transforms.se3 import make_T, perturb, pose_error
 from fabflow.transforms.so3 import exp_so3
@@ -37,6 +38,7 @@ from fabflow.transforms.so3 import exp_so3
 FAULTS: dict[str, tuple[str, ...]] = {
     "total_station": ("clean", "prism swap", "robot point off", "prism reading off"),
     "uwb": ("clean", "anchor mis-surveyed", "anchor NLOS", "random NLOS", "outside coverage"),
+    "icp": ("clean", "start far off", "map shifted 0.3 m", "map shifted 5 cm"),
 }
 """The fault kinds of each method's study."""
 
@@ -86,6 +88,13 @@ class FaultOutcome:
     silently_wrong_above_mdb: int
     raised: int
     median_error_m: float
+
+
+def with_method(project: Project, method: str) -> Project:
+    """The project localized by ``method`` (its other setup sections unchanged)."""
+    return project.model_copy(
+        update={"localization": project.localization.model_copy(update={"method": method})}
+    )
 
 
 def random_station(project: Project, rng: np.random.Generator) -> np.ndarray:
@@ -188,7 +197,30 @@ def _uwb_case(
     )
 
 
-CASES = {"total_station": _total_station_case, "uwb": _uwb_case}
+def _icp_case(
+    project: Project, fault: str, T_true: np.ndarray, rng: np.random.Generator
+) -> Injected:
+    data = icp.simulate_station(project, T_true, rng)
+    faulty = data
+    direction = rng.normal(size=2)
+    direction /= np.linalg.norm(direction)
+    if fault == "start far off":
+        # beyond the coarse stage's pull-in (0.5 m, 10 deg): odometry gone wrong
+        off = np.array([*(1.0 * direction), 0.0, 0.0, 0.0, np.radians(25.0)])
+        faulty = dataclasses.replace(data, T_init=perturb(data.T_init, off))
+    elif fault.startswith("map shifted"):
+        shift = 0.3 if fault.endswith("0.3 m") else 0.05
+        T = make_T(np.eye(3), [*(shift * direction), 0.0])
+        faulty = dataclasses.replace(data, scan_map=transform_map(data.scan_map, T))
+    return (
+        lambda: icp.estimate_station(project, faulty),
+        lambda: icp.estimate_station(project, data),
+        None,
+        0.0,
+    )
+
+
+CASES = {"total_station": _total_station_case, "uwb": _uwb_case, "icp": _icp_case}
 """Method name to the function that simulates one faulty station."""
 
 
@@ -200,7 +232,7 @@ def fault_study(project: Project, method: str, fault: str, n: int, seed: int = 0
     project
         The project (robot, localization setup of ``method``, integrity policy).
     method
-        ``"total_station"`` or ``"uwb"`` (keys of :data:`FAULTS`).
+        ``"total_station"``, ``"uwb"`` or ``"icp"`` (keys of :data:`FAULTS`).
     fault
         One of ``FAULTS[method]``.
     n

@@ -3,21 +3,34 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
+from helpers import ROOT
 
 from fabflow.cli import parse_numbers
 from fabflow.design.elements import Element
 from fabflow.errors import InputError, LocalizationError
 from fabflow.localize.icp import localize_station
+from fabflow.localize.methods import localizer_arguments
+from fabflow.localize.plan import parked_pose
 from fabflow.positioning.pointcloud import write_point_cloud
-from fabflow.positioning.scan_matching import ScanMap, build_map, localize_scan, to_base_pose
-from fabflow.project import parse_project
+from fabflow.positioning.result import BasePose
+from fabflow.positioning.scan_matching import (
+    ScanMap,
+    build_map,
+    localize_scan,
+    map_from_points,
+    to_base_pose,
+)
+from fabflow.project import load_project, parse_project
 from fabflow.sensors.lidar import LidarModel, simulate_scan
 from fabflow.sensors.site_map import mapping_poses, simulated_site_map
 from fabflow.sensors.site_scene import site_scene
+from fabflow.sim.run import prepare_study, run_seed
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, perturb, pose_error
 from fabflow.transforms.so3 import exp_so3
 
@@ -78,33 +91,94 @@ def test_localizes_from_half_metre_and_ten_degrees(
     assert loc.icp.inlier_rmse < 0.02
     sd = np.sqrt(np.diag(loc.covariance))
     assert np.all(sd > 0) and sd[0] < 0.005
+    assert loc.integrity.status == "ok" and loc.integrity.reason == ""
 
 
 def test_fails_loudly_instead_of_silently_wrong(site_map: ScanMap) -> None:
     T_true = lidar_pose(6.5, 1.0, 30.0)
     scan = simulate_scan(site_scene(), T_true, np.random.default_rng(2))
-    with pytest.raises(LocalizationError, match=r"fitness|correspondences|walls"):
-        localize_scan(scan.points, site_map, perturb(T_true, [6.0, -5.0, 0, 0, 0, 2.0]))
-    # only the ground in view (sensor high above an empty plane): degenerate
+    # from 8 m and 115 deg off, ICP converges somewhere: returned, but failed
+    far = localize_scan(scan.points, site_map, perturb(T_true, [6.0, -5.0, 0, 0, 0, 2.0]))
+    assert np.linalg.norm(pose_error(far.T_world_lidar, T_true)[:3]) > 0.1
+    assert far.integrity.failed
+    assert re.search(r"fitness|walls", far.integrity.reason)
+    assert far.integrity.checks["structure_fitness"] < 0.5
+    # only the ground in view (sensor high above an empty plane): failed
     flat = site_scene(built=(), landmarks=None, obstacles=[((-30, -30, -0.1), (30, 30, 0.0))])
     ground = simulate_scan(flat, T_true, np.random.default_rng(3))
-    with pytest.raises(LocalizationError):
-        localize_scan(ground.points, site_map, T_true)
+    loc = localize_scan(ground.points, site_map, T_true)
+    assert loc.integrity.failed
+    assert {"structure_fitness", "condition", "weakest_sigma"} & set(
+        loc.integrity.checks["failed_checks"]
+    )
+    # no pose at all: still an error
+    with pytest.raises(LocalizationError, match="points after voxelizing"):
+        localize_scan(ground.points[:50], site_map, T_true)
 
 
 def test_rejects_a_match_held_only_by_the_ground(site_map: ScanMap) -> None:
     T_true = lidar_pose(6.5, 1.0, 30.0)
     scan = simulate_scan(site_scene(), T_true, np.random.default_rng(4))
     wrong = perturb(T_true, [0.8, 0.0, 0.0, 0.0, 0.0, 0.15])
-    with pytest.raises(LocalizationError, match="walls"):
-        localize_scan(
-            scan.points,
-            site_map,
-            wrong,
-            coarse_schedule=None,
-            fine_schedule=(0.05,),
-            min_fitness=0.1,
+    loc = localize_scan(
+        scan.points,
+        site_map,
+        wrong,
+        coarse_schedule=None,
+        fine_schedule=(0.05,),
+        min_fitness=0.1,
+    )
+    assert loc.integrity.failed and "walls" in loc.integrity.reason
+    assert "(required 50%)" in loc.integrity.reason
+    assert loc.integrity.checks["failed_checks"] == ["structure_fitness"]
+    assert loc.integrity.checks["structure_fitness"] < 0.5
+    # the base pose carries the failure
+    pose = to_base_pose(loc, np.eye(4))
+    assert pose.integrity is loc.integrity and pose.integrity.failed
+
+
+def scene_map(boxes: list[tuple[tuple[float, ...], tuple[float, ...]]]) -> tuple:
+    """A scene of boxes only and a 3 cm map of it with exact normals."""
+    scene = site_scene(landmarks=None, obstacles=boxes)
+    pts, face = trimesh.sample.sample_surface(scene, 400_000, seed=0)
+    return scene, map_from_points(np.asarray(pts), 0.03, scene.face_normals[face])
+
+
+@pytest.mark.parametrize(
+    "name,boxes,direction",
+    [
+        ("flat ground", [((-30, -30, -0.1), (30, 30, 0.0))], r"translation [xy]|rotation about z"),
+        (
+            "corridor along x",
+            [
+                ((-40, -2, -0.1), (40, 2, 0.0)),
+                ((-40, -2.2, 0), (40, -2.0, 3.0)),
+                ((-40, 2.0, 0), (40, 2.2, 3.0)),
+            ],
+            r"translation x",
+        ),
+    ],
+)
+def test_degenerate_geometry_fails_naming_the_direction(
+    name: str, boxes: list, direction: str
+) -> None:
+    scene, scan_map = scene_map(boxes)
+    T_true = lidar_pose(0.5, 0.2, 30.0)
+    scan = simulate_scan(scene, T_true, np.random.default_rng(3))
+    loc = localize_scan(scan.points, scan_map, perturb(T_true, [0.02, -0.01, 0, 0, 0, 0.005]))
+    integrity = loc.integrity
+    assert integrity.failed, name
+    assert "condition" in integrity.checks["failed_checks"]
+    assert re.search(rf"does not constrain ({direction})", integrity.reason), integrity.reason
+    assert re.match(direction, integrity.checks["weakest_axis"])
+    assert integrity.checks["weakest_sigma"] > integrity.checks["max_weakest_sigma"]
+    assert abs(np.linalg.norm(integrity.checks["weakest_direction"]) - 1.0) < 1e-9
+    if name == "corridor along x":
+        assert (
+            abs(loc.weakest.vector[0]) > 0.99 and integrity.checks["unconstrained_directions"] == 1
         )
+    else:
+        assert integrity.checks["unconstrained_directions"] == 3
 
 
 def test_build_map_registers_scans_from_odometry_guesses() -> None:
@@ -140,6 +214,61 @@ def test_base_pose_covariance_moves_to_the_base(site_map: ScanMap) -> None:
     assert json.loads(json.dumps(pose.to_dict()))["quality"]["fitness"] == loc.icp.fitness
 
 
+def test_clean_scan_integrity_ok(site_map: ScanMap) -> None:
+    T_true = lidar_pose(6.5, 1.0, 30.0)
+    scan = simulate_scan(site_scene(), T_true, np.random.default_rng(6))
+    loc = localize_scan(scan.points, site_map, perturb(T_true, [0.02, 0.01, 0, 0, 0, 0.01]))
+    integrity = loc.integrity
+    assert integrity.status == "ok" and integrity.reason == ""
+    assert integrity.redundancy == loc.icp.n_inliers - 6
+    assert integrity.global_test == {}  # no global test for correlated residuals
+    c = integrity.checks
+    assert c["failed_checks"] == []
+    assert c["fitness"] == loc.icp.fitness >= c["min_fitness"]
+    assert c["structure_fitness"] == loc.structure_fitness >= c["min_structure_fitness"]
+    assert c["inlier_rmse"] == loc.icp.inlier_rmse <= c["max_rmse"]
+    assert c["condition"] == loc.icp.condition >= c["min_condition"]
+    assert 0 < c["weakest_sigma"] < c["max_weakest_sigma"]
+    assert c["weakest_axis"] == loc.weakest.label and len(c["weakest_direction"]) == 6
+    # the weakest sigma is the largest sigma of the scaled covariance
+    S = np.diag(np.r_[np.ones(3), np.full(3, c["weakest_lever"])])
+    top = np.linalg.eigvalsh(S @ loc.covariance @ S)[-1]
+    np.testing.assert_allclose(c["weakest_sigma"], np.sqrt(top), rtol=1e-6)
+    pose = to_base_pose(loc, make_T(np.eye(3), [0.9, 0.0, 0.6]), station="S1")
+    assert pose.integrity is integrity
+    back = BasePose.from_dict(json.loads(json.dumps(pose.to_dict())))
+    assert back.integrity is not None and back.integrity.status == "ok"
+    assert back.integrity.checks["weakest_axis"] == c["weakest_axis"]
+
+
+def sim_stations(n: int) -> list[tuple[np.ndarray, np.random.Generator]]:
+    """Seeded parked poses of the simulation test project (run seeds of ``fabflow simulate``)."""
+    project = load_project(ROOT / "tests" / "data" / "sim")
+    study = prepare_study(project, "icp")
+    out = []
+    for run in range(n):
+        rng = np.random.default_rng(run_seed(0, run))
+        _, T_true = parked_pose(project, study.stations[0], rng)
+        out.append((T_true, rng))
+    return out
+
+
+def test_covariance_is_consistent_over_stations() -> None:
+    """RMS error over RMS predicted sigma near 1 in x, y and heading (10 stations)."""
+    project = load_project(ROOT / "tests" / "data" / "sim")
+    study = prepare_study(project, "icp")
+    extra = localizer_arguments(project, "icp", study.stations[0])
+    errs, sds = [], []
+    for T_true, rng in sim_stations(10):
+        pose = localize_station(project, T_true, rng, "S1", **extra)
+        assert pose.integrity is not None and pose.integrity.status == "ok"
+        errs.append(pose_error(pose.T_world_base, T_true))
+        sds.append(np.sqrt(np.diag(pose.covariance)))
+    rms = np.sqrt(np.mean(np.square(errs), axis=0))
+    ratio = rms / np.sqrt(np.mean(np.square(sds), axis=0))
+    assert np.all(ratio[[0, 1, 5]] > 0.6) and np.all(ratio[[0, 1, 5]] < 1.6), ratio
+
+
 PROJECT = """
 name: icp test
 localization:
@@ -167,6 +296,7 @@ def test_localize_station_on_the_simulated_site() -> None:
     assert np.linalg.norm(err[:3]) < 0.005 and abs(np.degrees(err[5])) < 0.1
     assert pose.station == "S2" and pose.method == "icp"
     assert pose.quality["map"] == "simulated"
+    assert pose.integrity is not None and pose.integrity.status == "ok"
 
 
 def test_parse_init() -> None:
@@ -194,6 +324,7 @@ def test_cli_localize_icp(tmp_path: Path, cli, site_map: ScanMap) -> None:
     assert np.linalg.norm(err[:3]) < 0.005
     assert data["method"] == "icp" and data["station"] == "S1"
     assert np.array(data["covariance"]).shape == (6, 6)
+    assert data["integrity"]["status"] == "ok" and "integrity" in res.stdout
 
     bad = cli(
         "localize", "icp", str(tmp_path / "scan.ply"), "--map", str(tmp_path / "map.ply"),
@@ -203,6 +334,19 @@ def test_cli_localize_icp(tmp_path: Path, cli, site_map: ScanMap) -> None:
     assert "--init" in bad.stderr and "Traceback" not in bad.stderr
     # the earlier result is left in place
     assert json.loads((tmp_path / "out" / "base_pose.json").read_text()) == data
+
+    # a pose that fails its checks (far-off start) is written with its tests and exits 2,
+    # like every method's failed pose
+    failed = cli(
+        "localize", "icp", str(tmp_path / "scan.ply"), "--map", str(tmp_path / "map.ply"),
+        "--init", "12,-4,140", "-o", str(tmp_path / "out"),
+    )  # fmt: skip
+    assert failed.returncode == 2 and "Traceback" not in failed.stderr
+    assert re.search(r"fitness|walls|correspondences|constrain", failed.stderr)
+    assert "do not build from this pose" in failed.stderr
+    written = json.loads((tmp_path / "out" / "base_pose.json").read_text())
+    assert written["integrity"]["status"] == "failed"
+    assert written["integrity"]["reason"] in failed.stderr
 
     missing = cli(
         "localize", "icp", str(tmp_path / "nope.ply"), "--map", str(tmp_path / "map.ply"),

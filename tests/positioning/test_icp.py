@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fabflow.errors import InputError, LocalizationError
-from fabflow.positioning.icp import icp, prepare_target
+from fabflow.positioning.icp import icp, prepare_target, weakest_direction
 from fabflow.transforms.se3 import apply_T, inv_T, perturb, pose_error
 
 
@@ -112,6 +112,71 @@ def test_covariance_matches_monte_carlo_scatter(target: np.ndarray) -> None:
         sds.append(np.sqrt(np.diag(res.covariance)))
     ratio = np.std(errs, axis=0) / np.mean(sds, axis=0)
     assert np.all(ratio > 0.3) and np.all(ratio < 3.0), ratio
+
+
+def test_blocked_covariance_covers_errors_shared_within_blocks(target: np.ndarray) -> None:
+    """Errors shared by the points of a patch do not average out; the blocked sandwich
+    predicts their scatter, the per-point one (independent residuals) does not."""
+    tgt = prepare_target(target)
+    T_true = perturb(np.eye(4), [0.05, 0.0, 0.0, 0.0, 0.0, 0.02])
+    rng = np.random.default_rng(12)
+    clean = target[::3]
+    normals = tgt.normals[::3]
+    _, cell = np.unique(np.floor(clean / 1.0).astype(int), axis=0, return_inverse=True)
+    cell = cell.ravel()
+    errs, sd_point, sd_block = [], [], []
+    for _ in range(16):
+        # 2 mm shared by each 1 m patch along its normal, 2 mm independent noise
+        shift = rng.normal(0, 0.002, cell.max() + 1)[cell, None] * normals
+        src = apply_T(inv_T(T_true), clean + shift + rng.normal(0, 0.002, clean.shape))
+        for block, out in ((None, sd_point), (1.0, sd_block)):
+            res = icp(src, tgt, max_correspondence_distance=(0.3, 0.1), covariance_block=block)
+            out.append(np.sqrt(np.diag(res.covariance)))
+        errs.append(pose_error(res.T, T_true))
+    rms = np.sqrt(np.mean(np.square(errs), axis=0))
+    ratio_point = rms / np.sqrt(np.mean(np.square(sd_point), axis=0))
+    ratio_block = rms / np.sqrt(np.mean(np.square(sd_block), axis=0))
+    assert np.all(ratio_block > 0.6) and np.all(ratio_block < 1.6), ratio_block
+    assert np.all(ratio_point > 1.8), ratio_point
+
+
+def test_weakest_direction_of_a_corridor() -> None:
+    """Floor and two long walls along x: nothing holds the translation along x."""
+    rng = np.random.default_rng(8)
+    n = 4000
+    floor = np.c_[rng.uniform(-10, 10, n), rng.uniform(-1.5, 1.5, n), np.zeros(n)]
+    walls = np.c_[rng.uniform(-10, 10, n), rng.choice([-1.5, 1.5], n), rng.uniform(0, 3, n)]
+    corridor = np.vstack([floor, walls])
+    # exact normals (PCA normals where floor meets wall would lean along x)
+    normals = np.vstack(
+        [
+            np.tile([0.0, 0.0, 1.0], (n, 1)),
+            np.c_[0 * walls[:, :1], -np.sign(walls[:, 1:2]), 0 * walls[:, :1]],
+        ]
+    )
+    tgt = prepare_target(corridor, normals)
+    src = corridor[::4] + rng.normal(0, 0.003, corridor[::4].shape)
+    res = icp(src, tgt, init=perturb(np.eye(4), [0.0, 0.02, 0.0, 0.0, 0.0, 0.01]))
+    weak = weakest_direction(res.information)
+    assert weak.label == "translation x" and abs(weak.vector[0]) > 0.99
+    assert weak.translation_share > 0.99 and weak.sigma > 1.0
+    assert res.condition < 1e-6
+    np.testing.assert_allclose(np.linalg.norm(weak.vector), 1.0)
+
+
+def test_weakest_direction_of_a_room(target: np.ndarray) -> None:
+    T_true = perturb(np.eye(4), [0.05, 0.0, 0.0, 0.0, 0.0, 0.02])
+    res = icp(make_source(9, T_true), target)
+    weak = weakest_direction(res.information)
+    assert weak.sigma < 0.002 and weak.condition > 1e-3
+    assert 1.0 < weak.lever < 5.0  # the RMS lever arm of a 6 x 4 x 3 m room
+    # heading held least: the weakest direction is a pure rotation about z, its sigma
+    # the displacement at the lever arm, lever * 1 rad / sqrt(1)
+    info = np.diag([1e6, 1e6, 1e6, 1e3, 1e3, 1.0])
+    w = weakest_direction(info)
+    assert w.label == "rotation about z (heading)" and w.translation_share < 1e-12
+    np.testing.assert_allclose(w.lever, np.sqrt(2001.0 / 3e6))
+    np.testing.assert_allclose(w.sigma, w.lever)
 
 
 def test_prepared_target_reused(target: np.ndarray) -> None:
