@@ -25,7 +25,6 @@ from fabflow.errors import FabflowError
 from fabflow.version import __version__
 
 if TYPE_CHECKING:
-    from fabflow.positioning.integrity import Integrity
     from fabflow.positioning.result import BasePose
     from fabflow.project import Project
 
@@ -229,26 +228,6 @@ def _optional_numbers(
     return None if text is None else parse_numbers(text, option, names, units)
 
 
-def alert_limit_for(value: float | None, project: Project | None) -> float:
-    """The alert limit (metres): ``--alert-limit``, else the project's position tolerance.
-
-    Raises
-    ------
-    InputError
-        A limit that is not a positive finite number.
-    """
-    from fabflow.errors import InputError
-    from fabflow.project import Tolerances
-
-    if value is None:
-        return (Tolerances() if project is None else project.tolerances).position
-    if not (math.isfinite(value) and value > 0):
-        raise InputError(
-            f"expected a positive length in metres, got {value}", location="--alert-limit"
-        )
-    return value
-
-
 def report_base_pose(
     pose: BasePose, out: Path, method: str, rows: list[tuple[str, str]], alert_limit: float
 ) -> None:
@@ -272,29 +251,13 @@ def report_base_pose(
     alert_limit
         Largest acceptable protection level (metres).
     """
-    from dataclasses import replace
-
-    import numpy as np
-
+    from fabflow.localize.report import guarded, pose_rows
     from fabflow.output import atomic_output_dir
-    from fabflow.positioning.integrity import guard_exclusion
 
-    if pose.integrity is not None:
-        pose = replace(pose, integrity=guard_exclusion(pose.integrity, alert_limit))
-
+    pose = guarded(pose, alert_limit)
     with atomic_output_dir(out) as staging:
         pose.write(staging / "base_pose.json")
-    T = pose.T_world_base
-    sd = np.sqrt(np.diag(pose.covariance))
-    rows = [
-        *rows,
-        ("position (m)", ", ".join(f"{v:.4f}" for v in T[:3, 3])),
-        ("heading (deg)", f"{np.degrees(np.arctan2(T[1, 0], T[0, 0])):.4f}"),
-        ("sigma xyz (mm)", ", ".join(f"{1e3 * v:.2f}" for v in sd[:3])),
-        ("sigma heading (deg)", f"{np.degrees(sd[5]):.4f}"),
-        ("rmse (mm)", f"{1e3 * pose.rmse:.2f}"),
-        *integrity_rows(pose.integrity),
-    ]
+    rows = [*rows, *pose_rows(pose)]
     print_summary([(method, i, v) for i, v in rows], title=f"fabflow localize {method}")
     written = (Path(out) / "base_pose.json").resolve()
     console.print(f"[green]wrote[/] {written}")
@@ -305,47 +268,6 @@ def report_base_pose(
         raise LocalizationError(
             f"integrity failed: {reason}; do not build from this pose (its tests are in {written})"
         )
-
-
-def integrity_rows(integrity: Integrity | None) -> list[tuple[str, str]]:
-    """Rows of the integrity block: status, tests, exclusions, protection level."""
-    if integrity is None:
-        return [("integrity", "untested")]
-    rows = [("integrity", integrity.status + (f": {integrity.reason}" if integrity.reason else ""))]
-    g = integrity.global_test
-    if g.get("statistic") is not None and g.get("threshold") is not None:
-        rows.append(
-            (
-                "global test",
-                f"{g['statistic']:.1f} {'<=' if g['passed'] else '>'} {g['threshold']:.1f} "
-                f"({integrity.redundancy} dof, variance factor {g['variance_factor']:.2f})",
-            )
-        )
-    w = integrity.w_test
-    if w.get("max") is not None:
-        rows.append(
-            (
-                "largest w-test",
-                f"{w['max']:.2f} {'<=' if w['passed'] else '>'} {w['threshold']:.2f} "
-                f"({w['suspect']})",
-            )
-        )
-    for e in integrity.excluded:
-        rows.append(("left out", str(e["observation"])))
-    pl = integrity.protection_level
-    if pl.get("horizontal") is not None:
-        rows.append(
-            (
-                "protection level (mm)",
-                f"horizontal {1e3 * pl['horizontal']:.1f}, vertical {1e3 * pl['vertical']:.1f}",
-            )
-        )
-    reassigned = integrity.checks.get("prism_identification", {}).get("reassigned")
-    if reassigned and reassigned not in (integrity.reason or ""):
-        rows.append(("prisms", reassigned))
-    if integrity.checks.get("degraded"):
-        rows.append(("degraded", integrity.checks["degraded"]))
-    return rows
 
 
 @localize_app.command("total-station")
@@ -395,6 +317,7 @@ def localize_total_station(
 ) -> None:
     """Localize the robot base from total station readings of prisms on the robot."""
 
+    from fabflow.localize.report import alert_limit_for
     from fabflow.localize.total_station import localize_files
     from fabflow.project import load_project
 
@@ -447,6 +370,7 @@ def localize_uwb(
 ) -> None:
     """Localize the robot base from UWB ranges (and an IMU); writes OUT/base_pose.json."""
 
+    from fabflow.localize.report import alert_limit_for
     from fabflow.localize.uwb_files import localize_from_files
 
     limit = alert_limit_for(alert_limit, None)
@@ -480,6 +404,7 @@ def localize_icp(
     """Localize the robot base by ICP of a LiDAR scan against a map; writes OUT/base_pose.json."""
 
     from fabflow.localize.icp import localize_files
+    from fabflow.localize.report import alert_limit_for
     from fabflow.project import load_project
 
     loaded = None if project is None else load_project(project)
