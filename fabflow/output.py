@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -108,8 +109,33 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"cannot serialise {type(obj).__name__} to JSON")
 
 
+def json_safe(data: Any) -> Any:
+    """``data`` with numpy arrays and scalars as lists and numbers, NaN and infinity as None.
+
+    JSON has no NaN or infinity (Python's ``json`` would write the invalid
+    tokens ``NaN`` and ``Infinity``); a number that is not available or not
+    bounded is written as ``null``.
+    """
+    if isinstance(data, dict):
+        return {k: json_safe(v) for k, v in data.items()}
+    if isinstance(data, list | tuple):
+        return [json_safe(v) for v in data]
+    if isinstance(data, np.ndarray):
+        return json_safe(data.tolist())
+    if isinstance(data, np.generic):
+        data = data.item()
+    if isinstance(data, float) and not math.isfinite(data):
+        return None
+    return data
+
+
+def json_text(data: Any) -> str:
+    """Indented JSON text of ``data`` (see :func:`json_safe`), with a final newline."""
+    return json.dumps(json_safe(data), indent=2, default=_json_default, allow_nan=False) + "\n"
+
+
 def write_json(path: str | Path, data: Any) -> Path:
-    """Write ``data`` as indented JSON, converting numpy arrays and scalars.
+    """Write ``data`` as indented JSON (numpy converted, NaN and infinity as null).
 
     Parameters
     ----------
@@ -119,5 +145,5 @@ def write_json(path: str | Path, data: Any) -> Path:
         JSON-compatible data, possibly holding numpy arrays.
     """
     path = Path(path)
-    path.write_text(json.dumps(data, indent=2, default=_json_default) + "\n", encoding="utf-8")
+    path.write_text(json_text(data), encoding="utf-8")
     return path

@@ -87,11 +87,12 @@ def integrity_rows(integrity: Integrity | None) -> list[tuple[str, str]]:
     for e in integrity.excluded:
         rows.append(("left out", str(e["observation"])))
     pl = integrity.protection_level
-    if pl.get("horizontal") is not None:
+    if "horizontal" in pl:
         rows.append(
             (
                 "protection level (mm)",
-                f"horizontal {1e3 * pl['horizontal']:.1f}, vertical {1e3 * pl['vertical']:.1f}",
+                f"horizontal {_millimetres(pl.get('horizontal'))}, "
+                f"vertical {_millimetres(pl.get('vertical'))}",
             )
         )
     reassigned = integrity.checks.get("prism_identification", {}).get("reassigned")
@@ -100,3 +101,10 @@ def integrity_rows(integrity: Integrity | None) -> list[tuple[str, str]]:
     if integrity.checks.get("degraded"):
         rows.append(("degraded", integrity.checks["degraded"]))
     return rows
+
+
+def _millimetres(value: float | None) -> str:
+    """A length in metres as millimetres; ``None`` or infinity (no bound) as ``unbounded``."""
+    if value is None or not math.isfinite(value):
+        return "unbounded"
+    return f"{1e3 * value:.1f}"

@@ -22,6 +22,7 @@ import numpy as np
 
 from fabflow.design.elements import Element, element_boxes
 from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.integrity import ALPHA
 from fabflow.positioning.point_selection import (
     Boxes,
     ClearanceRules,
@@ -372,7 +373,15 @@ def localize_files(
             T_flange_tool = make_T(T_flange_tool[:3, :3], np.asarray(tcp_xyz, dtype=float))
         pts = prism_points_from_joints(model, rp.joints, T_flange_tool, rp.source, rp.lines)
     reg, matched = localize_observations(
-        obs, rp.point_ids, pts, inst, T_world_instrument, robot_sigma, method, reject_outlier
+        obs,
+        rp.point_ids,
+        pts,
+        inst,
+        T_world_instrument,
+        robot_sigma,
+        method,
+        reject_outlier,
+        alpha=ALPHA if project is None else project.localization.integrity.alpha,
     )
     if project is not None:
         reg = add_instrument_uncertainty(reg, T_world_instrument, instrument_covariance(setup))

@@ -496,10 +496,15 @@ def eskf_integrity(
         w=np.abs(b.w),
         thresholds=np.full(b.w.size, b.threshold),
         mdb=b.mdb,
-        shift=(G @ b.sensitivity * b.mdb).T,
+        shift=_horizontal_vertical((G @ b.sensitivity * b.mdb).T),
         excludable=np.zeros(b.w.size, dtype=bool),
     )
     integrity = record(test, alpha=c.alpha, checks=c.checks())
     if c.diverged:
         integrity = replace(integrity, status="failed", reason=c.reason)
     return integrity
+
+
+def _horizontal_vertical(shift: np.ndarray) -> np.ndarray:
+    """(h, 3) base shifts as (h, 2): horizontal length and absolute height."""
+    return np.column_stack([np.hypot(shift[:, 0], shift[:, 1]), np.abs(shift[:, 2])])

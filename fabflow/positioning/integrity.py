@@ -16,15 +16,23 @@ geodetic adjustment text; Teunissen, *Testing theory*, 2000):
   columns (a 3D point) has the chi-square(k) statistic
   ``T_c = b^T S^-1 b`` with ``b = C^T Q^-1 v``, ``S = C^T Q^-1 Q_vv Q^-1 C``. The
   levels are Bonferroni-corrected over the hypotheses tested, so that the
-  family of tests raises a false alarm with probability about ``alpha``.
+  w-tests together raise a false alarm with probability at most ``alpha``; with
+  the global test a clean solution fails with probability at most ``2 alpha``.
 - **Internal reliability**: the minimal detectable bias (MDB) of a hypothesis,
-  the smallest bias the w-test finds with probability ``POWER``:
-  ``|nabla| = sqrt(lambda_0 / lambda_min(S))``.
-- **External reliability**: how far a bias of MDB size moves the estimate,
-  ``dx = N^-1 A^T Q^-1 C nabla``; mapped to the base position, its largest
-  horizontal and vertical value over all hypotheses is the **protection level**:
-  a fault the tests cannot see moves the base by at most that much (with power
-  ``POWER``).
+  the largest bias the w-test may miss (it finds every bias on the ellipsoid
+  ``nabla^T S nabla = lambda_0`` with probability ``POWER``):
+  ``|nabla| = sqrt(lambda_0 / lambda_min(S))``. A direction of the bias that
+  the redundancy cannot see at all (redundancy number ``mu`` of
+  ``S x = mu C^T Q^-1 C x`` below ``MIN_REDUNDANCY``, e.g. one of three prism
+  points moved normal to their plane) makes the MDB infinite.
+- **External reliability**: a bias moves the estimate by
+  ``dx = N^-1 A^T Q^-1 C nabla``; mapped to the base position (``M = G N^-1
+  A^T Q^-1 C``), the largest horizontal and vertical shift over the ellipsoid
+  of undetected biases is ``sqrt(lambda_0) |M S^-1/2|`` (spectral norm, rows of
+  ``M`` for the plane and the height apart). Its largest value over all
+  hypotheses is the **protection level**: a single fault the tests miss with
+  probability above ``1 - POWER`` moves the base by at most that much; it is
+  infinite when any hypothesis has an undetectable direction.
 
 :func:`adjustment_test` computes all of it for one solution;
 :func:`identify` picks the observation to exclude. The estimators iterate
@@ -48,10 +56,14 @@ from typing import Any, Literal
 import numpy as np
 from scipy import optimize, special
 
+from fabflow.output import json_safe
+
 ALPHA = 1e-3
 """Default significance level of the tests (false alarm probability of one solve)."""
 POWER = 0.8
 """Probability with which the tests find a bias of the minimal detectable size."""
+MIN_REDUNDANCY = 1e-9
+"""Redundancy number below which a bias direction counts as undetectable."""
 
 Status = Literal["ok", "excluded", "failed"]
 
@@ -133,11 +145,14 @@ class Hypothesis:
     excludable
         Whether the observations it names can be left out and the pose solved
         again (a scale error cannot).
+    unit
+        Unit of the bias (``"m"``, or ``""`` for a pure number such as a scale).
     """
 
     label: str
     columns: np.ndarray
     excludable: bool = True
+    unit: str = "m"
 
 
 @dataclass(frozen=True)
@@ -161,10 +176,11 @@ class TestResult:
         (h,) critical values of ``w`` (Bonferroni over the hypotheses).
     mdb
         (h,) minimal detectable bias of each hypothesis (its units: metres for
-        ranges and points, a pure number for scale).
+        ranges and points, a pure number for scale); infinite when a direction
+        of the bias is undetectable.
     shift
-        (h, 3) base position shift (metres) a bias of MDB size causes, in its worst
-        direction.
+        (h, 2) largest horizontal and vertical base shift (metres) an undetected
+        bias of each hypothesis can cause (infinite when undetectable).
     bias
         Per hypothesis, the estimated bias ``S^-1 b`` (its ``k`` components): for
         one observation or point, what it would read had it been left out
@@ -185,6 +201,7 @@ class TestResult:
     shift: np.ndarray
     bias: tuple[np.ndarray, ...] = ()
     excludable: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    units: tuple[str, ...] = ()
 
     @property
     def global_passed(self) -> bool:
@@ -206,14 +223,17 @@ class TestResult:
         return self.global_passed and (k is None or self.w[k] <= self.thresholds[k])
 
     def protection_level(self) -> tuple[float, float]:
-        """Largest horizontal and vertical base shift of a just-undetectable bias (metres)."""
+        """Largest horizontal and vertical base shift of an undetected bias (metres).
+
+        Infinite when any hypothesis has a direction the tests cannot see, or
+        when there is no redundancy to test with.
+        """
+        if self.redundancy <= 0:
+            return math.inf, math.inf
         if len(self.shift) == 0:
             return 0.0, 0.0
-        finite = np.all(np.isfinite(self.shift), axis=1)
-        if not finite.any():
-            return math.inf, math.inf
-        s = self.shift[finite]
-        return float(np.hypot(s[:, 0], s[:, 1]).max()), float(np.abs(s[:, 2]).max())
+        s = np.where(np.isnan(self.shift), math.inf, np.asarray(self.shift, dtype=float))
+        return float(s[:, 0].max()), float(s[:, 1].max())
 
 
 @functools.lru_cache(maxsize=256)
@@ -283,35 +303,35 @@ def adjustment_test(
     w = np.full(h, np.nan)
     thr = np.full(h, np.inf)
     mdb = np.full(h, np.inf)
-    shift = np.full((h, 3), np.inf)
+    shift = np.full((h, 2), np.inf)
     bias = [np.full(np.asarray(hyp.columns).reshape(m, -1).shape[1], np.nan) for hyp in hypotheses]
     if h and r > 0:
         alpha0 = alpha / h
-        lam = {}
         for i, hyp in enumerate(hypotheses):
             C = np.asarray(hyp.columns, dtype=float).reshape(m, -1)
-            k = C.shape[1]
-            if k not in lam:
-                lam[k] = noncentrality(alpha0, POWER, k)
             QiC = Q.solve(C)
             b = QiC.T @ v
             B = QiA.T @ C
-            S = C.T @ QiC - B.T @ Ninv @ B
+            own = 0.5 * (C.T @ QiC + (C.T @ QiC).T)
+            S = own - B.T @ Ninv @ B
             S = 0.5 * (S + S.T)
             ev, V = np.linalg.eigh(S)
-            scale = max(float(ev[-1]), 1e-300)
-            ok = ev > 1e-12 * scale
-            if not ok.any():
+            scale = max(float(np.linalg.eigvalsh(own)[-1]), 1e-300)
+            seen = ev > MIN_REDUNDANCY * scale
+            if not seen.any():
                 continue
-            Sinv = (V[:, ok] / ev[ok]) @ V[:, ok].T
+            Sinv = (V[:, seen] / ev[seen]) @ V[:, seen].T
             bias[i] = Sinv @ b
             w[i] = math.sqrt(max(float(b @ Sinv @ b), 0.0))
-            thr[i] = math.sqrt(float(special.chdtri(int(ok.sum()), alpha0)))
-            # worst direction: the eigenvector of the smallest eigenvalue of S
-            j = int(np.argmax(ok))
-            mdb[i] = math.sqrt(lam[k] / ev[j])
-            dx = Ninv @ (B @ V[:, j]) * mdb[i]
-            shift[i] = G @ dx
+            dof = int(seen.sum())
+            thr[i] = math.sqrt(float(special.chdtri(dof, alpha0)))
+            if _redundancy_numbers(own, S).min() < MIN_REDUNDANCY:
+                continue  # a direction of this bias is invisible: MDB and shift infinite
+            lam = noncentrality(alpha0, POWER, dof)
+            mdb[i] = math.sqrt(lam / ev[0])
+            # base shift per unit bias, then its largest value over nabla^T S nabla = lam
+            M = (G @ Ninv @ B) @ ((V / np.sqrt(ev)) @ V.T)
+            shift[i] = math.sqrt(lam) * np.array([np.linalg.norm(M[:2], 2), np.linalg.norm(M[2])])
     return TestResult(
         redundancy=r,
         statistic=statistic,
@@ -325,7 +345,16 @@ def adjustment_test(
         shift=shift,
         bias=tuple(bias),
         excludable=np.array([hyp.excludable for hyp in hypotheses], dtype=bool),
+        units=tuple(hyp.unit for hyp in hypotheses),
     )
+
+
+def _redundancy_numbers(own: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """Eigenvalues ``mu`` of ``S x = mu own x``: the share of a bias the residuals see."""
+    d, E = np.linalg.eigh(own)
+    keep = d > 1e-300
+    W = E[:, keep] / np.sqrt(d[keep])
+    return np.linalg.eigvalsh(W.T @ S @ W)
 
 
 @dataclass(frozen=True)
@@ -381,7 +410,7 @@ class Integrity:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-compatible data (non-finite numbers as ``None``)."""
-        return _finite(
+        return json_safe(
             {
                 "status": self.status,
                 "reason": self.reason,
@@ -428,20 +457,6 @@ class Integrity:
         return replace(self, checks={**self.checks, **checks})
 
 
-def _finite(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_finite(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _finite(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
 def record(
     test: TestResult,
     excluded: Sequence[dict[str, Any]] = (),
@@ -455,7 +470,9 @@ def record(
     suspect = test.labels[k] if k is not None else None
     w_passed = w_max is None or w_thr is None or w_max <= w_thr
     h, vert = test.protection_level()
-    finite_mdb = test.mdb[np.isfinite(test.mdb)]
+    units = test.units or ("m",) * len(test.mdb)
+    metres = np.array([unit == "m" for unit in units], dtype=bool)
+    finite_mdb = test.mdb[metres & np.isfinite(test.mdb)]
     if test.passed:
         status: Status = "excluded" if excluded else "ok"
         reason = (
@@ -510,16 +527,21 @@ def guard_exclusion(integrity: Integrity, alert_limit: float) -> Integrity:
     the base by less than that. A solution that needed no exclusion keeps its
     status; a protection level beyond the limit is recorded as ``degraded``.
     """
-    pl = max(
-        integrity.protection_level.get("horizontal", math.inf) or math.inf,
-        integrity.protection_level.get("vertical", math.inf) or math.inf,
-    )
+    levels = [integrity.protection_level.get(k) for k in ("horizontal", "vertical")]
+    pl = max(math.inf if v is None else float(v) for v in levels)
     if not math.isfinite(alert_limit) or pl <= alert_limit:
         return integrity
-    note = (
-        f"protection level {1e3 * pl:.0f} mm exceeds the alert limit "
-        f"{1e3 * alert_limit:.0f} mm: a fault the tests cannot see could move the base that far"
-    )
+    if math.isfinite(pl):
+        note = (
+            f"protection level {1e3 * pl:.0f} mm exceeds the alert limit "
+            f"{1e3 * alert_limit:.0f} mm: a fault the tests cannot see could move the base "
+            "that far"
+        )
+    else:
+        note = (
+            "the protection level is unbounded: the observations left cannot see every "
+            "fault, and one they miss could move the base by any amount"
+        )
     if integrity.status == "excluded":
         return replace(integrity, status="failed", reason=f"{integrity.reason}, but {note}")
     return integrity.with_checks(degraded=note)

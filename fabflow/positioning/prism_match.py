@@ -56,17 +56,24 @@ def match_prisms(
         return np.arange(n), {}
     iu, ju = np.triu_indices(n, 1)
     d_P = np.linalg.norm(P[iu] - P[ju], axis=1)
-    dof = len(iu)
+    # n points in space have 3n - 6 independent distances: the n(n-1)/2 measured
+    # ones share points, so they are tested with their full (singular) covariance
+    dof = min(len(iu), 3 * n - 6)
     threshold = float(special.chdtri(dof, alpha))
+    incidence = np.zeros((len(iu), n))
+    incidence[np.arange(len(iu)), iu] = 1.0
+    incidence[np.arange(len(iu)), ju] = -1.0
 
     def statistic(orders: np.ndarray) -> np.ndarray:
-        Mi, Mj = M[orders[:, iu]], M[orders[:, ju]]
-        diff = Mi - Mj
+        Mo = M[orders]
+        diff = Mo[:, iu] - Mo[:, ju]
         d_M = np.linalg.norm(diff, axis=-1)
         u = diff / np.maximum(d_M, 1e-12)[..., None]
-        Csum = C[orders[:, iu]] + C[orders[:, ju]]
-        var = np.einsum("...i,...ij,...j->...", u, Csum, u)
-        return np.sum((d_M - d_P) ** 2 / var, axis=-1)
+        # cov[o, p, q] = sum_k E[p, k] E[q, k] u_p^T C_k u_q over the readings k
+        Cu = np.einsum("okij,oqj->okqi", C[orders], u, optimize=True)
+        cov = np.einsum("pk,qk,opi,okqi->opq", incidence, incidence, u, Cu, optimize=True)
+        e = d_M - d_P
+        return np.einsum("op,opq,oq->o", e, np.linalg.pinv(cov, rcond=1e-10, hermitian=True), e)
 
     identity = np.arange(n)[None]
     t0 = float(statistic(identity)[0])

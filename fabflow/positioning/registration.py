@@ -378,7 +378,10 @@ def register_points(
                 k = identify(tests)
                 assert k is not None
                 i = int(np.flatnonzero(keep)[k])
-                i, keep, (R, t, iters), after = next(x for x in trials if x[0] == i)
+                blamed = next((x for x in trials if x[0] == i), None)
+                if blamed is None:
+                    break  # the rest would not span a plane: the pose stays failed
+                i, keep, (R, t, iters), after = blamed
             else:
                 break
             k = tests.labels.index(labels[i])
@@ -465,7 +468,9 @@ def point_tests(
     v = (M[sel] - (P[sel] @ R.T + t)).reshape(-1)
     hyps = [Hypothesis(labels[i], np.kron(np.eye(n)[:, [k]], np.eye(3))) for k, i in enumerate(sel)]
     hyps.append(
-        Hypothesis("scale (instrument vs robot)", (P[sel] @ R.T).reshape(-1), excludable=False)
+        Hypothesis(
+            "scale (instrument vs robot)", (P[sel] @ R.T).reshape(-1), excludable=False, unit=""
+        )
     )
     return adjustment_test(A, Covariance(blocks=C[sel]), v, hyps, alpha)
 

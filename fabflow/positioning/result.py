@@ -9,13 +9,13 @@ metres and a small rotation in radians, both expressed in the parent frame
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from fabflow.output import write_json
 from fabflow.positioning.integrity import Integrity
 
 
@@ -85,6 +85,4 @@ class BasePose:
 
     def write(self, path: str | Path) -> Path:
         """Write the result as JSON to ``path``."""
-        path = Path(path)
-        path.write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
-        return path
+        return write_json(path, self.to_dict())

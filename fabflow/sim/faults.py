@@ -31,7 +31,7 @@ from fabflow.localize import total_station as ts
 from fabflow.localize.plan import check_visit, parking_covariance
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.scan_matching import transform_map
-from fabflow.project import Project
+from fabflow.project import Project, TotalStationSetup
 from fabflow.transforms.se3 import make_T, perturb, pose_error
 from fabflow.transforms.so3 import exp_so3
 
@@ -90,11 +90,18 @@ class FaultOutcome:
     median_error_m: float
 
 
-def with_method(project: Project, method: str) -> Project:
-    """The project localized by ``method`` (its other setup sections unchanged)."""
-    return project.model_copy(
-        update={"localization": project.localization.model_copy(update={"method": method})}
-    )
+def with_method(project: Project, method: str, n_points: int | None = None) -> Project:
+    """The project localized by ``method`` (its other setup sections unchanged).
+
+    ``n_points`` sets the number of prism points of a total station setup.
+    """
+    loc = project.localization.model_copy(update={"method": method})
+    if n_points is not None:
+        setup = loc.total_station or TotalStationSetup()
+        loc = loc.model_copy(
+            update={"total_station": setup.model_copy(update={"n_points": n_points})}
+        )
+    return project.model_copy(update={"localization": loc})
 
 
 def random_station(project: Project, rng: np.random.Generator) -> np.ndarray:

@@ -16,6 +16,7 @@ from fabflow.positioning.integrity import (
     noncentrality,
     record,
 )
+from fabflow.positioning.registration import register_points
 
 
 def _dense(Q: Covariance) -> np.ndarray:
@@ -104,3 +105,53 @@ def test_a_gross_error_is_identified_and_recorded() -> None:
     back = Integrity.from_dict(rec.to_dict())
     assert back.status == "failed" and back.w_test["suspect"] == "obs 7"
     assert rec.protection_level["horizontal"] > 0
+
+
+@settings(deadline=None, max_examples=25)
+@given(seed=st.integers(0, 2**31), k=st.integers(1, 3))
+def test_protection_level_is_the_worst_undetected_shift(seed: int, k: int) -> None:
+    # the largest base shift over every bias on the ellipsoid nabla^T S nabla = lambda_0,
+    # found by brute force over many directions, equals the closed form
+    rng = np.random.default_rng(seed)
+    m, u = 12, 4
+    A = rng.normal(size=(m, u))
+    Q = Covariance(diag=rng.uniform(0.5, 2.0, m) * 1e-4)
+    C = np.zeros((m, k))
+    C[rng.choice(m, k, replace=False), np.arange(k)] = 1.0
+    G = rng.normal(size=(3, u))
+    res = adjustment_test(A, Q, np.zeros(m), [Hypothesis("h", C)], alpha=0.01, position_map=G)
+    Qi = np.linalg.inv(_dense(Q))
+    N = A.T @ Qi @ A
+    S = C.T @ Qi @ C - C.T @ Qi @ A @ np.linalg.solve(N, A.T @ Qi @ C)
+    lam = noncentrality(0.01, 0.8, k)
+    d = rng.normal(size=(20000, k))
+    d *= np.sqrt(lam / np.einsum("ni,ij,nj->n", d, S, d))[:, None]
+    shifts = d @ (G @ np.linalg.solve(N, A.T @ Qi @ C)).T
+    horizontal = np.hypot(shifts[:, 0], shifts[:, 1]).max()
+    vertical = np.abs(shifts[:, 2]).max()
+    h, v = res.protection_level()
+    assert horizontal <= h * (1 + 1e-9) and vertical <= v * (1 + 1e-9)
+    assert horizontal > 0.97 * h if k > 1 else horizontal == pytest.approx(h, rel=1e-9)
+    assert vertical > 0.97 * v if k > 1 else vertical == pytest.approx(v, rel=1e-9)
+    assert res.mdb[0] == pytest.approx(np.sqrt(lam / np.linalg.eigvalsh(S)[0]), rel=1e-9)
+
+
+def test_an_undetectable_bias_makes_the_protection_level_unbounded() -> None:
+    # three prism points: moving P1 normal to their plane is a rotation about P2-P3,
+    # which the pose absorbs; the tests cannot see it, so nothing bounds its effect
+    P = np.array([[1.0, 0.0, 0.5], [0.0, 1.2, 0.8], [-0.8, -0.5, 1.1]])
+    axis = (P[2] - P[1]) / np.linalg.norm(P[2] - P[1])
+    normal = np.cross(axis, P[0] - P[1])
+    M = P.copy()
+    M[0] += 0.03 * normal / np.linalg.norm(normal)
+    cov = np.array([np.eye(3) * (5e-4) ** 2] * 3)
+    reg = register_points(P, M, point_cov=cov, point_labels=["P1", "P2", "P3"])
+    assert reg.integrity is not None and reg.integrity.status == "ok"  # nothing to see
+    assert reg.integrity.protection_level == {"horizontal": np.inf, "vertical": np.inf}
+    assert "P1" not in reg.integrity.mdb  # infinite MDBs are not listed
+    # with a fourth point the same fault is seen
+    P4 = np.vstack([P, [0.3, -1.0, 0.2]])
+    M4 = np.vstack([M, P4[3]])
+    reg4 = register_points(P4, M4, point_cov=np.array([np.eye(3) * (5e-4) ** 2] * 4))
+    assert reg4.integrity is not None and reg4.integrity.status == "failed"
+    assert np.isfinite(reg4.integrity.protection_level["horizontal"])

@@ -1,0 +1,45 @@
+"""Prism readings matched to robot points by their distances: calibrated, and swaps found."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fabflow.errors import LocalizationError
+from fabflow.positioning.prism_match import match_prisms
+
+
+@pytest.mark.parametrize("n", [4, 5, 6])
+def test_clean_readings_are_kept_with_the_false_alarm_rate_alpha(n: int) -> None:
+    # the n(n-1)/2 distances share points; tested as if independent the false
+    # alarm rate was several times alpha
+    rng = np.random.default_rng(n)
+    P = rng.uniform(-1.0, 1.0, (n, 3))
+    C = np.array([np.diag(rng.uniform(1.0, 3.0, 3) * 1e-3) ** 2 for _ in range(n)])
+    alpha, trials = 0.05, 1500
+    alarms = 0
+    for _ in range(trials):
+        M = P + np.einsum("nij,nj->ni", np.sqrt(C), rng.normal(size=(n, 3)))
+        _, report = match_prisms(P, M, C, [f"P{i + 1}" for i in range(n)], alpha)
+        alarms += report["distance_test"] > report["threshold"]
+    assert abs(alarms / trials - alpha) < 0.02, alarms / trials
+
+
+@settings(deadline=None, max_examples=30)
+@given(seed=st.integers(0, 2**31), n=st.integers(4, 6))
+def test_a_swap_of_two_readings_is_undone(seed: int, n: int) -> None:
+    rng = np.random.default_rng(seed)
+    P = rng.uniform(-1.0, 1.0, (n, 3))
+    C = np.array([np.eye(3) * 1e-3**2] * n)
+    M = P + rng.normal(0.0, 1e-3, (n, 3))
+    a, b = rng.choice(n, 2, replace=False)
+    swapped = M.copy()
+    swapped[[a, b]] = M[[b, a]]
+    try:
+        order, report = match_prisms(P, swapped, C, [f"P{i + 1}" for i in range(n)], 1e-3)
+    except LocalizationError:
+        return  # several orders fit: refused, not guessed
+    assert report["assignment"] == "reassigned"
+    np.testing.assert_allclose(swapped[order], M)
