@@ -46,7 +46,7 @@ def projects():
     cabin = load_project(ROOT / "projects" / "cabin")
     rows = [(method, method, with_method(cabin, method)) for method in FAULTS]
     rows.insert(
-        2, ("total_station, 5 points", "total_station", with_method(cabin, "total_station", 5))
+        1, ("total_station, 5 points", "total_station", with_method(cabin, "total_station", 5))
     )
     return rows
 
