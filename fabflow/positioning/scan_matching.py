@@ -302,7 +302,8 @@ def localize_scan(
     -------
     ScanLocalization
         The pose, its covariance and its integrity: status ``"failed"`` (with the
-        check, its value and its threshold in the reason) when the fitness is below
+        check, its value and its threshold in the reason) when the fine ICP has not
+        converged within its iterations, when the fitness is below
         ``min_fitness``, the inlier RMSE above ``max_rmse``, the structure fitness
         below ``min_structure_fitness``, the information condition below
         :data:`MIN_CONDITION`, or the sigma of the weakest direction above
@@ -393,6 +394,13 @@ def scan_integrity(
         information only (no global test; see the module docstring).
     """
     failed: dict[str, str] = {}
+    if not res.converged:
+        # still moving when the iterations ran out: not at a minimum, so neither the
+        # pose nor its covariance can be trusted (a start beyond the pull-in range)
+        failed["converged"] = (
+            f"ICP did not converge in {res.iterations} iterations (the initial pose is "
+            "too far off, or the scan slides along the map)"
+        )
     if res.fitness < limits["min_fitness"]:
         failed["fitness"] = (
             f"ICP fitness {res.fitness:.3f} is below the required {limits['min_fitness']:.3f} "
@@ -425,6 +433,8 @@ def scan_integrity(
             f"{limits['max_weakest_sigma'] * 1000:.1f} mm)"
         )
     checks: dict[str, Any] = {
+        "converged": bool(res.converged),
+        "iterations": int(res.iterations),
         "fitness": float(res.fitness),
         "structure_fitness": float(structure),
         "inlier_rmse": float(res.inlier_rmse),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from pathlib import Path
@@ -24,6 +25,7 @@ from fabflow.positioning.scan_matching import (
     build_map,
     localize_scan,
     map_from_points,
+    scan_integrity,
     to_base_pose,
 )
 from fabflow.project import load_project, parse_project
@@ -239,6 +241,14 @@ def test_clean_scan_integrity_ok(site_map: ScanMap) -> None:
     back = BasePose.from_dict(json.loads(json.dumps(pose.to_dict())))
     assert back.integrity is not None and back.integrity.status == "ok"
     assert back.integrity.checks["weakest_axis"] == c["weakest_axis"]
+    assert c["converged"] and c["iterations"] == loc.icp.iterations
+    # the same match, had its iterations run out: not at a minimum, so it fails
+    stopped = dataclasses.replace(loc.icp, converged=False)
+    limits = {k: c[k] for k in ("min_fitness", "max_rmse", "min_structure_fitness")}
+    limits["max_weakest_sigma"] = c["max_weakest_sigma"]
+    failed = scan_integrity(stopped, loc.structure_fitness, loc.weakest, limits)
+    assert failed.status == "failed" and failed.checks["failed_checks"] == ["converged"]
+    assert "did not converge" in failed.reason
 
 
 def sim_stations(n: int) -> list[tuple[np.ndarray, np.random.Generator]]:
