@@ -348,8 +348,12 @@ def _finish(
 
 
 def _with_hidden_mirrors(integrity: Integrity, hidden: list[dict[str, Any]]) -> Integrity:
-    """The record with the mirrors one anchor's bias could select, and the protection
-    level raised to the base shift they cause (a fault the tests cannot see at any size)."""
+    """The record with the hidden mirrors, its protection level raised to their base shift.
+
+    A hidden mirror (:func:`~fabflow.positioning.uwb_platform_adjustment.hidden_mirrors`)
+    is a fault the tests cannot see at any size; the base shift it causes
+    (metres, horizontal and vertical) bounds the protection level from below.
+    """
     if not hidden:
         return integrity
     pl = dict(integrity.protection_level)

@@ -411,8 +411,12 @@ def _refit(
 def _reflected(
     adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray
 ) -> tuple[np.ndarray, float]:
-    """The pose with the tags' centroid reflected through the best-fit plane of the anchors
-    ``use`` reaches (same heading), and the centroid's distance from that plane (metres)."""
+    """The pose mirrored through the plane of the anchors ``use`` reaches, and its distance.
+
+    The tags' centroid is reflected through the best-fit plane of those anchors
+    (anchors' frame), the heading kept; the second value is the centroid's
+    distance from the plane (metres).
+    """
     A = adj.anchors[np.unique(adj.anc_idx[use])]
     c = A.mean(axis=0)
     normal = np.linalg.svd(A - c)[2][-1]
