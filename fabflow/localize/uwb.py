@@ -20,7 +20,11 @@ from fabflow.localize.site import anchors_world, points_in_world
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Method
 from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers_static
-from fabflow.positioning.uwb_platform import locate_platform, platform_to_base_covariance
+from fabflow.positioning.uwb_platform import (
+    locate_platform,
+    platform_to_base_covariance,
+    rejected_ranges,
+)
 from fabflow.project import Project, UwbSetup
 from fabflow.robots import platform
 from fabflow.sensors.uwb import (
@@ -162,11 +166,14 @@ def estimate_station(
 ) -> BasePose:
     """The base pose from a station's ranges: calibrate, clean, locate the platform, test.
 
-    Outliers are rejected around each link's robust centre
-    (:func:`~fabflow.positioning.uwb_calibration.reject_outliers_static`), then
+    Single outliers are rejected around each link's robust centre
+    (:func:`~fabflow.positioning.uwb_calibration.reject_outliers_static`;
+    counted per link in ``integrity.checks["rejected_ranges"]``), then
     :func:`~fabflow.positioning.uwb_platform.locate_platform` gives ``x, y, z,
     yaw`` with the tests of its integrity record (at
-    ``localization.integrity.alpha``).
+    ``localization.integrity.alpha``); the ranges its tests left out are in
+    ``integrity.excluded`` and ``quality["n_left_out_by_tests"]``. An anchor
+    left out has no residual RMS: ``quality["per_anchor_rms"]`` holds ``None``.
 
     Parameters
     ----------
@@ -220,11 +227,14 @@ def estimate_station(
         "n_rounds": int(data.ranges.shape[0]),
         "n_ranges": int(data.ranges.size),
         "n_rejected_robust_centre": int(rej.rejected.sum()),
-        "n_rejected_residual": fix.n_ranges - fix.n_used,
+        "n_left_out_by_tests": fix.n_ranges - fix.n_used,
         "n_used": fix.n_used,
         "n_nlos_simulated": int(data.nlos.sum()),
         "n_occluded_links": 0 if data.occluded is None else int(data.occluded.sum()),
-        "per_anchor_rms": dict(zip(ids, [float(v) for v in fix.per_anchor_rms], strict=True)),
+        "per_anchor_rms": {
+            i: float(v) if np.isfinite(v) else None
+            for i, v in zip(ids, fix.per_anchor_rms, strict=True)
+        },
         "calibration": cal.to_dict(ids),
         "std_xyz_yaw": [float(v) for v in np.sqrt(np.diag(fix.covariance))],
         "unobserved": unobserved,
@@ -240,5 +250,7 @@ def estimate_station(
         rmse=rmse,
         station=station_id,
         quality=quality,
-        integrity=fix.integrity,
+        integrity=None
+        if fix.integrity is None
+        else fix.integrity.with_checks(rejected_ranges=rejected_ranges(rej.rejected, ids)),
     )

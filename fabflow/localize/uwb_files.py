@@ -42,6 +42,7 @@ from fabflow.positioning.uwb_platform import (
     heading_from_motion,
     locate_platform,
     platform_to_base_covariance,
+    rejected_ranges,
 )
 from fabflow.project import UwbSetup, format_loc
 from fabflow.robots import platform
@@ -174,7 +175,9 @@ def _static_pose(
         "std_xyz_yaw": [float(v) for v in np.sqrt(np.diag(fix.covariance))],
         "unobserved": ["rx", "ry"] + ([] if fix.heading_observed else ["rz"]),
         "unobserved_variance_rad2": UNOBSERVED_VARIANCE,
-        "integrity": fix.integrity,
+        "integrity": None
+        if fix.integrity is None
+        else fix.integrity.with_checks(rejected_ranges=rejected_ranges(rej.rejected, anchor_ids)),
     }
     return fix.T, cov, fix.residuals, quality
 

@@ -3,32 +3,24 @@
 Tags sit at known lever arms on the platform (platform frame); every range of
 every tag constrains the platform pose. :func:`locate_platform` estimates
 ``x, y, z, yaw`` (a level platform) jointly over all ranges by Gauss-Newton
-(``wls-t``), or as the median of per-epoch fixes (``ls``, ``wls``), with
-residual-based rejection; :func:`platform_to_base_covariance` moves the
-covariance to the arm base. Metres and radians; anchors in the world frame.
+(``wls-t``), or as the median of per-epoch fixes (``ls``, ``wls``), and tests it
+as a least-squares adjustment (:mod:`fabflow.positioning.uwb_platform_adjustment`);
+:func:`platform_to_base_covariance` moves the covariance to the arm base.
+Metres and radians; anchors in the world frame.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from scipy.spatial import ConvexHull
 
 from fabflow.errors import InputError, LocalizationError
-from fabflow.positioning.integrity import (
-    ALPHA,
-    Covariance,
-    Hypothesis,
-    Integrity,
-    TestResult,
-    adjustment_test,
-    identify,
-    record,
-)
+from fabflow.positioning.integrity import ALPHA, Integrity, TestResult, identify, record
 from fabflow.positioning.uwb import (
     COND_LIMIT,
     MIN_RANGE_FOR_WEIGHT,
@@ -39,11 +31,15 @@ from fabflow.positioning.uwb import (
     sigma_of,
 )
 from fabflow.positioning.uwb_calibration import running_median
-
-
-def _rotz(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+from fabflow.positioning.uwb_platform_adjustment import (
+    PlatformAdjustment,
+    hidden_mirrors,
+    identify_by_refit,
+    mirror_check,
+    platform_jacobian,
+    platform_ranges,
+)
+from fabflow.positioning.uwb_platform_adjustment import rotz as _rotz
 
 
 @dataclass(frozen=True)
@@ -60,13 +56,15 @@ class PlatformFix:
     residuals
         (n_used,) range residuals of the measurements used (metres).
     n_ranges, n_used
-        Ranges given (finite) and used after the residual test.
+        Ranges given (finite), and used: all but those the tests left out
+        (``integrity.excluded``).
     iterations
         Gauss-Newton iterations of the final solve.
     heading_observed
         Whether the yaw is determined by the measurements (or a prior).
     per_anchor_rms
-        (n_anchors,) RMS residual of the used ranges per anchor (metres).
+        (n_anchors,) RMS residual of the used ranges per anchor (metres); NaN for
+        an anchor none of whose ranges is used (write it as ``None``).
     integrity
         The tests of the fix (global test, w-test per anchor and per tag-anchor
         link, reliability), what was left out, and the geometry checks.
@@ -101,21 +99,43 @@ def locate_platform(
     sigma: Sigma,
     method: Method = "wls-t",
     heading_prior: tuple[float, float] | None = None,
-    outlier_k: float = 4.0,
     max_iter: int = 20,
     anchor_bias_sigma: np.ndarray | None = None,
     alpha: float = ALPHA,
     anchor_ids: Sequence[str] | None = None,
     base_lever: np.ndarray | None = None,
 ) -> PlatformFix:
-    """Estimate a standing platform's ``x, y, z, yaw`` from the ranges of its tags.
+    """Estimate a standing platform's ``x, y, z, yaw`` from the ranges of its tags, and test it.
 
     Every tag's epochs are first multilaterated with ``method``; the median tag
     positions give the initial pose (2D Procrustes fit of the lever arms). For
     ``wls-t`` the pose is then refined by Gauss-Newton on all ranges of all tags
-    and epochs jointly, ranges with ``|residual| > outlier_k * sigma`` are dropped
-    once and the solve repeated. Roll and pitch are taken as zero (a level
-    platform); they are not observed.
+    and epochs jointly (``ls`` and ``wls`` keep the median fix unless an
+    exclusion asks for a new fit, which is a Gauss-Newton fit). Roll and pitch
+    are taken as zero (a level platform); they are not observed.
+
+    Every range given enters the tested solution: none is trimmed by its
+    residual (clean a standing platform's ranges per link beforehand, e.g. with
+    :func:`~fabflow.positioning.uwb_calibration.reject_outliers_static`). The
+    fix is tested as a least-squares adjustment
+    (:mod:`fabflow.positioning.uwb_platform_adjustment`): the global test and a
+    w-test per anchor (a bias shared by all its ranges: a mis-surveyed anchor,
+    an antenna delay, a wall in the way) and per tag-anchor link. While they
+    fail, each anchor and link is left out in turn and the pose fitted again and
+    tested; an exclusion is made only when one of them explains the misfit (an
+    anchor rather than one of its links when both do), or, when none does, one
+    is clearly best (:func:`~fabflow.positioning.uwb_platform_adjustment.identify_by_refit`),
+    as long as three anchors and the heading remain. Ranges left out are in
+    ``integrity.excluded`` (with their number); when several anchors or links
+    explain the misfit, or none does, the fix fails naming them. A fix that
+    passes must also be unique: the tags' mirror image through the plane of the
+    anchors used must not fit as well
+    (:func:`~fabflow.positioning.uwb_platform_adjustment.mirror_check`); a
+    mirror image that one anchor's bias could select unseen
+    (:func:`~fabflow.positioning.uwb_platform_adjustment.hidden_mirrors`) is
+    recorded as ``checks["mirror_by_one_fault"]`` and raises the protection
+    level to the base shift it causes. The guard on exclusions
+    (:func:`~fabflow.positioning.integrity.guard_exclusion`) is the caller's.
 
     Parameters
     ----------
@@ -131,8 +151,6 @@ def locate_platform(
         Estimator for the per-epoch tag fixes; ``wls-t`` also refines jointly.
     heading_prior
         ``(yaw, sigma_yaw)`` in radians; required with a single tag, optional otherwise.
-    outlier_k
-        Residual test threshold in standard deviations.
     max_iter
         Gauss-Newton iteration cap.
     anchor_bias_sigma
@@ -140,11 +158,7 @@ def locate_platform(
         range to an anchor (what the calibration leaves); added to the covariance,
         since averaging over epochs does not reduce it.
     alpha
-        Level of the tests. The fix is tested with the global test and a w-test
-        per anchor (a bias shared by all its ranges: a mis-surveyed anchor, an
-        antenna delay, a wall in the way) and per tag-anchor link; while they fail,
-        the worst anchor or link is left out and the pose solved again, as long
-        as three anchors and the heading remain (:mod:`fabflow.positioning.integrity`).
+        Level of the tests (global test; the w-tests share it).
     anchor_ids
         Anchor names for the integrity record (default ``A1``, ``A2``, ...).
     base_lever
@@ -171,6 +185,64 @@ def locate_platform(
             "one UWB tag cannot observe the heading of a standing platform; add a second "
             "tag or give a heading prior (from the motion or the IMU)"
         )
+    state, heading_observed = _initial_state(A, R, L, sigma, method, heading_prior)
+    finite = np.isfinite(R)
+    d = R[finite]
+    adj = PlatformAdjustment(
+        anchors=A,
+        lever_arms=L,
+        d=d,
+        s=sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT)),
+        tag_idx=np.broadcast_to(np.arange(n_tags)[None, :, None], R.shape)[finite],
+        anc_idx=np.broadcast_to(np.arange(A.shape[0])[None, None, :], R.shape)[finite],
+        bias_sigma=np.zeros(A.shape[0])
+        if anchor_bias_sigma is None
+        else np.asarray(anchor_bias_sigma, dtype=float),
+        ids=tuple(anchor_ids)
+        if anchor_ids is not None
+        else tuple(f"A{j + 1}" for j in range(len(A))),
+        lever=np.zeros(3) if base_lever is None else np.asarray(base_lever, dtype=float),
+        heading_prior=heading_prior,
+        heading_observed=heading_observed,
+        alpha=alpha,
+        max_iter=max_iter,
+    )
+    use = np.ones(d.size, dtype=bool)
+    iterations, converged = 0, True
+    if method == "wls-t" or not heading_observed or n_tags == 1:
+        state, iterations, converged = adj.fit(use, state)
+    tests, masks = adj.tests(use, state)
+    excluded: list[dict[str, Any]] = []
+    problem = ""
+    while identify(tests) is not None:
+        trial, problem = identify_by_refit(adj, use, state, tests, masks)
+        if trial is None:
+            break
+        k = trial.index
+        excluded.append(
+            {
+                "observation": tests.labels[k],
+                "w": float(tests.w[k]),
+                "threshold": float(tests.thresholds[k]),
+                "ranges": int(masks[k].sum()),
+                "passed_alone": trial.passed,
+            }
+        )
+        use, state, tests, masks = trial.use, trial.state, trial.tests, trial.masks
+        iterations, converged = trial.iterations, trial.converged
+    return _finish(adj, use, state, tests, excluded, problem, iterations, converged)
+
+
+def _initial_state(
+    A: np.ndarray,
+    R: np.ndarray,
+    L: np.ndarray,
+    sigma: Sigma,
+    method: Method,
+    heading_prior: tuple[float, float] | None,
+) -> tuple[np.ndarray, bool]:
+    """``[x, y, z, yaw]`` from the median per-tag fixes, and whether the heading is observed."""
+    n_tags = L.shape[0]
     tag_pos = np.empty((n_tags, 3))
     for k in range(n_tags):
         fix = locate(A, R[:, k, :], method=method, sigma=sigma)
@@ -184,8 +256,7 @@ def locate_platform(
         lc = L[:, :2] - L[:, :2].mean(axis=0)
         mc = tag_pos[:, :2] - tag_pos[:, :2].mean(axis=0)
         yaw0 = np.arctan2(np.sum(lc[:, 0] * mc[:, 1] - lc[:, 1] * mc[:, 0]), np.sum(lc * mc))
-        spread = np.linalg.norm(lc, axis=1).max()
-        heading_observed = spread > 0.05
+        heading_observed = bool(np.linalg.norm(lc, axis=1).max() > 0.05)
     else:
         yaw0 = float(heading_prior[0])  # type: ignore[index]
         heading_observed = False
@@ -194,206 +265,142 @@ def locate_platform(
         if n_tags >= 2 and not np.isfinite(yaw0):
             yaw0 = heading_prior[0]
     p0 = tag_pos.mean(axis=0) - _rotz(yaw0) @ L.mean(axis=0)
-    state = np.array([*p0, yaw0])
+    return np.array([*p0, yaw0]), heading_observed
 
-    finite = np.isfinite(R)
-    tag_idx = np.broadcast_to(np.arange(n_tags)[None, :, None], R.shape)[finite]
-    anc_idx = np.broadcast_to(np.arange(A.shape[0])[None, None, :], R.shape)[finite]
-    d = R[finite]
-    s = sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT))
-    ids = list(anchor_ids) if anchor_ids is not None else [f"A{j + 1}" for j in range(A.shape[0])]
-    bias_sigma = (
-        np.zeros(A.shape[0])
-        if anchor_bias_sigma is None
-        else np.asarray(anchor_bias_sigma, dtype=float)
-    )
-    lever = np.zeros(3) if base_lever is None else np.asarray(base_lever, dtype=float)
-    use = np.ones(d.size, dtype=bool)
-    left_out = np.zeros(d.size, dtype=bool)
-    iterations, converged = 0, True
-    excluded: list[dict[str, Any]] = []
-    while True:
-        if method == "wls-t" or not heading_observed or n_tags == 1:
-            for _pass in range(2):
-                state, iterations, converged = _platform_gn(
-                    A, L, d[use], s[use], tag_idx[use], anc_idx[use], state, heading_prior,
-                    max_iter,
-                )  # fmt: skip
-                res = d - _platform_h(A, L, state, tag_idx, anc_idx)
-                keep = (np.abs(res) <= outlier_k * s) & ~left_out
-                if np.array_equal(keep, use):
-                    break
-                use = keep
-        tests = _platform_tests(
-            A, L, d, s, tag_idx, anc_idx, use, state, heading_prior, heading_observed,
-            bias_sigma, ids, lever, alpha,
-        )  # fmt: skip
-        k = identify(tests)
-        if k is None:
-            break
-        drop = _hypothesis_ranges(tests.labels[k], ids, tag_idx, anc_idx)
-        rest = use & ~drop
-        if len(np.unique(anc_idx[rest])) < 3 or not _determined(
-            A, L, s[rest], tag_idx[rest], anc_idx[rest], state, heading_prior, heading_observed
-        ):
-            break
-        excluded.append(
-            {
-                "observation": tests.labels[k],
-                "w": float(tests.w[k]),
-                "threshold": float(tests.thresholds[k]),
-            }
-        )
-        left_out |= drop
-        use &= ~drop
-    info = _platform_info(A, L, s[use], tag_idx[use], anc_idx[use], state, heading_prior)
-    yaw_fixed = heading_observed
-    if not yaw_fixed:
+
+def _finish(
+    adj: PlatformAdjustment,
+    use: np.ndarray,
+    state: np.ndarray,
+    tests: TestResult,
+    excluded: list[dict[str, Any]],
+    problem: str,
+    iterations: int,
+    converged: bool,
+) -> PlatformFix:
+    """The fix from the final solution: covariance, residuals, integrity record and checks."""
+    A, L = adj.anchors, adj.lever_arms
+    tg, an, s = adj.tag_idx[use], adj.anc_idx[use], adj.s[use]
+    info = adj.information(use, state)
+    if not adj.heading_observed:
         info[3, :] = 0.0
         info[:, 3] = 0.0
         info[3, 3] = 1.0 / UNOBSERVED_VARIANCE
     ev = np.linalg.eigvalsh(info)
     determined = bool(ev[0] > ev[-1] / COND_LIMIT)
-    if not determined and not excluded and use.all():
+    if not determined and not excluded:
         raise LocalizationError("the tag and anchor geometry does not determine the platform pose")
-    # ranges left out by the residual test can leave the pose undetermined: it fails below
     cov = np.linalg.inv(info) if determined else np.linalg.pinv(info) + np.diag(np.full(4, 1e6))
-    if anchor_bias_sigma is not None:
-        J = _platform_jac(A, L, state, tag_idx[use], anc_idx[use])
-        if not yaw_fixed:
+    if np.any(adj.bias_sigma > 0):
+        J = platform_jacobian(A, L, state, tg, an)
+        if not adj.heading_observed:
             J[:, 3] = 0.0
-        G = cov @ (J / s[use][:, None] ** 2).T
-        for j, sb in enumerate(bias_sigma):
-            g = G[:, anc_idx[use] == j].sum(axis=1)
-            cov = cov + sb**2 * np.outer(g, g)
-    res = d - _platform_h(A, L, state, tag_idx, anc_idx)
-    per_anchor = np.array(
-        [
-            np.sqrt(np.mean(res[use & (anc_idx == j)] ** 2))
-            if np.any(use & (anc_idx == j))
-            else np.nan
-            for j in range(A.shape[0])
-        ]
-    )
-    state[3] = (state[3] + np.pi) % (2 * np.pi) - np.pi
-    integrity = record(tests, excluded, alpha, _geometry(A[np.unique(anc_idx[use])], state))
+        G = cov @ (J / s[:, None] ** 2).T
+        U = (an[:, None] == np.arange(len(A))[None, :]).astype(float)
+        g = G @ U
+        cov = cov + (g * adj.bias_sigma**2) @ g.T
+    res = adj.d - platform_ranges(A, L, state, adj.tag_idx, adj.anc_idx)
+    n_used = np.bincount(an, minlength=len(A))
+    ss = np.bincount(an, weights=res[use] ** 2, minlength=len(A))
+    per_anchor = np.where(n_used > 0, np.sqrt(ss / np.maximum(n_used, 1)), np.nan)
+    checks: dict[str, Any] = _geometry(A[np.unique(an)], state)
+    integrity = record(tests, excluded, adj.alpha, checks)
+    if integrity.status != "failed":
+        mirror = mirror_check(adj, use, state)
+        integrity = integrity.with_checks(mirror=mirror)
+        if not mirror["passed"]:
+            dz = mirror["offset_m"][2]
+            left = "" if not excluded else " left"
+            integrity = integrity.failing(
+                f"the anchors{left} lie nearly in one plane: the mirror solution "
+                f"{abs(dz):.2f} m {'below' if dz < 0 else 'above'} fits the ranges as well "
+                f"(global test {mirror['statistic']:.1f} <= {mirror['threshold']:.1f}), "
+                "so the height is not determined"
+            )
+        else:
+            integrity = _with_hidden_mirrors(integrity, hidden_mirrors(adj, use, state))
+    if problem:
+        integrity = integrity.failing(problem)
     if not determined:
-        integrity = integrity.failing(
-            "the ranges left after the outlier and residual tests do not determine the pose"
-        )
+        integrity = integrity.failing("the ranges left out leave the pose undetermined")
     elif not converged:
-        integrity = integrity.failing(f"the pose did not converge in {max_iter} iterations")
+        integrity = integrity.failing(f"the pose did not converge in {adj.max_iter} iterations")
     elif integrity.checks["outside_coverage_m"] > COVERAGE_MARGIN:
         integrity = integrity.failing(
             f"the platform stands {integrity.checks['outside_coverage_m']:.1f} m outside the "
             f"anchors' coverage (their convex hull in plan, PDOP "
             f"{integrity.checks['pdop']:.1f}): move anchors around the station"
         )
+    state = state.copy()
+    state[3] = (state[3] + np.pi) % (2 * np.pi) - np.pi
     return PlatformFix(
         state=state,
         covariance=cov,
         residuals=res[use],
-        n_ranges=int(d.size),
+        n_ranges=int(adj.d.size),
         n_used=int(use.sum()),
         iterations=iterations,
-        heading_observed=yaw_fixed,
+        heading_observed=adj.heading_observed,
         per_anchor_rms=per_anchor,
         integrity=integrity,
         converged=converged,
     )
 
 
+def _with_hidden_mirrors(integrity: Integrity, hidden: list[dict[str, Any]]) -> Integrity:
+    """The record with the hidden mirrors, its protection level raised to their base shift.
+
+    A hidden mirror (:func:`~fabflow.positioning.uwb_platform_adjustment.hidden_mirrors`)
+    is a fault the tests cannot see at any size; the base shift it causes
+    (metres, horizontal and vertical) bounds the protection level from below.
+    """
+    if not hidden:
+        return integrity
+    pl = dict(integrity.protection_level)
+    for m in hidden:
+        dx, dy, dz = m["base_shift_m"]
+        pl["horizontal"] = max(pl.get("horizontal") or 0.0, math.hypot(dx, dy))
+        pl["vertical"] = max(pl.get("vertical") or 0.0, abs(dz))
+    return replace(integrity.with_checks(mirror_by_one_fault=hidden), protection_level=pl)
+
+
+def rejected_ranges(rejected: np.ndarray, anchor_ids: Sequence[str]) -> dict[str, Any]:
+    """The integrity check of the ranges a per-link outlier test removed before the fix.
+
+    Parameters
+    ----------
+    rejected
+        (N, n_tags, n_anchors) ranges removed (e.g.
+        :attr:`~fabflow.positioning.uwb_calibration.Rejection.rejected` of
+        :func:`~fabflow.positioning.uwb_calibration.reject_outliers_static`).
+    anchor_ids
+        Anchor names.
+
+    Returns
+    -------
+    dict
+        ``count`` (ranges removed), ``per_link`` (label to count, the links with
+        any) and ``test`` (what removed them): a range far from its own link's
+        robust centre is a single NLOS reading; a link or an anchor off as a
+        whole is not removed here but left to the tests of the fix.
+    """
+    r = np.asarray(rejected, dtype=bool)
+    counts = r.sum(axis=0)
+    tags, anchors = np.nonzero(counts)
+    return {
+        "count": int(counts.sum()),
+        "per_link": {
+            f"anchor {anchor_ids[j]} from tag {k}": int(counts[k, j])
+            for k, j in zip(tags, anchors, strict=True)
+        },
+        "test": "beyond 3 sigma (at least 0.1 m) of its link's robust centre",
+    }
+
+
 COVERAGE_MARGIN = 0.5
 """How far (metres, in plan) a platform may stand outside the anchors' convex hull
 before its fix fails: outside, the geometry degrades fast and the linearized
 covariance no longer describes the error."""
-
-
-def _platform_tests(
-    A: np.ndarray,
-    L: np.ndarray,
-    d: np.ndarray,
-    s: np.ndarray,
-    tag_idx: np.ndarray,
-    anc_idx: np.ndarray,
-    use: np.ndarray,
-    state: np.ndarray,
-    heading_prior: tuple[float, float] | None,
-    heading_observed: bool,
-    bias_sigma: np.ndarray,
-    ids: Sequence[str],
-    lever: np.ndarray,
-    alpha: float,
-) -> TestResult:
-    """The adjustment tests of a platform fix over the used ranges.
-
-    Observations are the ranges, each with its white noise, plus the bias every
-    range to one anchor shares (what the calibration leaves: ``bias_sigma``),
-    so ``Q = diag(s^2) + U diag(bias_sigma^2) U^T``. Hypotheses: a bias of all
-    ranges to one anchor (``anchor A3``) and, with two or more tags, of one
-    tag-anchor link (``anchor A3 from tag 1``; tags are numbered from 0, as in
-    the ranges file's ``tag`` column).
-    """
-    tg, an = tag_idx[use], anc_idx[use]
-    J = _platform_jac(A, L, state, tg, an)
-    if not heading_observed:
-        J = J[:, :3]
-    anchors = np.unique(an)
-    U = (an[:, None] == anchors[None, :]).astype(float)
-    Q = Covariance(
-        diag=s[use] ** 2,
-        low_rank=U if np.any(bias_sigma[anchors] > 0) else None,
-        low_rank_var=np.maximum(bias_sigma[anchors], 1e-9) ** 2,
-    )
-    v = d[use] - _platform_h(A, L, state, tg, an)
-    hyps = [Hypothesis(f"anchor {ids[j]}", U[:, k]) for k, j in enumerate(anchors)]
-    n_tags = L.shape[0]
-    if n_tags >= 2:
-        for k in range(n_tags):
-            for j in anchors:
-                c = ((tg == k) & (an == j)).astype(float)
-                if c.any():
-                    hyps.append(Hypothesis(f"anchor {ids[j]} from tag {k}", c))
-    R = _rotz(float(state[3]))
-    G = np.zeros((3, J.shape[1]))
-    G[:, :3] = np.eye(3)
-    if heading_observed:
-        G[:2, 3] = np.array([-(R @ lever)[1], (R @ lever)[0]])
-    prior = None
-    if heading_prior is not None and heading_observed:
-        prior = np.zeros((4, 4))
-        prior[3, 3] = 1.0 / heading_prior[1] ** 2
-    return adjustment_test(J, Q, v, hyps, alpha, position_map=G, prior_information=prior)
-
-
-def _determined(
-    A: np.ndarray,
-    L: np.ndarray,
-    s: np.ndarray,
-    tag_idx: np.ndarray,
-    anc_idx: np.ndarray,
-    state: np.ndarray,
-    heading_prior: tuple[float, float] | None,
-    heading_observed: bool,
-) -> bool:
-    """Whether these ranges still determine the platform pose (well-conditioned information)."""
-    info = _platform_info(A, L, s, tag_idx, anc_idx, state, heading_prior)
-    if not heading_observed:
-        info = info[:3, :3]
-    ev = np.linalg.eigvalsh(info)
-    return bool(ev[0] > ev[-1] / COND_LIMIT)
-
-
-def _hypothesis_ranges(
-    label: str, ids: Sequence[str], tag_idx: np.ndarray, anc_idx: np.ndarray
-) -> np.ndarray:
-    """The ranges a hypothesis label names (``anchor A3`` or ``anchor A3 from tag 1``)."""
-    words = label.split()
-    j = list(ids).index(words[1])
-    drop = anc_idx == j
-    if len(words) > 2:
-        drop &= tag_idx == int(words[-1])
-    return drop
 
 
 def _geometry(A: np.ndarray, state: np.ndarray) -> dict[str, float]:
@@ -416,97 +423,6 @@ def _geometry(A: np.ndarray, state: np.ndarray) -> dict[str, float]:
             tt = np.clip(np.einsum("ij,ij->i", p[:2] - a, ab) / np.einsum("ij,ij->i", ab, ab), 0, 1)
             outside = float(np.min(np.linalg.norm(a + tt[:, None] * ab - p[:2], axis=1)))
     return {"pdop": pdop, "outside_coverage_m": outside}
-
-
-def _platform_h(
-    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
-) -> np.ndarray:
-    tags = state[:3] + L @ _rotz(state[3]).T
-    return np.linalg.norm(tags[tag_idx] - A[anc_idx], axis=1)
-
-
-def _platform_jac(
-    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
-) -> np.ndarray:
-    Rl = L @ _rotz(state[3]).T
-    tags = state[:3] + Rl
-    diff = tags[tag_idx] - A[anc_idx]
-    u = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]
-    dyaw = np.column_stack([-Rl[:, 1], Rl[:, 0]])[tag_idx]
-    return np.column_stack([u, np.sum(u[:, :2] * dyaw, axis=1)])
-
-
-def _platform_info(
-    A: np.ndarray,
-    L: np.ndarray,
-    s: np.ndarray,
-    tag_idx: np.ndarray,
-    anc_idx: np.ndarray,
-    state: np.ndarray,
-    heading_prior: tuple[float, float] | None,
-) -> np.ndarray:
-    J = _platform_jac(A, L, state, tag_idx, anc_idx)
-    info = J.T @ (J / s[:, None] ** 2)
-    if heading_prior is not None:
-        info[3, 3] += 1.0 / heading_prior[1] ** 2
-    return info
-
-
-def _platform_gn(
-    A: np.ndarray,
-    L: np.ndarray,
-    d: np.ndarray,
-    s: np.ndarray,
-    tag_idx: np.ndarray,
-    anc_idx: np.ndarray,
-    state: np.ndarray,
-    heading_prior: tuple[float, float] | None,
-    max_iter: int,
-) -> tuple[np.ndarray, int, bool]:
-    """Damped Gauss-Newton on all ranges: the state, the iterations, whether it converged.
-
-    Each step is scaled back (halved, up to 7 times) until it lowers the cost; the
-    solve has converged when a step is negligible against its own uncertainty.
-    """
-    state = state.copy()
-
-    def cost_of(x: np.ndarray) -> float:
-        r = (d - _platform_h(A, L, x, tag_idx, anc_idx)) / s
-        c = float(r @ r)
-        if heading_prior is not None:
-            c += (
-                float(np.angle(np.exp(1j * (heading_prior[0] - x[3])))) ** 2 / heading_prior[1] ** 2
-            )
-        return c
-
-    cost = cost_of(state)
-    for iteration in range(1, max_iter + 1):
-        J = _platform_jac(A, L, state, tag_idx, anc_idx)
-        r = d - _platform_h(A, L, state, tag_idx, anc_idx)
-        Wj = J / s[:, None] ** 2
-        M = J.T @ Wj
-        g = Wj.T @ r
-        if heading_prior is not None:
-            w = 1.0 / heading_prior[1] ** 2
-            M[3, 3] += w
-            g[3] += w * (np.angle(np.exp(1j * (heading_prior[0] - state[3]))))
-        try:
-            step = np.linalg.solve(M, g)
-        except np.linalg.LinAlgError:
-            raise LocalizationError(
-                "the tag and anchor geometry does not determine the platform pose"
-            ) from None
-        if float(step @ M @ step) < 1e-10 or np.linalg.norm(step) < 1e-8:
-            return state, iteration, True
-        for scale in 0.5 ** np.arange(8):
-            trial = state + scale * step
-            new = cost_of(trial)
-            if new <= cost:
-                state, cost = trial, new
-                break
-        else:
-            return state, iteration, False
-    return state, max_iter, False
 
 
 def platform_to_base_covariance(

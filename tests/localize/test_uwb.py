@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
+
 import numpy as np
 
-from fabflow.localize.uwb import localize_station
+from fabflow.localize.uwb import estimate_station, localize_station, simulate_station
 from fabflow.positioning.uwb import UNOBSERVED_VARIANCE
 from fabflow.project import load_project
 from fabflow.transforms.so3 import exp_so3
@@ -48,3 +51,30 @@ def test_localize_station_occlusion_by_built_blocks() -> None:
     err = np.abs(pose.T_world_base[:3, 3] - T[:3, 3])
     assert np.all(err < 4 * np.sqrt(np.diag(pose.covariance)[:3]))
     assert pose.quality["n_rejected_robust_centre"] > 100
+
+
+def test_an_anchor_left_out_is_written_without_nan() -> None:
+    project = load_project("projects/cabin")
+    setup = project.localization.uwb
+    assert setup is not None
+    anchors = {**setup.anchors, "A5": [2.4, 3.0, 3.2]}  # a fifth anchor above the centre
+    project = project.model_copy(
+        update={
+            "localization": project.localization.model_copy(
+                update={"uwb": setup.model_copy(update={"anchors": anchors})}
+            )
+        }
+    )
+    T = np.eye(4)
+    T[:3, :3] = exp_so3(np.array([0.0, 0.0, 0.7]))
+    T[:3, 3] = [2.0, 2.5, 1.1]
+    data = simulate_station(project, T, np.random.default_rng(0))
+    ranges = data.ranges.copy()
+    ranges[:, :, 2] += 0.5  # every range to A3 half a metre long (NLOS)
+    pose = estimate_station(project, dataclasses.replace(data, ranges=ranges))
+    assert pose.integrity is not None and pose.integrity.status == "excluded"
+    assert [e["observation"] for e in pose.integrity.excluded] == ["anchor A3"]
+    assert pose.quality["per_anchor_rms"]["A3"] is None
+    assert pose.quality["n_left_out_by_tests"] == pose.integrity.excluded[0]["ranges"]
+    text = json.dumps(pose.to_dict(), allow_nan=False)  # raises on NaN
+    assert json.loads(text)["quality"]["per_anchor_rms"]["A3"] is None

@@ -1,0 +1,550 @@
+"""The least-squares adjustment of a standing platform's UWB ranges, its tests and its choices.
+
+A level platform stands at ``x, y, z, yaw`` (anchors' frame, metres and
+radians); tag ``k`` sits at the lever arm ``l_k`` (platform frame), so range
+``i`` of tag ``k`` to anchor ``j`` observes ``|p + R(yaw) l_k - a_j|``.
+:class:`PlatformAdjustment` holds the ranges with their weights and solves,
+tests and compares fits of any subset of them:
+
+- :meth:`PlatformAdjustment.fit`: damped Gauss-Newton over the ranges used;
+- :meth:`PlatformAdjustment.tests`: the global test and the w-tests of one
+  anchor's ranges and of one tag-anchor link
+  (:func:`fabflow.positioning.integrity.adjustment_test`), each hypothesis with
+  the ranges it names (a boolean mask), so nothing is parsed back from labels;
+- :func:`identify_by_refit`: which anchor or link to leave out, found by
+  leaving out each in turn, fitting again and testing (as
+  :mod:`fabflow.positioning.registration` does for prism points); an
+  exclusion is accepted only when it is the one that explains the misfit;
+- :func:`mirror_check`: whether the reflection of the tags through the plane
+  of the anchors used fits as well (anchors nearly in one plane cannot tell
+  above from below).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import special
+
+from fabflow.errors import LocalizationError
+from fabflow.positioning.integrity import (
+    POWER,
+    Covariance,
+    Hypothesis,
+    TestResult,
+    adjustment_test,
+    noncentrality,
+)
+from fabflow.positioning.uwb import COND_LIMIT
+
+
+def rotz(yaw: float) -> np.ndarray:
+    """3x3 rotation about z by ``yaw`` (radians)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def platform_ranges(
+    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
+) -> np.ndarray:
+    """Predicted ranges (metres) of the tag-anchor pairs ``(tag_idx, anc_idx)`` at ``state``."""
+    tags = state[:3] + L @ rotz(state[3]).T
+    return np.linalg.norm(tags[tag_idx] - A[anc_idx], axis=1)
+
+
+def platform_jacobian(
+    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
+) -> np.ndarray:
+    """(m, 4) derivative of the ranges by ``x, y, z`` (1) and ``yaw`` (metres per radian)."""
+    Rl = L @ rotz(state[3]).T
+    tags = state[:3] + Rl
+    diff = tags[tag_idx] - A[anc_idx]
+    u = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]
+    dyaw = np.column_stack([-Rl[:, 1], Rl[:, 0]])[tag_idx]
+    return np.column_stack([u, np.sum(u[:, :2] * dyaw, axis=1)])
+
+
+def platform_information(
+    A: np.ndarray,
+    L: np.ndarray,
+    s: np.ndarray,
+    tag_idx: np.ndarray,
+    anc_idx: np.ndarray,
+    state: np.ndarray,
+    heading_prior: tuple[float, float] | None,
+) -> np.ndarray:
+    """4x4 information of ``x, y, z, yaw`` from white ranges of sd ``s`` (and the heading prior)."""
+    J = platform_jacobian(A, L, state, tag_idx, anc_idx)
+    info = J.T @ (J / s[:, None] ** 2)
+    if heading_prior is not None:
+        info[3, 3] += 1.0 / heading_prior[1] ** 2
+    return info
+
+
+def platform_gauss_newton(
+    A: np.ndarray,
+    L: np.ndarray,
+    d: np.ndarray,
+    s: np.ndarray,
+    tag_idx: np.ndarray,
+    anc_idx: np.ndarray,
+    state: np.ndarray,
+    heading_prior: tuple[float, float] | None,
+    max_iter: int,
+) -> tuple[np.ndarray, int, bool]:
+    """Damped Gauss-Newton on the ranges ``d``: the state, the iterations, whether it converged.
+
+    Each step is scaled back (halved, up to 7 times) until it lowers the cost; the
+    solve has converged when a step is negligible against its own uncertainty.
+
+    Raises
+    ------
+    LocalizationError
+        The normal matrix is singular (the geometry does not determine the pose).
+    """
+    state = np.array(state, dtype=float)
+
+    def cost_of(x: np.ndarray) -> float:
+        r = (d - platform_ranges(A, L, x, tag_idx, anc_idx)) / s
+        c = float(r @ r)
+        if heading_prior is not None:
+            c += (
+                float(np.angle(np.exp(1j * (heading_prior[0] - x[3])))) ** 2 / heading_prior[1] ** 2
+            )
+        return c
+
+    cost = cost_of(state)
+    for iteration in range(1, max_iter + 1):
+        J = platform_jacobian(A, L, state, tag_idx, anc_idx)
+        r = d - platform_ranges(A, L, state, tag_idx, anc_idx)
+        Wj = J / s[:, None] ** 2
+        M = J.T @ Wj
+        g = Wj.T @ r
+        if heading_prior is not None:
+            w = 1.0 / heading_prior[1] ** 2
+            M[3, 3] += w
+            g[3] += w * (np.angle(np.exp(1j * (heading_prior[0] - state[3]))))
+        try:
+            step = np.linalg.solve(M, g)
+        except np.linalg.LinAlgError:
+            raise LocalizationError(
+                "the tag and anchor geometry does not determine the platform pose"
+            ) from None
+        if float(step @ M @ step) < 1e-10 or np.linalg.norm(step) < 1e-8:
+            return state, iteration, True
+        for scale in 0.5 ** np.arange(8):
+            trial = state + scale * step
+            new = cost_of(trial)
+            if new <= cost:
+                state, cost = trial, new
+                break
+        else:
+            return state, iteration, False
+    return state, max_iter, False
+
+
+@dataclass(frozen=True)
+class PlatformAdjustment:
+    """The finite ranges of a standing platform with their weights: fit and test any subset.
+
+    Attributes
+    ----------
+    anchors
+        (n_anchors, 3) anchor positions (metres, anchors' frame).
+    lever_arms
+        (n_tags, 3) tag positions in the platform frame (metres).
+    d, s
+        (m,) the ranges and their noise standard deviations (metres).
+    tag_idx, anc_idx
+        (m,) tag and anchor of each range.
+    bias_sigma
+        (n_anchors,) standard deviation (metres) of the error every range to one
+        anchor shares (what the calibration leaves).
+    ids
+        Anchor names, for the hypotheses' labels.
+    lever
+        (3,) the arm base in the platform frame (metres): the protection level is
+        given for the base.
+    heading_prior
+        ``(yaw, sigma_yaw)`` (radians) or ``None``.
+    heading_observed
+        Whether the heading is a parameter (two tags apart, or a prior).
+    alpha
+        Level of the tests.
+    max_iter
+        Gauss-Newton iteration cap.
+    """
+
+    anchors: np.ndarray
+    lever_arms: np.ndarray
+    d: np.ndarray
+    s: np.ndarray
+    tag_idx: np.ndarray
+    anc_idx: np.ndarray
+    bias_sigma: np.ndarray
+    ids: tuple[str, ...]
+    lever: np.ndarray
+    heading_prior: tuple[float, float] | None
+    heading_observed: bool
+    alpha: float
+    max_iter: int
+
+    def fit(self, use: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, int, bool]:
+        """Gauss-Newton over the ranges ``use`` from ``start``: state, iterations, converged."""
+        return platform_gauss_newton(
+            self.anchors, self.lever_arms, self.d[use], self.s[use], self.tag_idx[use],
+            self.anc_idx[use], start, self.heading_prior, self.max_iter,
+        )  # fmt: skip
+
+    def information(self, use: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """4x4 information of ``x, y, z, yaw`` from the ranges ``use`` (white noise only)."""
+        return platform_information(
+            self.anchors, self.lever_arms, self.s[use], self.tag_idx[use], self.anc_idx[use],
+            state, self.heading_prior,
+        )  # fmt: skip
+
+    def determined(self, use: np.ndarray, state: np.ndarray) -> bool:
+        """Whether the ranges ``use`` determine the pose (well-conditioned information)."""
+        info = self.information(use, state)
+        if not self.heading_observed:
+            info = info[:3, :3]
+        ev = np.linalg.eigvalsh(info)
+        return bool(ev[0] > ev[-1] / COND_LIMIT)
+
+    def n_anchors_used(self, use: np.ndarray) -> int:
+        """How many anchors the ranges ``use`` reach."""
+        return int(np.unique(self.anc_idx[use]).size)
+
+    def hypotheses(self, use: np.ndarray) -> tuple[list[str], list[np.ndarray]]:
+        """Labels and ranges (masks over all ranges) of the hypotheses on the ranges ``use``.
+
+        One anchor (``anchor A3``: all its ranges used) and, with two or more tags,
+        one tag-anchor link (``anchor A3 from tag 1``; tags numbered from 0 as in
+        the ranges file), unless the link is all that is left of its anchor.
+        """
+        anchors = np.unique(self.anc_idx[use])
+        per_anchor = [use & (self.anc_idx == j) for j in anchors]
+        labels = [f"anchor {self.ids[j]}" for j in anchors]
+        masks = list(per_anchor)
+        if len(self.lever_arms) >= 2:
+            for k in range(len(self.lever_arms)):
+                for j, whole in zip(anchors, per_anchor, strict=True):
+                    link = whole & (self.tag_idx == k)
+                    if link.any() and not np.array_equal(link, whole):
+                        labels.append(f"anchor {self.ids[j]} from tag {k}")
+                        masks.append(link)
+        return labels, masks
+
+    def tests(self, use: np.ndarray, state: np.ndarray) -> tuple[TestResult, list[np.ndarray]]:
+        """The adjustment tests over the ranges ``use`` at ``state``, and each hypothesis' ranges.
+
+        Observations are the ranges with their white noise plus the bias every
+        range to one anchor shares, ``Q = diag(s^2) + U diag(bias_sigma^2) U^T``
+        (``U``: one indicator column per anchor).
+        """
+        tg, an = self.tag_idx[use], self.anc_idx[use]
+        J = platform_jacobian(self.anchors, self.lever_arms, state, tg, an)
+        if not self.heading_observed:
+            J = J[:, :3]
+        anchors = np.unique(an)
+        U = (an[:, None] == anchors[None, :]).astype(float)
+        Q = Covariance(
+            diag=self.s[use] ** 2,
+            low_rank=U if np.any(self.bias_sigma[anchors] > 0) else None,
+            low_rank_var=np.maximum(self.bias_sigma[anchors], 1e-9) ** 2,
+        )
+        v = self.d[use] - platform_ranges(self.anchors, self.lever_arms, state, tg, an)
+        labels, masks = self.hypotheses(use)
+        hyps = [
+            Hypothesis(label, m[use].astype(float)) for label, m in zip(labels, masks, strict=True)
+        ]
+        G = np.zeros((3, J.shape[1]))
+        G[:, :3] = np.eye(3)
+        if self.heading_observed:
+            Rl = rotz(float(state[3])) @ self.lever
+            G[:2, 3] = np.array([-Rl[1], Rl[0]])
+        prior = None
+        if self.heading_prior is not None and self.heading_observed:
+            prior = np.zeros((4, 4))
+            prior[3, 3] = 1.0 / self.heading_prior[1] ** 2
+        test = adjustment_test(
+            J, Q, v, hyps, self.alpha, position_map=G, prior_information=prior
+        )  # fmt: skip
+        return test, masks
+
+
+@dataclass(frozen=True)
+class Trial:
+    """The solution without one hypothesis' ranges, and its tests.
+
+    Attributes
+    ----------
+    index
+        The hypothesis left out (index into the tests it was chosen from).
+    label
+        Its label.
+    use
+        (m,) the ranges left.
+    state, iterations, converged
+        The refit (``x, y, z, yaw``; metres, radians).
+    tests, masks
+        Its tests and the ranges of each of their hypotheses.
+    """
+
+    index: int
+    label: str
+    use: np.ndarray
+    state: np.ndarray
+    iterations: int
+    converged: bool
+    tests: TestResult
+    masks: list[np.ndarray]
+
+    @property
+    def passed(self) -> bool:
+        """Whether the refit converged and passes every test."""
+        return self.converged and self.tests.passed
+
+    @property
+    def excess(self) -> float:
+        """The global test statistic as a standard score, ``(T - r) / sqrt(2 r)``."""
+        r = max(self.tests.redundancy, 1)
+        return (self.tests.statistic - r) / math.sqrt(2.0 * r)
+
+
+def identify_by_refit(
+    adj: PlatformAdjustment,
+    use: np.ndarray,
+    state: np.ndarray,
+    tests: TestResult,
+    masks: Sequence[np.ndarray],
+) -> tuple[Trial | None, str]:
+    """Which anchor or link to leave out: each in turn, fitted again and tested.
+
+    Every excludable hypothesis with a test value is tried (a handful: the
+    anchors and the tag-anchor links) as long as three anchors and the pose's
+    determination remain. Of the refits that pass every test, those that leave
+    out part of what another passing one leaves out (the link A3 from tag 1
+    when anchor A3 passes too) are set aside: a fault found on one link may be
+    the anchor's (a mis-surveyed anchor biases its links by different amounts),
+    and a bias left on its other links below their detection limit would still
+    move the pose. Leaving out the whole anchor is the safe side; a link alone
+    is left out when its anchor cannot be. Then:
+
+    - exactly one left: it is the exclusion;
+    - more than one: several single faults explain the misfit equally, the
+      faulty one is not identified (returns ``None`` and the reason);
+    - none passes: the refit with the smallest global test statistic is taken
+      (a further exclusion follows) only when it is clearly best, its standard
+      score ``(T - r) / sqrt(2 r)`` below every other's by more than the
+      one-sided normal quantile at ``alpha``; otherwise ``None`` and the reason.
+
+    Returns
+    -------
+    tuple
+        The chosen trial (or ``None``) and, when none is chosen for a reason the
+        record should carry, that reason (else ``""``).
+    """
+    trials: list[Trial] = []
+    for k in range(len(tests.labels)):
+        if not tests.excludable[k] or not np.isfinite(tests.w[k]):
+            continue
+        rest = use & ~masks[k]
+        if adj.n_anchors_used(rest) < 3 or not adj.determined(rest, state):
+            continue
+        trial = _refit(adj, rest, state, k, tests.labels[k])
+        if trial is not None:
+            trials.append(trial)
+    if not trials:
+        return None, ""
+    passing = [t for t in trials if t.passed]
+    # a passing trial that leaves out part of what another passing one leaves out is set aside
+    widest = [
+        t
+        for t in passing
+        if not any(q is not t and _strict_subset(~t.use & use, ~q.use & use) for q in passing)
+    ]
+    if len(widest) == 1:
+        return widest[0], ""
+    if widest:
+        names = ", ".join(t.label for t in widest)
+        return None, (
+            f"the misfit is explained by leaving out any one of {names}: "
+            "the faulty anchor or link cannot be identified"
+        )
+    ranked = sorted(trials, key=lambda t: t.excess)
+    z = float(special.ndtri(1.0 - adj.alpha))
+    if len(ranked) == 1 or ranked[1].excess - ranked[0].excess > z:
+        return ranked[0], ""
+    best = ", ".join(
+        f"{t.label} (variance factor {t.tests.variance_factor:.2f})" for t in ranked[:3]
+    )
+    return None, f"no single anchor or link explains the misfit (best refits without {best})"
+
+
+def _refit(
+    adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray, index: int, label: str
+) -> Trial | None:
+    """The best of two fits of the ranges ``use``: from ``state`` and from its mirror image.
+
+    The fix with a fault in it can stand nearer the mirror image of the pose
+    the other ranges give (the side of the anchors' plane is the weakly
+    determined part); started from there alone, the refit would settle on the
+    wrong side. The fit with the smaller global test statistic (of the
+    converged ones) is kept; ``None`` when neither could be solved.
+    """
+    fits = []
+    try:
+        fits.append(adj.fit(use, state))
+        fits.append(adj.fit(use, _reflected(adj, use, fits[0][0])[0]))
+    except LocalizationError:
+        if not fits:
+            return None
+    trials = [Trial(index, label, use, st, it, conv, *adj.tests(use, st)) for st, it, conv in fits]
+    return min(trials, key=lambda t: (not t.converged, t.tests.statistic))
+
+
+def _reflected(
+    adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """The pose mirrored through the plane of the anchors ``use`` reaches, and its distance.
+
+    The tags' centroid is reflected through the best-fit plane of those anchors
+    (anchors' frame), the heading kept; the second value is the centroid's
+    distance from the plane (metres).
+    """
+    A = adj.anchors[np.unique(adj.anc_idx[use])]
+    c = A.mean(axis=0)
+    normal = np.linalg.svd(A - c)[2][-1]
+    L_mean = adj.lever_arms.mean(axis=0)
+    R = rotz(float(state[3]))
+    centroid = state[:3] + R @ L_mean
+    h = float((centroid - c) @ normal)
+    start = state.copy()
+    start[:3] = centroid - 2.0 * h * normal - R @ L_mean
+    return start, abs(h)
+
+
+def _strict_subset(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether the ranges ``a`` are a proper subset of the ranges ``b`` (masks)."""
+    return bool(np.all(b[a]) and b.sum() > a.sum())
+
+
+def mirror_check(adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray) -> dict[str, Any]:
+    """Whether the tags' reflection through the plane of the anchors used fits as well.
+
+    Anchors nearly in one plane (three always are; A1-A3 at one height once A4
+    is left out) give the same ranges to a point and to its mirror image
+    through their plane: the height above them is then not determined by the
+    ranges. The check reflects the tags' centroid through the anchors'
+    best-fit plane, fits the pose again from there (:meth:`PlatformAdjustment.fit`,
+    the heading free to follow) and tests it. The fix is ambiguous when that fit
+    converges to a different pose (the difference in ``x, y, z`` beyond the
+    chi-square(3) critical value at ``alpha`` of the fix's own covariance),
+    passes its global test, and fits the ranges worse than the fix by less than
+    Baarda's ``lambda_0`` (:func:`~fabflow.positioning.integrity.noncentrality`
+    at the w-tests' level and ``POWER``, one degree of freedom: 22.8 for 12
+    hypotheses at ``alpha`` = 0.001), the misfit a just-detectable bias leaves.
+    A mirror that much worse is told apart by the ranges (the level platform,
+    the anchors off their plane); one within it is not.
+
+    Returns
+    -------
+    dict
+        ``passed`` (no second solution), ``plane_distance_m`` (the tags'
+        centroid from the anchors' plane), and, when a mirror fit was made,
+        ``statistic``, ``threshold`` (its global test), ``worse_by`` (its
+        statistic minus the fix's) and ``limit`` (``lambda_0``), ``offset_m``
+        (``x, y, z`` of the mirror fit minus the fix, metres), ``distinct``.
+    """
+    return _mirror(adj, use, state)[0]
+
+
+def hidden_mirrors(
+    adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray
+) -> list[dict[str, Any]]:
+    """Mirror solutions one anchor's bias would select without failing a test.
+
+    When the anchors but one lie nearly in one plane (A1-A3 at one height, A4
+    above), that one alone tells the side: a bias on it as large as the
+    difference of its ranges between the two sides (about 0.5 m in the cabin)
+    moves the fix to the mirror image, and the tests, which see a consistent
+    solution, pass. The linear reliability (MDB, protection level) cannot see
+    such a jump. For every anchor used whose removal leaves three or more, the
+    fit without it (from the fix) is checked with :func:`mirror_check`; a second
+    solution found there is such a hidden mirror.
+
+    Returns
+    -------
+    list of dict
+        Per hidden mirror: ``anchor`` (its name), ``bias_m`` (the
+        mean residual of its ranges at the mirror: the bias that selects it),
+        ``base_shift_m`` (``x, y, z`` of the arm base at the mirror minus at the
+        fix, metres).
+    """
+    found = []
+    for j in np.unique(adj.anc_idx[use]):
+        mask = use & (adj.anc_idx == j)
+        rest = use & ~mask
+        if adj.n_anchors_used(rest) < 3 or not adj.determined(rest, state):
+            continue
+        try:
+            near, _, converged = adj.fit(rest, state)
+        except LocalizationError:
+            continue
+        check, mirror = _mirror(adj, rest, near)
+        if not converged or check["passed"] or mirror is None:
+            continue
+        residual = adj.d[mask] - platform_ranges(
+            adj.anchors, adj.lever_arms, mirror, adj.tag_idx[mask], adj.anc_idx[mask]
+        )
+        shift = _base(adj, mirror) - _base(adj, state)
+        found.append(
+            {
+                "anchor": adj.ids[j],
+                "bias_m": float(np.mean(residual)),
+                "base_shift_m": [float(x) for x in shift],
+            }
+        )
+    return found
+
+
+def _base(adj: PlatformAdjustment, state: np.ndarray) -> np.ndarray:
+    """The arm base position (metres, anchors' frame) at ``state``."""
+    return state[:3] + rotz(float(state[3])) @ adj.lever
+
+
+def _mirror(
+    adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray
+) -> tuple[dict[str, Any], np.ndarray | None]:
+    """:func:`mirror_check` and the mirror fit's state (``None`` when it failed to solve)."""
+    start, h = _reflected(adj, use, state)
+    out: dict[str, Any] = {"passed": True, "plane_distance_m": h}
+    try:
+        mirror, _, converged = adj.fit(use, start)
+    except LocalizationError:
+        return out, None
+    test, _ = adj.tests(use, mirror)
+    main, _ = adj.tests(use, state)
+    worse_by = test.statistic - main.statistic
+    limit = noncentrality(adj.alpha / max(len(main.labels), 1), POWER, 1)
+    info = adj.information(use, state)
+    if not adj.heading_observed:
+        info = info[:3, :3]
+    cov = np.linalg.pinv(info)[:3, :3]
+    dp = mirror[:3] - state[:3]
+    distinct = float(dp @ np.linalg.pinv(cov) @ dp) > float(special.chdtri(3, adj.alpha))
+    out.update(
+        statistic=test.statistic,
+        threshold=test.threshold,
+        worse_by=worse_by,
+        limit=limit,
+        offset_m=[float(x) for x in dp],
+        distinct=distinct,
+        passed=not (converged and distinct and test.global_passed and worse_by < limit),
+    )
+    return out, mirror

@@ -1,0 +1,135 @@
+"""The standing-platform UWB fix as a tested adjustment: no silent trimming, exclusion by
+refit, mirror solutions, anchor names as given.
+
+Synthetic ranges of two tags to the paper's anchors (A1-A3 at 1.0 m, A4 at 3.2 m),
+optionally with a fifth anchor above the centre, 5 cm noise, seeded.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fabflow.positioning.uwb_platform import locate_platform
+from fabflow.positioning.uwb_platform_adjustment import rotz
+from fabflow.sensors.uwb import PAPER_ANCHORS_3D
+
+ANCHORS_5 = np.vstack([PAPER_ANCHORS_3D, [2.4, 3.0, 3.2]])
+TAGS = np.array([[0.8, 0.0, 1.5], [-0.8, 0.0, 1.5]])
+BASE = np.array([0.3, 0.0, 0.6])
+TRUTH = np.array([1.6, 2.2, 0.0, np.radians(30.0)])
+SIGMA = 0.05
+
+
+def _ranges(anchors: np.ndarray, seed: int, n: int = 60) -> np.ndarray:
+    """(n, 2 tags, anchors) ranges at TRUTH with white noise of SIGMA."""
+    tags = TRUTH[:3] + TAGS @ rotz(TRUTH[3]).T
+    d = np.linalg.norm(tags[:, None] - anchors[None], axis=2)
+    return d[None] + SIGMA * np.random.default_rng(seed).standard_normal((n, *d.shape))
+
+
+def _fix(anchors: np.ndarray, ranges: np.ndarray, **kw):
+    return locate_platform(
+        anchors, ranges, TAGS, SIGMA, anchor_bias_sigma=np.full(len(anchors), 0.01),
+        base_lever=BASE, **kw,
+    )  # fmt: skip
+
+
+def _base_error(fix) -> np.ndarray:
+    true = TRUTH[:3] + rotz(TRUTH[3]) @ BASE
+    return fix.T[:3, :3] @ BASE + fix.T[:3, 3] - true
+
+
+def _within(fix, k: float = 3.0) -> bool:
+    e = fix.state - TRUTH
+    e[3] = np.angle(np.exp(1j * e[3]))
+    return bool(np.all(np.abs(e) <= k * np.sqrt(np.diag(fix.covariance))))
+
+
+def test_every_range_is_used_or_left_out_on_the_record() -> None:
+    r = _ranges(PAPER_ANCHORS_3D, 0)
+    clean = _fix(PAPER_ANCHORS_3D, r)
+    assert clean.integrity.status == "ok" and clean.n_used == clean.n_ranges == r.size
+    r[:, 1, 2] += 1.0  # tag 1 to A3 a metre long: used to vanish in a 4-sigma trim
+    fix = _fix(PAPER_ANCHORS_3D, r)
+    assert fix.integrity.status != "ok"
+    left_out = sum(e["ranges"] for e in fix.integrity.excluded)
+    assert fix.n_used + left_out == fix.n_ranges == r.size
+    assert [e["observation"] for e in fix.integrity.excluded] == ["anchor A3"]
+    assert _within(fix)
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("anchors", [PAPER_ANCHORS_3D, ANCHORS_5], ids=["4 anchors", "5 anchors"])
+def test_a_link_fault_is_found_by_refit_not_by_the_largest_w(seed: int, anchors) -> None:
+    r = _ranges(anchors, seed)
+    r[:, 1, 2] += 0.4
+    fix = _fix(anchors, r)
+    # correlated hypotheses: leaving out A3 or its link both explain it; the anchor
+    # is the safe side, never another anchor or a mirrored pose
+    assert fix.integrity.status == "excluded"
+    assert [e["observation"] for e in fix.integrity.excluded] == ["anchor A3"]
+    assert fix.integrity.excluded[0]["passed_alone"]
+    assert _within(fix)
+
+
+def test_when_two_anchors_explain_the_misfit_the_fix_fails_naming_them() -> None:
+    r = _ranges(ANCHORS_5, 0)
+    r[:, :, 3] += 0.5  # A4 long; without A5 the other high anchor could absorb it too
+    fix = _fix(ANCHORS_5, r)
+    assert fix.integrity.status == "failed"
+    assert "any one of anchor A4, anchor A5" in fix.integrity.reason
+    assert "cannot be identified" in fix.integrity.reason
+
+
+def test_anchor_names_with_spaces_are_carried_not_parsed() -> None:
+    r = _ranges(ANCHORS_5, 1)
+    r[:, 1, 2] += 0.4
+    ids = ["A 1", "A 2", "A 3", "A 4", "A 5"]
+    fix = _fix(ANCHORS_5, r, anchor_ids=ids)
+    assert [e["observation"] for e in fix.integrity.excluded] == ["anchor A 3"]
+    assert "anchor A 1 from tag 0" in fix.integrity.mdb
+
+
+@pytest.mark.parametrize("dz", [0.02, 0.1])
+def test_anchors_nearly_in_one_plane_fail_as_mirrored(dz: float) -> None:
+    anchors = np.array([[0.0, 0.0, 1.0], [4.8, 0.0, 1.0], [4.8, 6.0, 1.0], [0.0, 6.0, 1.0 + dz]])
+    fix = _fix(anchors, _ranges(anchors, 0))
+    assert fix.integrity.status == "failed"
+    assert "lie nearly in one plane: the mirror solution" in fix.integrity.reason
+    mirror = fix.integrity.checks["mirror"]
+    assert not mirror["passed"] and mirror["distinct"]
+    assert mirror["worse_by"] < mirror["limit"]
+    assert abs(abs(mirror["offset_m"][2]) - 1.0) < 0.1  # tags 0.5 m above the plane
+
+
+def test_a_clearly_worse_mirror_is_resolved() -> None:
+    fix = _fix(ANCHORS_5, _ranges(ANCHORS_5, 0))
+    assert fix.integrity.status == "ok"
+    assert fix.integrity.checks["mirror"]["passed"]
+    assert "mirror_by_one_fault" not in fix.integrity.checks
+
+
+def test_one_anchor_that_alone_tells_the_side_bounds_the_protection_level() -> None:
+    r = _ranges(PAPER_ANCHORS_3D, 2)
+    clean = _fix(PAPER_ANCHORS_3D, r)
+    hidden = clean.integrity.checks["mirror_by_one_fault"]
+    assert [m["anchor"] for m in hidden] == ["A4"]
+    assert clean.integrity.protection_level["vertical"] > 0.9  # the mirror, 1 m down
+    # A4 half a metre long: the fix jumps to the mirror, every test passes, and the
+    # protection level says how far that can be
+    r[:, :, 3] += 0.5
+    fix = _fix(PAPER_ANCHORS_3D, r)
+    assert fix.integrity.status == "ok" and not _within(fix)
+    err = _base_error(fix)
+    assert abs(err[2]) > 0.9
+    assert fix.integrity.protection_level["vertical"] > 0.9 * abs(err[2])
+
+
+def test_no_nan_for_an_anchor_left_out() -> None:
+    r = _ranges(ANCHORS_5, 0)
+    r[:, :, 2] += 0.5
+    fix = _fix(ANCHORS_5, r)
+    assert fix.integrity.status == "excluded"
+    assert np.isnan(fix.per_anchor_rms[2]) and np.all(np.isfinite(np.delete(fix.per_anchor_rms, 2)))
+    assert np.all(np.isfinite(fix.residuals)) and fix.residuals.size == fix.n_used
