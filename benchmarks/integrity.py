@@ -41,14 +41,27 @@ def projects():
 
     The total station twice: with the cabin's four prism points (the paper's
     setup) and with five, the fewest that can leave out a faulty point and
-    still see every fault of the others.
+    still see every fault of the others; UWB with the cabin's four anchors and
+    with a fifth above their centre.
     """
     cabin = load_project(ROOT / "projects" / "cabin")
     rows = [(method, method, with_method(cabin, method)) for method in FAULTS]
     rows.insert(
         1, ("total_station, 5 points", "total_station", with_method(cabin, "total_station", 5))
     )
+    rows.insert(3, ("uwb, 5 anchors", "uwb", fifth_anchor(cabin)))
     return rows
+
+
+def fifth_anchor(project):
+    """The project with a fifth UWB anchor above the centre of the four (UWB frame)."""
+    uwb = project.localization.uwb
+    anchors = dict(uwb.anchors)
+    anchors["A5"] = tuple(ANCHORS_5[4])
+    loc = project.localization.model_copy(
+        update={"uwb": uwb.model_copy(update={"anchors": anchors})}
+    )
+    return project.model_copy(update={"localization": loc})
 
 
 def fault_table(n: int, console: Console) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 
 import numpy as np
@@ -61,16 +62,22 @@ def stage_localize(ctx: BuildContext) -> None:
 
 
 def integrity_rows(results: VisitPoses) -> list[tuple[str, str]]:
-    """Summary rows: visits by integrity status, and the largest protection level."""
+    """Summary rows: visits by integrity status, degraded ones, the largest protection level."""
     visits = [est for est, _ in results.values() if "measured_in_package" not in est.quality]
+    tested = [e.integrity for e in visits if e.integrity is not None]
     status = Counter("untested" if e.integrity is None else e.integrity.status for e in visits)
     rows = [("integrity", ", ".join(f"{n} {s}" for s, n in sorted(status.items())))]
-    levels = [
-        e.integrity.protection_level.get("horizontal")
-        for e in visits
-        if e.integrity is not None and e.integrity.protection_level
-    ]
-    levels = [v for v in levels if v is not None and np.isfinite(v)]
+    degraded = sum(1 for i in tested if i.checks.get("degraded"))
+    if degraded:
+        rows.append(
+            (
+                "integrity degraded",
+                f"{degraded} of {len(visits)} visits: protection level above the alert limit",
+            )
+        )
+    levels = [i.protection_level.get("horizontal", 0.0) for i in tested if i.protection_level]
     if levels:
-        rows.append(("protection level XY (max)", f"{1000 * max(levels):.1f} mm"))
+        worst = max(math.inf if v is None else float(v) for v in levels)
+        shown = f"{1000 * worst:.1f} mm" if math.isfinite(worst) else "unbounded"
+        rows.append(("protection level XY (max)", shown))
     return rows
