@@ -29,16 +29,16 @@ Both are UTF-8 text (a byte order mark is allowed); every problem is an
 from __future__ import annotations
 
 import csv
-import io
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from fabflow.errors import InputError
+from fabflow.files import csv_rows, read_text
+from fabflow.files import show as _show
 from fabflow.positioning.eskf_input import imu_problem
 
 RANGE_COLUMNS = ("t", "anchor", "range")
@@ -70,29 +70,11 @@ class RangeLog:
         return out
 
 
-def _show(value: str, limit: int = 40) -> str:
-    """``repr`` of a field, shortened for a message."""
-    return repr(value) if len(value) <= limit else repr(value[:limit]) + "..."
-
-
 def _read_csv(
     path: Path, required: tuple[str, ...]
 ) -> tuple[list[str], Iterator[tuple[int, list[str]]]]:
     """The stripped header and an iterator over ``(line number, fields)`` of the data rows."""
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("file does not exist", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read file: {exc.strerror or exc}", path) from None
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise InputError(
-            f"not UTF-8 text (byte 0x{data[exc.start]:02x})", path, f"line {line}"
-        ) from None
-    rows = _rows(csv.reader(io.StringIO(text, newline="")), path)
+    rows = csv_rows(read_text(path), path)
     first = next(rows, None)
     if first is None:
         raise InputError("the file is empty; expected a header line", path, "line 1")
@@ -106,25 +88,6 @@ def _read_csv(
             f"line {first[0]}",
         )
     return header, rows
-
-
-def _rows(reader: Any, path: Path) -> Iterator[tuple[int, list[str]]]:
-    """Non-blank rows of a ``csv.reader`` with their line numbers.
-
-    A ``csv.Error`` (a field over ``csv.field_size_limit()``, 131,072 characters)
-    becomes an InputError naming the line.
-    """
-    while True:
-        try:
-            row = next(reader)
-        except StopIteration:
-            return
-        except csv.Error as exc:
-            raise InputError(
-                f"not a valid CSV line: {exc}", path, f"line {reader.line_num}"
-            ) from None
-        if row and any(c.strip() for c in row):
-            yield reader.line_num, row
 
 
 def _float(value: str, path: Path, line: int, column: str) -> float:
