@@ -24,6 +24,7 @@ from fabflow.programs.writers import writer_for
 from fabflow.project import Project, load_project
 from fabflow.tasks.plan import Plan
 from fabflow.tasks.planner import plan_project
+from fabflow.tasks.split import with_pieces
 
 
 def project_program_source(
@@ -35,10 +36,11 @@ def project_program_source(
     asked for, in the project's program format, in the station's localized base
     frame when the model holds a localization result for the visit, else the planned
     one. A format that writes several files (KRL ``.src`` + ``.dat``) comes as
-    a zip.
+    a zip. ``elements`` are the design's; the pieces of print paths that the plan
+    split are taken from the plan.
     """
 
-    by_id = {e.id: e for e in elements}
+    by_id = {e.id: e for e in with_pieces(elements, plan.split_elements)}
 
     def source(package: int) -> tuple[str, bytes]:
         wp = plan.work_packages[package]

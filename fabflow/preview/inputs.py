@@ -21,6 +21,7 @@ from fabflow.project import Project
 from fabflow.robots.catalog import get_robot
 from fabflow.tasks.plan import Plan
 from fabflow.tasks.planner import plan_project
+from fabflow.tasks.split import with_pieces
 
 ID_COLUMNS = ("element", "element_id", "id")
 """Column names accepted for the element id in a deviation table."""
@@ -49,7 +50,9 @@ def model_for_project(
     project
         The validated project.
     elements
-        The design's elements; generated from the project if ``None``.
+        The design's elements; generated from the project if ``None``. Print
+        paths that the plan split into per-station pieces are replaced by the
+        pieces its work packages name (:func:`fabflow.tasks.split.with_pieces`).
     plan
         The plan; planned from the project if ``None``.
     sim_dir
@@ -70,6 +73,7 @@ def model_for_project(
         elements = generate_elements(project.elements, project.path)
     if plan is None:
         plan = plan_project(project, elements)
+    elements = with_pieces(elements, plan.split_elements)
     deviation = None
     results: dict[int | str, BasePose] = {}
     if sim_dir is not None:

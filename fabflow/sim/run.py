@@ -39,6 +39,7 @@ from fabflow.positioning.result import BasePose
 from fabflow.project import LOCALIZATION_METHODS, Project
 from fabflow.tasks.plan import Plan, Station
 from fabflow.tasks.planner import plan_project
+from fabflow.tasks.split import with_pieces
 from fabflow.transforms.se3 import exp_T, inv_T, pose_error
 from fabflow.transforms.so3 import log_so3
 
@@ -136,7 +137,10 @@ def prepare_study(
     method
         Localization method to simulate (default: ``project.localization.method``).
     elements, plan
-        Already computed elements and plan (computed here when absent).
+        Already computed elements and plan (computed here when absent). The
+        elements are the design's: print paths that the plan split into
+        per-station pieces are replaced by the pieces it names
+        (:func:`fabflow.tasks.split.with_pieces`).
     fidelity
         ``"sensors"`` (default) or ``"covariance"``.
     calibration_runs
@@ -169,6 +173,7 @@ def prepare_study(
         elements = generate_elements(project.elements, project.path)
     if plan is None:
         plan = plan_project(project, elements)
+    elements = with_pieces(elements, plan.split_elements)
     by_id = {e.id: e for e in elements}
     standing: list[Element] = [e for e in elements if not e.robot_built]
     ids: list[str] = []

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import PROJECTS
 from typer.testing import CliRunner
 
 from fabflow.build.context import BuildContext
@@ -234,3 +235,63 @@ def test_build_folder_plan_is_used_and_foreign_results_are_rejected(
     (tmp_path / "plan.json").write_text("{not json")
     with pytest.raises(InputError, match=r"plan\.json: cannot read build output"):
         read_build_outputs(tmp_path)
+
+
+@pytest.mark.parametrize("project", sorted(p.name for p in PROJECTS.iterdir() if p.is_dir()))
+def test_every_example_project_exports_its_preview(project: str, tmp_path: Path) -> None:
+    out = tmp_path / f"{project}.html"
+    result = CliRunner().invoke(app, ["preview", str(PROJECTS / project), "--export", str(out)])
+    assert result.exit_code == 0, result.output
+    html = out.read_text(encoding="utf-8")
+    assert html.startswith("<!") and "__VISER_EMBED_DATA__" in html
+
+
+@pytest.fixture(scope="module")
+def split_paths():
+    """The print path project: its wide layers are split into per-station pieces."""
+    project = load_project(PROJECTS / "print_path")
+    elements = generate_elements(project.elements, project.path)
+    plan = plan_project(project, elements)
+    assert plan.split_elements, "the example no longer splits its print paths"
+    return project, elements, plan
+
+
+def test_a_plan_with_split_print_paths_previews_from_the_design(split_paths, tmp_path) -> None:
+    project, elements, plan = split_paths
+    model = model_for_project(project, elements, plan)
+    ids = {e.id for e in model.elements}
+    assert {p.id for p in plan.split_elements} <= ids
+    assert not {str(p.attributes["parent"]) for p in plan.split_elements} & ids
+    assert model.n_steps == sum(len(wp.elements) for wp in plan.work_packages)
+    package = next(
+        k for k, wp in enumerate(plan.work_packages) if "." in wp.elements[0]
+    )  # a package that prints pieces
+    name, data = project_program_source(project, elements, plan, model)(package)
+    assert data and name
+
+
+def test_a_build_folder_with_split_print_paths_previews(split_paths, tmp_path) -> None:
+    project, elements, plan = split_paths
+    (tmp_path / "elements.json").write_text(
+        json.dumps({"elements": [e.to_dict() for e in elements]}), encoding="utf-8"
+    )
+    (tmp_path / "plan.json").write_text(json.dumps(plan.to_dict()), encoding="utf-8")
+    (tmp_path / "localization").mkdir()
+    wp = plan.work_packages[0]
+    BasePose(
+        T_world_base=np.eye(4), covariance=np.eye(6) * 1e-6, method="uwb",
+        station=wp.station.id,
+    ).write(tmp_path / "localization" / f"visit_01_{wp.station.id}.json")  # fmt: skip
+    out = tmp_path / "preview.html"
+    result = CliRunner().invoke(
+        app, ["preview", str(project.path), "--sim", str(tmp_path), "--export", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    assert out.stat().st_size > 0
+
+
+def test_live_preview_of_split_print_paths(split_paths) -> None:
+    project = split_paths[0]
+    seen: list[str] = []
+    run_preview(project.path, port=0, say=seen.append, wait=lambda: None)
+    assert "preview of 'print_path' at http://127.0.0.1:" in seen[-1]

@@ -56,6 +56,14 @@ def test_study_covers_every_robot_built_element_once(cabin_study: Study) -> None
     assert sizes == sorted(sizes) and sizes[-1] > sizes[0]
 
 
+def test_a_study_of_split_print_paths_simulates_their_pieces() -> None:
+    study = prepare_study(load_project(PROJECTS / "print_path"))
+    pieces = [i for i in study.element_ids if "." in i]
+    assert pieces and study.n_elements == len(set(study.element_ids))
+    result = run_study(study, 1, seed=3)
+    assert result.runs.tolist() == [0] and not result.failures
+
+
 @pytest.mark.parametrize("method", ["uwb", "total_station", "icp"])
 def test_zero_noise_builds_the_plan_exactly(small: Project, method: str) -> None:
     study = prepare_study(with_noise(small, **NO_NOISE), method)
