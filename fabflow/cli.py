@@ -487,6 +487,13 @@ def simulate(
         int,
         typer.Option(min=0, help="Worker processes of the local cluster; 0 runs in-process."),
     ] = 2,
+    timeout: Annotated[
+        float,
+        typer.Option(help="Seconds to wait for --scheduler to answer and for its first worker."),
+    ] = 30.0,
+    dashboard: Annotated[
+        bool, typer.Option(help="Serve the local cluster's Dask dashboard on 127.0.0.1.")
+    ] = False,
     plots: Annotated[bool, typer.Option(help="Write the PNG plots.")] = True,
     fidelity: Annotated[
         str,
@@ -504,18 +511,21 @@ def simulate(
     from fabflow.output import atomic_output_dir
     from fabflow.project import load_project
     from fabflow.sim.monte_carlo import dask_client
-    from fabflow.sim.report import parse_methods, simulate_project
+    from fabflow.sim.report import check_runs_completed, parse_methods, simulate_project
 
     p = load_project(project)
     chosen = parse_methods(methods) if methods else [p.localization.method]
     n_runs = runs or p.simulation.runs
     columns = ("{task.description}", BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     in_process = scheduler is None and workers == 0
+    cluster = dask_client(scheduler, n_workers=workers, timeout=timeout, dashboard=dashboard)
     with (
-        nullcontext(None) if in_process else dask_client(scheduler, n_workers=workers) as client,
         atomic_output_dir(out) as staging,
+        nullcontext(None) if in_process else cluster as client,
         Progress(*columns, console=console) as bar,
     ):
+        if client is not None and dashboard and scheduler is None:
+            console.print(f"Dask dashboard: {client.dashboard_link}")
         tasks: dict[str, Any] = {}
 
         def start(method: str) -> None:
@@ -556,6 +566,7 @@ def simulate(
     if failed:
         console.print(f"[yellow]{failed} run(s) failed: see runs.csv and summary.json[/]")
     console.print(f"[green]wrote[/] {Path(out).resolve()}")
+    check_runs_completed(rows, out)
 
 
 if __name__ == "__main__":  # pragma: no cover

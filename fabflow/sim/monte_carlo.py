@@ -213,8 +213,41 @@ def run_study(
     return collect(study, seed, n_runs, items, time.perf_counter() - t0)
 
 
+def scheduler_address(text: str) -> str:
+    """A Dask scheduler address as ``tcp://HOST:PORT`` (``HOST:PORT`` means TCP).
+
+    Raises
+    ------
+    InputError
+        Another protocol (TLS needs certificates, ``inproc`` only works inside
+        one process), no host or port, or a port out of range.
+    """
+    from distributed.comm.addressing import parse_host_port
+
+    scheme, _, location = text.strip().rpartition("://")
+    expected = "expected tcp://HOST:PORT, e.g. tcp://127.0.0.1:8786"
+    if scheme not in ("", "tcp"):
+        raise InputError(
+            f"unsupported Dask scheduler address {text!r}: {expected}", location="--scheduler"
+        )
+    try:
+        host, port = parse_host_port(location)
+    except ValueError:
+        host, port = "", 0
+    if not host or any(c.isspace() for c in host) or not 0 < int(port) < 65536:
+        raise InputError(
+            f"not a Dask scheduler address: {text!r}: {expected}", location="--scheduler"
+        )
+    return f"tcp://{location}"
+
+
 @contextmanager
-def dask_client(scheduler: str | None = None, n_workers: int = 2) -> Iterator[Client]:
+def dask_client(
+    scheduler: str | None = None,
+    n_workers: int = 2,
+    timeout: float = 30.0,
+    dashboard: bool = False,
+) -> Iterator[Client]:
     """A Dask client: connected to ``scheduler``, or on a new local cluster.
 
     Parameters
@@ -225,31 +258,56 @@ def dask_client(scheduler: str | None = None, n_workers: int = 2) -> Iterator[Cl
         single-threaded worker processes, closed on exit.
     n_workers
         Worker processes of the local cluster.
+    timeout
+        Seconds to wait for ``scheduler`` to answer, and then for its first worker.
+    dashboard
+        Serve the local cluster's dashboard (on 127.0.0.1, a free port; its address
+        is ``client.dashboard_link``). Off by default. The local cluster listens on
+        127.0.0.1 only, whether the dashboard is on or off.
 
     Raises
     ------
     InputError
-        When the scheduler cannot be reached.
+        When the address is malformed, the scheduler cannot be reached, or it has
+        no worker within ``timeout``.
     """
     from distributed import Client, LocalCluster
 
+    if not (math.isfinite(timeout) and timeout > 0):
+        raise InputError(
+            f"must be a positive number of seconds, got {timeout}", location="--timeout"
+        )
     if scheduler is not None:
+        address = scheduler_address(scheduler)
         try:
-            client = Client(scheduler, timeout="10s")
+            client = Client(address, timeout=timeout)
         except (OSError, TimeoutError, ValueError) as exc:
             raise InputError(
                 f"cannot connect to the Dask scheduler at {scheduler!r}: {exc}",
                 location="--scheduler",
             ) from None
         with client:
+            try:
+                client.wait_for_workers(1, timeout=timeout)
+            except (TimeoutError, OSError):
+                raise InputError(
+                    f"the Dask scheduler at {scheduler!r} has no worker after {timeout:g} s: "
+                    f"start workers (dask worker {address}) or wait longer (--timeout)",
+                    location="--scheduler",
+                ) from None
             yield client
         return
+    http = (
+        "127.0.0.1:0"  # the scheduler's HTTP server (health, metrics) runs even without a dashboard
+    )
     with (
         LocalCluster(
             n_workers=n_workers,
             threads_per_worker=1,
             processes=True,
-            dashboard_address=":0",  # a free port: the scheduler always serves HTTP
+            host="127.0.0.1",
+            dashboard_address=http if dashboard else None,
+            scheduler_kwargs=None if dashboard else {"dashboard_address": http},
             silence_logs=logging.ERROR,
         ) as cluster,
         Client(cluster) as client,

@@ -269,6 +269,31 @@ def parse_methods(text: str) -> list[str]:
     return names
 
 
+def check_runs_completed(rows: Sequence[dict[str, Any]], out: str | Path) -> None:
+    """Raise when every run of a method failed (its report, with the errors, is written).
+
+    Parameters
+    ----------
+    rows
+        The comparison rows of :func:`simulate_project`.
+    out
+        The output folder, named in the message.
+
+    Raises
+    ------
+    LocalizationError
+        Naming each method none of whose runs completed (the CLI exits with 2).
+    """
+    failed = [r["method"] for r in rows if r["runs_completed"] == 0 and r["runs_failed"] > 0]
+    if failed:
+        names = ", ".join(f"'{m}'" for m in failed)
+        what = "method" if len(failed) == 1 else "methods"
+        raise LocalizationError(
+            f"every run of {what} {names} failed; the errors are in runs.csv and summary.json",
+            source=out,
+        )
+
+
 COMPARISON_COLUMNS = (
     "method",
     "runs_completed",

@@ -5,24 +5,30 @@ from __future__ import annotations
 import csv
 import json
 import math
+import time
+import urllib.error
+import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import psutil
 import pytest
 from distributed import Client, LocalCluster
 from helpers import DATA
 
 import fabflow.sim.monte_carlo as mc
-from fabflow.errors import LocalizationError
+from fabflow.errors import InputError, LocalizationError
 from fabflow.preview.inputs import read_base_poses, read_deviations
 from fabflow.project import load_project
-from fabflow.sim.monte_carlo import dask_client, run_study, summarize
+from fabflow.sim.monte_carlo import dask_client, run_study, scheduler_address, summarize
 from fabflow.sim.report import parse_methods, simulate_project, write_study
 from fabflow.sim.run import Study, prepare_study
 from fabflow.transforms.se3 import perturb
 
 SMALL = DATA / "sim" / "project.yaml"
+LOCAL_HTTP = {"dashboard_address": "127.0.0.1:0"}
+"""No dashboard; the scheduler's HTTP server (health, metrics) on localhost, a free port."""
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +44,8 @@ def cluster() -> Iterator[LocalCluster]:
         threads_per_worker=2,
         processes=False,
         protocol="tcp",
-        dashboard_address=":0",
+        dashboard_address=None,
+        scheduler_kwargs=LOCAL_HTTP,
     ) as c:
         yield c
 
@@ -258,3 +265,67 @@ def test_a_method_that_cannot_be_calibrated_fails_all_its_runs(
     assert "covariance calibration failed" in summary["failures"][0]["error"]
     uwb = json.loads((tmp_path / "uwb" / "summary.json").read_text())
     assert uwb["fidelity"] == "covariance"
+
+
+def listening() -> set[tuple[str, int]]:
+    """The (address, port) pairs this process listens on."""
+    proc = psutil.Process()
+    get = getattr(proc, "net_connections", None) or proc.connections
+    conns = get(kind="inet")
+    return {(c.laddr.ip, c.laddr.port) for c in conns if c.status == psutil.CONN_LISTEN}
+
+
+@pytest.mark.parametrize("dashboard", [False, True])
+def test_the_local_cluster_listens_on_localhost_only(dashboard: bool) -> None:
+    before = listening()
+    with dask_client(None, n_workers=0, dashboard=dashboard) as client:
+        new = listening() - before
+        http = client.scheduler_info()["services"]["dashboard"]  # the HTTP server, always on
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{http}/status", timeout=10) as r:
+                status = r.status
+        except urllib.error.HTTPError as exc:
+            status = exc.code
+    assert new and {ip for ip, _ in new} == {"127.0.0.1"}
+    assert status == (200 if dashboard else 404)
+
+
+def test_a_scheduler_without_workers_is_a_clear_error() -> None:
+    with LocalCluster(
+        n_workers=0,
+        processes=False,
+        protocol="tcp",
+        dashboard_address=None,
+        scheduler_kwargs=LOCAL_HTTP,
+    ) as cluster:
+        t0 = time.perf_counter()
+        with pytest.raises(InputError, match=r"has no worker after 0.5 s.*--timeout"):
+            with dask_client(cluster.scheduler_address, timeout=0.5):
+                pass
+        assert time.perf_counter() - t0 < 10
+
+
+def test_an_unreachable_scheduler_is_a_clear_error() -> None:
+    with pytest.raises(InputError, match="cannot connect to the Dask scheduler"):
+        with dask_client("tcp://127.0.0.1:1", timeout=0.5):
+            pass
+
+
+@pytest.mark.parametrize(
+    "address", ["foo", "", "tcp://", "http://host:8786", "tls://127.0.0.1:1", "h:99999", "[::1"]
+)
+def test_a_malformed_scheduler_address_is_refused(address: str) -> None:
+    with pytest.raises(InputError, match="scheduler address"):
+        scheduler_address(address)
+
+
+def test_scheduler_addresses() -> None:
+    assert scheduler_address("127.0.0.1:8786") == "tcp://127.0.0.1:8786"
+    assert scheduler_address(" tcp://[::1]:8786 ") == "tcp://[::1]:8786"
+
+
+@pytest.mark.parametrize("timeout", [0.0, -1.0, math.nan, math.inf])
+def test_a_bad_timeout_is_refused(timeout: float) -> None:
+    with pytest.raises(InputError, match="--timeout"):
+        with dask_client("tcp://127.0.0.1:1", timeout=timeout):
+            pass

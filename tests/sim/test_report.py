@@ -6,13 +6,18 @@ import csv
 import json
 from pathlib import Path
 
+import pytest
 from distributed import LocalCluster
 from helpers import DATA
 from typer.testing import CliRunner, Result
 
+import fabflow.sim.monte_carlo as mc
 from fabflow.cli import app
+from fabflow.errors import LocalizationError
 
 SMALL = DATA / "sim" / "project.yaml"
+LOCAL_HTTP = {"dashboard_address": "127.0.0.1:0"}
+"""No dashboard; the scheduler's HTTP server (health, metrics) on localhost, a free port."""
 
 
 def invoke(*args: str) -> Result:
@@ -37,7 +42,12 @@ def test_simulate_in_process(tmp_path: Path) -> None:
 def test_simulate_through_a_scheduler_compares_methods(tmp_path: Path) -> None:
     out = tmp_path / "cmp"
     with LocalCluster(
-        n_workers=1, threads_per_worker=1, processes=False, protocol="tcp", dashboard_address=":0"
+        n_workers=1,
+        threads_per_worker=1,
+        processes=False,
+        protocol="tcp",
+        dashboard_address=None,
+        scheduler_kwargs=LOCAL_HTTP,
     ) as cluster:
         result = invoke(
             str(SMALL),
@@ -84,3 +94,39 @@ def test_simulate_covariance_fidelity(tmp_path: Path) -> None:
     assert summary["fidelity"] == "covariance" and summary["runs"]["completed"] == 50
     bad = invoke(str(SMALL), "-o", str(tmp_path / "x"), "--workers", "0", "--fidelity", "fast")
     assert bad.exit_code == 2 and "unknown fidelity" in bad.output
+
+
+def test_a_scheduler_without_workers_exits_2_after_the_timeout(tmp_path: Path) -> None:
+    out = tmp_path / "never"
+    with LocalCluster(
+        n_workers=0,
+        processes=False,
+        protocol="tcp",
+        dashboard_address=None,
+        scheduler_kwargs=LOCAL_HTTP,
+    ) as c:
+        result = invoke(
+            str(SMALL), "-o", str(out), "-n", "2", "--scheduler", c.scheduler_address,
+            "--timeout", "0.5",
+        )  # fmt: skip
+    assert result.exit_code == 2, result.output
+    assert "has no worker after 0.5 s" in result.output
+    assert not out.exists() and sorted(tmp_path.iterdir()) == []
+
+
+def test_every_run_of_a_method_failing_exits_2_naming_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def fail(*args: object, **kwargs: object) -> None:
+        raise LocalizationError("no clear localization point")
+
+    monkeypatch.setattr(mc, "simulate_run", fail)
+    out = tmp_path / "sim"
+    result = invoke(str(SMALL), "-o", str(out), "-n", "2", "--workers", "0", "--no-plots")
+    assert result.exit_code == 2, result.output
+    assert "every run of method 'uwb' failed" in result.output
+    assert "Traceback" not in result.output
+    with (out / "runs.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [r["status"] for r in rows] == ["failed"] * 2
+    assert "no clear localization point" in rows[0]["error"]
