@@ -9,7 +9,6 @@ when it runs, so that ``fabflow --help`` and a mistyped command answer at once
 from __future__ import annotations
 
 import functools
-import json
 import math
 import sys
 from collections.abc import Callable
@@ -106,9 +105,10 @@ def validate(project: ProjectArg) -> None:
 @app.command()
 def schema() -> None:
     """Print the JSON Schema of the project file."""
+    from fabflow.output import json_text
     from fabflow.project import project_json_schema
 
-    sys.stdout.write(json.dumps(project_json_schema(), indent=2) + "\n")
+    sys.stdout.write(json_text(project_json_schema()))
 
 
 def print_summary(rows: list[tuple[str, str, str]], title: str) -> None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import html
-import json
 import threading
 import time
 from collections.abc import Callable
@@ -12,6 +11,7 @@ import numpy as np
 import viser
 
 from fabflow.errors import FabflowError
+from fabflow.output import json_text
 from fabflow.positioning.result import BasePose
 from fabflow.preview.model import PreviewModel
 from fabflow.preview.scene import PreviewScene
@@ -51,7 +51,7 @@ def work_package_json(model: PreviewModel, package: int) -> tuple[str, bytes]:
         "T_base_targets": T_base_targets.tolist(),
     }
     name = f"{m.name}_wp{package:02d}_{sid}.json".replace(" ", "_")
-    return name, (json.dumps(data, indent=1) + "\n").encode()
+    return name, json_text(data, indent=1).encode()
 
 
 def legend_html(model: PreviewModel, mode: str) -> str:

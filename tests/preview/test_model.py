@@ -270,6 +270,17 @@ def test_program_download_has_targets_in_the_base_frame(model) -> None:
     assert data["elements"] == [model.elements[i].id for i in model.sequence[steps]]
 
 
+def test_program_download_never_holds_nan(model) -> None:
+    lift = model.lift.copy()
+    model.lift[1] = np.nan
+    try:
+        _, content = work_package_json(model, 1)
+    finally:
+        model.lift[:] = lift
+    data = json.loads(content, parse_constant=lambda c: pytest.fail(f"{c} in the JSON"))
+    assert data["lift"] is None
+
+
 def test_unreachable_target_is_flagged() -> None:
     elements, plan = wall_design()
     m = build_model(elements, plan, arm=PointArm(reach=1.5))

@@ -11,11 +11,11 @@ machine without Cartesian interpolation can follow them joint by joint.
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 import numpy as np
 
+from fabflow.output import json_text
 from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.programs.writers.base import Writer
@@ -23,6 +23,11 @@ from fabflow.transforms.so3 import quat_from_matrix
 
 FORMAT = "fabflow-command-stream"
 VERSION = 1
+
+
+def _line(data: Any) -> str:
+    """``data`` as JSON on one line (never NaN or Infinity; :func:`fabflow.output.json_text`)."""
+    return json_text(data, indent=None).rstrip("\n")
 
 
 def _r(v: Any, digits: int = 9) -> Any:
@@ -90,8 +95,8 @@ def write_json_stream(program: Program) -> dict[str, str]:
         "commands": [],
     }
     # One command per line keeps long streams readable and diffable.
-    head = json.dumps(doc, separators=(", ", ": "))[: -len("[]}")]
-    body = ",\n  ".join(json.dumps(c, separators=(", ", ": ")) for c in commands)
+    head = _line(doc)[: -len("[]}")]
+    body = ",\n  ".join(_line(c) for c in commands)
     return {f"{name}.json": head + "[\n  " + body + "\n]}\n"}
 
 
