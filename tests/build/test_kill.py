@@ -27,6 +27,10 @@ from fabflow.errors import InputError
 from fabflow.output import MARKER, atomic_output_dir
 from fabflow.project import load_project
 
+pytestmark = pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="the harness forks and reads /proc"
+)
+
 PROJECT = DATA / "sim" / "project.yaml"
 HARNESS = Path(__file__).with_name("kill_harness.py")
 UNSTABLE = {"plan.json", "site_plan.dxf", "summary.json"}
