@@ -166,7 +166,7 @@ def prepare_study(
             "localization.uwb",
         )
     if elements is None:
-        elements = generate_elements(project.elements, project.path)
+        elements = generate_elements(project.elements, project.path, project.limits)
     if plan is None:
         plan = plan_project(project, elements)
     by_id = {e.id: e for e in elements}

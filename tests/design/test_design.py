@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import shutil
 
 import ezdxf
 import numpy as np
@@ -222,9 +223,9 @@ elements:
 @pytest.fixture(scope="module")
 def mixed_project(tmp_path_factory):
 
-    dxf = PROJECTS / "print_path" / "sine_wall.dxf"
     folder = tmp_path_factory.mktemp("mixed")
-    return parse_project(PROJECT.format(dxf=dxf), folder / "project.yaml", folder)
+    shutil.copy(PROJECTS / "print_path" / "sine_wall.dxf", folder)
+    return parse_project(PROJECT.format(dxf="sine_wall.dxf"), folder / "project.yaml", folder)
 
 
 @pytest.fixture(scope="module")
