@@ -302,7 +302,7 @@ def _build_run(folder: Path, examples: int) -> None:
 
 
 def test_fuzz_program_build(folder: Path) -> None:
-    _build_run(folder, 40)
+    _build_run(folder, 80)
 
 
 LARGE = int(os.environ.get("FABFLOW_FUZZ_EXAMPLES", "0"))
