@@ -12,6 +12,7 @@ naming the file, the field path (``elements[0].cabin.block.length``) and the lin
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -25,7 +26,7 @@ from pydantic_core import PydanticCustomError
 from fabflow.design.generate import element_count_bound
 from fabflow.design.specs import ElementSource
 from fabflow.errors import InputError
-from fabflow.robots.catalog import PROGRAM_FORMATS, ROBOT_NAMES, format_mismatch
+from fabflow.robots.catalog import PROGRAM_FORMATS, ROBOT_NAMES, format_mismatch, formats_of
 from fabflow.schema import (
     Count,
     ExistingPath,
@@ -333,6 +334,8 @@ class ProgramSettings(StrictModel):
     """Robot program output settings."""
 
     format: ProgramFormat = "krl"
+    """Default: the robot's own language (``krl``, ``rapid``, ``urscript``; ``json``
+    for a machine without one)."""
     speed: PositiveFloat = 0.25
     """Cartesian speed for linear moves (m/s)."""
     approach: PositiveFloat = 0.10
@@ -388,6 +391,17 @@ class Project(StrictModel):
 
     path: Path | None = Field(default=None, exclude=True)
     """The file the project was loaded from (not part of the file itself)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_format_of_the_robot(cls, data: Any) -> Any:
+        """Without ``program.format`` a robot gets its vendor's language (JSON if none)."""
+        robot = data.get("robot") if isinstance(data, dict) else None
+        model = robot.get("model", "kuka_kr60_3") if isinstance(robot, dict) else None
+        program = data.get("program", {}) if isinstance(data, dict) else None
+        if model in ROBOT_NAMES and isinstance(program, dict) and "format" not in program:
+            data = {**data, "program": {**program, "format": formats_of(model)[0]}}
+        return data
 
     @model_validator(mode="after")
     def _format_fits_robot(self) -> Project:
@@ -482,12 +496,18 @@ def _describe(error: dict[str, Any], loc: tuple[Any, ...]) -> str:
     return msg
 
 
-def _field_loc(loc: tuple[Any, ...]) -> tuple[Any, ...]:
-    """The field path of a pydantic location, without the branch names of unions."""
-    return tuple(p for p in loc if not (isinstance(p, str) and p in _UNION_BRANCHES))
+def _field_loc(error: dict[str, Any]) -> tuple[Any, ...]:
+    """The field path of a pydantic error, without the branch name a union adds at its end."""
+    if error["type"] == "located":
+        return tuple(error["ctx"]["at"])
+    loc = tuple(error["loc"])
+    branch = loc and isinstance(loc[-1], str) and _UNION_BRANCH.match(loc[-1])
+    if branch and error["type"] not in ("missing", "extra_forbidden"):
+        loc = loc[:-1]
+    return loc
 
 
-_UNION_BRANCHES = {"float", "str", "int", "bool"}
+_UNION_BRANCH = re.compile(r"(constrained-)?(float|str|int|bool)$")
 
 
 def parse_project(
@@ -524,8 +544,12 @@ def _validate(node: Any, data: Any, source: str | Path, base_dir: Path | None) -
         return Project.model_validate(data, context=context)
     except ValidationError as exc:
         lines = []
+        seen = set()
         for error in exc.errors():
-            loc = _field_loc(error["ctx"]["at"] if error["type"] == "located" else error["loc"])
+            loc = _field_loc(error)
+            if loc in seen:  # the other branch of a union (a number or a text)
+                continue
+            seen.add(loc)
             line = line_of(node, loc)
             at = f"line {line}: " if line else ""
             lines.append(f"{at}{format_loc(loc)}: {_describe(error, loc)}")

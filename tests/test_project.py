@@ -356,3 +356,13 @@ def test_json_schema_has_limits_and_bounds() -> None:
     assert "limits" in schema["properties"] and "allow_outside_paths" in schema["properties"]
     validator = jsonschema.Draft202012Validator(schema)
     assert list(validator.iter_errors({"name": "x", "elements": [{"cabin": {"length": -1}}]}))
+
+
+@pytest.mark.parametrize(
+    ("robot", "fmt"),
+    [("kuka_kr60_3", "krl"), ("abb_irb4600_60_205", "rapid"), ("ur10e", "urscript"),
+     ("brokk_170", "json")],
+)  # fmt: skip
+def test_default_format_is_the_robots_own(robot: str, fmt: str) -> None:
+    p = parse_project(f"name: x\nrobot: {{model: {robot}}}\nelements: [{{cabin: {{}}}}]\n")
+    assert p.program.format == fmt
