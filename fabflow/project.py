@@ -12,7 +12,6 @@ naming the file, the field path (``elements[0].cabin.block.length``) and the lin
 from __future__ import annotations
 
 import math
-import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -21,7 +20,6 @@ from pydantic import (
     ValidationError,
     model_validator,
 )
-from pydantic_core import PydanticCustomError
 
 from fabflow.design.generate import element_count_bound
 from fabflow.design.specs import ElementSource
@@ -42,9 +40,11 @@ from fabflow.schema import (
     Switch,
     Vec2,
     Vec3,
-    near_field,
+    error_lines,
+    located,
 )
-from fabflow.yaml_input import line_of, parse_yaml, read_yaml
+from fabflow.schema import format_loc as format_loc  # the field paths of every message
+from fabflow.yaml_input import parse_yaml, read_yaml
 
 LOCALIZATION_METHODS: tuple[str, ...] = ("uwb", "total_station", "icp")
 """The localization methods, one setup section each below; :mod:`fabflow.localize.methods`
@@ -362,11 +362,6 @@ class Simulation(StrictModel):
     """Default number of Monte Carlo runs of ``fabflow simulate``."""
 
 
-def _located(loc: tuple[Any, ...], message: str) -> PydanticCustomError:
-    """A validation error of the field at ``loc`` (not of the model that raises it)."""
-    return PydanticCustomError("located", "{message}", {"message": message, "at": loc})
-
-
 def _grid_points(lo: float, hi: float, spacing: float) -> float:
     return math.floor((hi - lo) / spacing) + 1.0
 
@@ -407,7 +402,7 @@ class Project(StrictModel):
     def _format_fits_robot(self) -> Project:
         why = format_mismatch(self.program.format, self.robot.model)
         if why is not None:
-            raise _located(("program", "format"), why)
+            raise located(("program", "format"), why)
         return self
 
     @model_validator(mode="after")
@@ -421,7 +416,7 @@ class Project(StrictModel):
                 for k in ("cabin", "print_path", "task_points")
                 if getattr(self.elements[i], k) is not None
             )
-            raise _located(
+            raise located(
                 ("elements", i, kind),
                 f"the project makes up to {sum(bounds):.4g} elements ({bounds[i]:.4g} from "
                 f"this entry), more than limits.max_elements = {lim.max_elements}; raise it "
@@ -435,7 +430,7 @@ class Project(StrictModel):
             * len(self.planning.headings_deg)
         )
         if n_cand > lim.max_candidates:
-            raise _located(
+            raise located(
                 ("planning", "candidate_spacing"),
                 f"a site of {x1 - x0:g} x {y1 - y0:g} m at {spacing:g} m spacing with "
                 f"{len(self.planning.headings_deg)} headings makes {n_cand:.4g} candidate "
@@ -446,7 +441,7 @@ class Project(StrictModel):
             ranges = uwb.dwell_s * uwb.rate_hz * len(uwb.tags) * len(uwb.anchors)
             imu = uwb.dwell_s * uwb.imu_rate_hz
             if max(ranges, imu) > lim.max_sensor_samples:
-                raise _located(
+                raise located(
                     ("localization", "uwb", "dwell_s"),
                     f"{uwb.dwell_s:g} s of ranging at {uwb.rate_hz:g} Hz ({len(uwb.tags)} tags, "
                     f"{len(uwb.anchors)} anchors) and IMU records at {uwb.imu_rate_hz:g} Hz make "
@@ -454,7 +449,7 @@ class Project(StrictModel):
                     f"limits.max_sensor_samples = {lim.max_sensor_samples}",
                 )
         if self.simulation.runs > lim.max_runs:
-            raise _located(
+            raise located(
                 ("simulation", "runs"),
                 f"{self.simulation.runs} runs, more than limits.max_runs = {lim.max_runs}",
             )
@@ -462,52 +457,6 @@ class Project(StrictModel):
 
 
 # ------------------------------------------------------------------------ loading
-
-
-def format_loc(loc: tuple[Any, ...]) -> str:
-    """Turn a pydantic error location into a field path such as ``elements[2].cabin.x``."""
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        elif not out:
-            out = str(part)
-        else:
-            out += f".{part}"
-    return out or "(top level)"
-
-
-def _describe(error: dict[str, Any], loc: tuple[Any, ...]) -> str:
-    kind = error["type"]
-    if kind == "missing":
-        return "required field is missing"
-    if kind == "extra_forbidden":
-        near = near_field(Project, loc)
-        hint = f"; did you mean '{near}'?" if near else ""
-        return f"unknown key (not part of the project schema){hint}"
-    msg = error["msg"]
-    for prefix in ("Value error, ", "Assertion failed, "):
-        msg = msg.removeprefix(prefix)
-    given = error.get("input")
-    if kind != "located" and given is not None and not isinstance(given, dict | list):
-        shown = repr(given)
-        if len(shown) <= 60:
-            msg += f" (got {shown})"
-    return msg
-
-
-def _field_loc(error: dict[str, Any]) -> tuple[Any, ...]:
-    """The field path of a pydantic error, without the branch name a union adds at its end."""
-    if error["type"] == "located":
-        return tuple(error["ctx"]["at"])
-    loc = tuple(error["loc"])
-    branch = loc and isinstance(loc[-1], str) and _UNION_BRANCH.match(loc[-1])
-    if branch and error["type"] not in ("missing", "extra_forbidden"):
-        loc = loc[:-1]
-    return loc
-
-
-_UNION_BRANCH = re.compile(r"(constrained-)?(float|str|int|bool)$")
 
 
 def parse_project(
@@ -543,16 +492,7 @@ def _validate(node: Any, data: Any, source: str | Path, base_dir: Path | None) -
     try:
         return Project.model_validate(data, context=context)
     except ValidationError as exc:
-        lines = []
-        seen = set()
-        for error in exc.errors():
-            loc = _field_loc(error)
-            if loc in seen:  # the other branch of a union (a number or a text)
-                continue
-            seen.add(loc)
-            line = line_of(node, loc)
-            at = f"line {line}: " if line else ""
-            lines.append(f"{at}{format_loc(loc)}: {_describe(error, loc)}")
+        lines = error_lines(exc, Project, node)
         message = "invalid project\n  " + "\n  ".join(lines)
         raise InputError(message, source) from None
 

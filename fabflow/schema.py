@@ -11,17 +11,29 @@ share. The sections themselves live with the room that owns them
 from __future__ import annotations
 
 import difflib
+import re
 import types
 import typing
 from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, ValidationInfo
+import yaml
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationError,
+    ValidationInfo,
+)
+from pydantic_core import PydanticCustomError
 
 from fabflow.errors import InputError
 from fabflow.files import MAX_TEXT_BYTES, input_file
 from fabflow.transforms.so3 import matrix_from_abc
+from fabflow.yaml_input import line_of
 
 MAX_MAGNITUDE = 1e9
 """Largest magnitude of any number of a project, in the field's unit."""
@@ -149,6 +161,82 @@ def near_field(model: type[BaseModel], loc: tuple[Any, ...]) -> str | None:
         return None
     close = difflib.get_close_matches(key, _field_names(annotation), n=1, cutoff=0.6)
     return close[0] if close else None
+
+
+def located(loc: tuple[Any, ...], message: str) -> PydanticCustomError:
+    """A validation error of the field at ``loc`` (raised by a model above it)."""
+    return PydanticCustomError("located", "{message}", {"message": message, "at": loc})
+
+
+def format_loc(loc: tuple[Any, ...]) -> str:
+    """Turn a pydantic error location into a field path such as ``elements[2].cabin.x``."""
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif not out:
+            out = str(part)
+        else:
+            out += f".{part}"
+    return out or "(top level)"
+
+
+_UNION_BRANCH = re.compile(r"(constrained-)?(float|str|int|bool)$")
+
+
+def _field_loc(error: Any) -> tuple[Any, ...]:
+    """The field path of a pydantic error, without the branch name a union adds at its end."""
+    if error["type"] == "located":
+        return tuple(error["ctx"]["at"])
+    loc = tuple(error["loc"])
+    branch = loc and isinstance(loc[-1], str) and _UNION_BRANCH.match(loc[-1])
+    if branch and error["type"] not in ("missing", "extra_forbidden"):
+        loc = loc[:-1]
+    return loc
+
+
+def _describe(error: Any, model: type[BaseModel], loc: tuple[Any, ...]) -> str:
+    kind = error["type"]
+    if kind == "missing":
+        return "required field is missing"
+    if kind == "extra_forbidden":
+        near = near_field(model, loc)
+        hint = f"; did you mean '{near}'?" if near else ""
+        return f"unknown key (not part of the project schema){hint}"
+    msg = error["msg"]
+    for prefix in ("Value error, ", "Assertion failed, "):
+        msg = msg.removeprefix(prefix)
+    given = error.get("input")
+    if kind != "located" and given is not None and not isinstance(given, dict | list):
+        shown = repr(given)
+        if len(shown) <= 60:
+            msg += f" (got {shown})"
+    return msg
+
+
+def error_lines(exc: ValidationError, model: type[BaseModel], node: yaml.Node | None) -> list[str]:
+    """One line per problem: ``line N: field.path: what is wrong`` (did you mean, got ...).
+
+    Parameters
+    ----------
+    exc
+        The validation error of ``model``.
+    model
+        The model validated (for the field names an unknown key is near).
+    node
+        The YAML node tree of the document (for the lines).
+    """
+    lines = []
+    seen = set()
+    for error in exc.errors():
+        loc = _field_loc(error)
+        if loc in seen:  # the other branch of a union (a number or a text)
+            continue
+        seen.add(loc)
+        line = line_of(node, loc)
+        at = f"line {line}: " if line else ""
+        lines.append(f"{at}{format_loc(loc)}: {_describe(error, model, loc)}")
+    return lines
 
 
 class PoseSpec(StrictModel):
