@@ -161,7 +161,7 @@ def plan(
 
     p = load_project(project)
     with console.status("planning"), atomic_output_dir(out) as staging:
-        elements = generate_elements(p.elements, p.path)
+        elements = generate_elements(p.elements, p.path, p.limits)
         result = make_plan(p, elements)
         write_plan_outputs(staging, p, elements, result)
     print_summary([("plan", i, v) for i, v in plan_rows(result)], title=f"fabflow plan: {p.name}")

@@ -11,28 +11,40 @@ naming the file, the field path (``elements[0].cabin.block.length``) and the lin
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-import yaml
 from pydantic import (
     Field,
     ValidationError,
     model_validator,
 )
 
+from fabflow.design.generate import element_count_bound
 from fabflow.design.specs import ElementSource
 from fabflow.errors import InputError
-from fabflow.robots.catalog import PROGRAM_FORMATS, ROBOT_NAMES
+from fabflow.robots.catalog import PROGRAM_FORMATS, ROBOT_NAMES, format_mismatch, formats_of
 from fabflow.schema import (
+    Count,
     ExistingPath,
+    Fraction,
+    Limits,
+    ModelPath,
     NonNegativeFloat,
     PoseSpec,
+    PositiveCount,
     PositiveFloat,
+    Real,
     StrictModel,
+    Switch,
     Vec2,
     Vec3,
+    error_lines,
+    located,
 )
+from fabflow.schema import format_loc as format_loc  # the field paths of every message
+from fabflow.yaml_input import parse_yaml, read_yaml
 
 LOCALIZATION_METHODS: tuple[str, ...] = ("uwb", "total_station", "icp")
 """The localization methods, one setup section each below; :mod:`fabflow.localize.methods`
@@ -65,8 +77,14 @@ class PolygonObstacle(StrictModel):
 
     name: str = "polygon"
     points: Annotated[list[Vec2], Field(min_length=3)]
-    z_min: float = 0.0
-    z_max: float = 3.0
+    z_min: Real = 0.0
+    z_max: Real = 3.0
+
+    @model_validator(mode="after")
+    def _ordered(self) -> PolygonObstacle:
+        if self.z_min >= self.z_max:
+            raise ValueError("'z_min' must be smaller than 'z_max'")
+        return self
 
 
 class Obstacle(StrictModel):
@@ -116,7 +134,7 @@ class Platform(StrictModel):
     lowest lift position; ``safety_margin`` the clearance kept around the footprint.
     """
 
-    footprint: Vec2 = (2.2, 1.6)
+    footprint: tuple[PositiveFloat, PositiveFloat] = (2.2, 1.6)
     lift: Vec2 = (0.0, 1.2)
     T_platform_base: PoseSpec = PoseSpec(xyz=(0.0, 0.0, 0.6))
     safety_margin: NonNegativeFloat = 0.3
@@ -127,8 +145,6 @@ class Platform(StrictModel):
     def _lift(self) -> Platform:
         if self.lift[0] > self.lift[1]:
             raise ValueError("'lift' must be [min, max] with min <= max")
-        if min(self.footprint) <= 0:
-            raise ValueError("'footprint' lengths must be positive")
         return self
 
 
@@ -157,7 +173,7 @@ class UwbSetup(StrictModel):
     """UWB tag lever arms in the platform frame (metres)."""
     dwell_s: PositiveFloat = 5.0
     """How long the platform stands still measuring at each station (seconds)."""
-    calibration: dict[str, tuple[float, PositiveFloat]] = {}
+    calibration: dict[str, tuple[Real, PositiveFloat]] = {}
     """Ranging calibration per anchor id: (offset a in metres, scale b) of the fit
     measured = a + b * true; ranges are corrected as (measured - a) / b."""
     calibration_sigma: NonNegativeFloat = 0.01
@@ -182,16 +198,16 @@ class TotalStationSetup(StrictModel):
     angle_sigma_arcsec: PositiveFloat | None = None
     T_world_instrument: PoseSpec = PoseSpec(xyz=(-3.0, -3.0, 1.6))
     procedure: Literal["three_point", "arbitrary"] = "arbitrary"
-    n_points: Annotated[int, Field(ge=3, le=50)] = 4
+    n_points: Annotated[Count, Field(ge=3, le=50)] = 4
     observations: ExistingPath | None = None
     """Optional measured observations (CSV or Leica GSI); simulated when absent."""
     robot_points: ExistingPath | None = None
     """Prism positions in the base frame (CSV point_id,x_m,y_m,z_m) matching ``observations``."""
-    instrument_height: float = 0.0
+    instrument_height: Real = 0.0
     """Trunnion height above ``T_world_instrument`` (metres; 0 when the pose is the trunnion)."""
     three_point_step: PositiveFloat = 0.8
     """Distance d of the three-point procedure: P1, P1 + d x, P1 + d y (metres)."""
-    z_min: float = 0.1
+    z_min: Real = 0.1
     """Lowest allowed prism height above the arm base (metres)."""
     tool_half_extents: tuple[PositiveFloat, PositiveFloat, PositiveFloat] = (0.15, 0.15, 0.2)
     """Half sizes of the tool's bounding box around the prism, kept clear of the structure."""
@@ -218,7 +234,7 @@ class TotalStationSetup(StrictModel):
 class IcpSetup(StrictModel):
     """LiDAR scan-to-map localization."""
 
-    map: ExistingPath | None = None
+    map: ModelPath | None = None
     """A point-cloud map (PLY/XYZ) in the world frame; a simulated site scan when absent."""
     T_platform_lidar: PoseSpec = PoseSpec(xyz=(0.9, 0.0, 1.2))
     voxel_size: PositiveFloat = 0.05
@@ -227,15 +243,15 @@ class IcpSetup(StrictModel):
     """Voxel grid the map is downsampled on (metres; paper 002, Table 3)."""
     max_correspondence_distance: PositiveFloat = 0.5
     """Last correspondence distance of the coarse ICP stage; the first is 4 times it."""
-    min_fitness: Annotated[float, Field(gt=0, le=1)] = 0.25
+    min_fitness: Annotated[Fraction, Field(gt=0)] = 0.25
     """Required share of scan points matching the map. Low, because from inside the
     growing structure (not in the map) most of a scan is new; wrong poses are caught by
     ``min_structure_fitness``."""
-    min_structure_fitness: Annotated[float, Field(ge=0, le=1)] = 0.5
+    min_structure_fitness: Fraction = 0.5
     """Required fitness of scan points on walls and columns (not the ground)."""
     max_rmse: PositiveFloat = 0.03
     """Largest accepted inlier RMSE (metres)."""
-    map_as_built: bool = True
+    map_as_built: Switch = True
     """Add the blocks built so far (at their design poses) to the map before localizing."""
 
 
@@ -249,7 +265,7 @@ class IntegrityPolicy(StrictModel):
     allows means a wrong map, a wrong anchor survey or a wrong station.
     """
 
-    alpha: Annotated[float, Field(gt=0, lt=0.5)] = 0.001
+    alpha: Annotated[Fraction, Field(gt=0, lt=0.5)] = 0.001
     """Significance level of the tests: the false-alarm probability of one visit."""
     on_failure: Literal["refuse", "warn"] = "refuse"
     """``refuse``: a failed visit stops the build (exit 2); ``warn``: the build goes
@@ -301,11 +317,11 @@ class Tolerances(StrictModel):
 class Planning(StrictModel):
     """Station planning settings."""
 
-    max_stations: Annotated[int, Field(ge=1)] | None = None
+    max_stations: PositiveCount | None = None
     """Fail when the plan needs more stations than this (no limit when absent)."""
     candidate_spacing: PositiveFloat = 0.25
     """Grid spacing of candidate platform positions (metres)."""
-    headings_deg: Annotated[list[float], Field(min_length=1)] = [0.0, 90.0, 180.0, 270.0]
+    headings_deg: Annotated[list[Real], Field(min_length=1)] = [0.0, 90.0, 180.0, 270.0]
     lift_step: PositiveFloat = 0.25
     """Spacing of the lift heights the planner considers (metres)."""
     reach_margin: NonNegativeFloat = 0.08
@@ -318,6 +334,8 @@ class ProgramSettings(StrictModel):
     """Robot program output settings."""
 
     format: ProgramFormat = "krl"
+    """Default: the robot's own language (``krl``, ``rapid``, ``urscript``; ``json``
+    for a machine without one)."""
     speed: PositiveFloat = 0.25
     """Cartesian speed for linear moves (m/s)."""
     approach: PositiveFloat = 0.10
@@ -329,7 +347,7 @@ class ProgramSettings(StrictModel):
 class Simulation(StrictModel):
     """Sensor and execution noise for simulated runs."""
 
-    seed: int = 0
+    seed: Annotated[Count, Field(lt=2**63)] = 0
     driving_error: NonNegativeFloat = 0.02
     """Standard deviation of the platform's parking error per axis (metres)."""
     driving_heading_error_deg: NonNegativeFloat = 0.5
@@ -337,11 +355,15 @@ class Simulation(StrictModel):
     """Standard deviation of the placed tool position per axis (metres)."""
     lift_error: NonNegativeFloat = 0.001
     """Standard deviation of the lift height at each placement (metres, vertical)."""
-    sensor_noise: bool = True
+    sensor_noise: Switch = True
     """``false``: simulated localization is exact (estimate = true base pose, zero
     covariance), e.g. to isolate driving and execution errors in ``fabflow simulate``."""
-    runs: Annotated[int, Field(ge=1)] = 100
+    runs: PositiveCount = 100
     """Default number of Monte Carlo runs of ``fabflow simulate``."""
+
+
+def _grid_points(lo: float, hi: float, spacing: float) -> float:
+    return math.floor((hi - lo) / spacing) + 1.0
 
 
 class Project(StrictModel):
@@ -357,63 +379,84 @@ class Project(StrictModel):
     planning: Planning = Planning()
     program: ProgramSettings = ProgramSettings()
     simulation: Simulation = Simulation()
+    limits: Limits = Limits()
+    """The most work the project may ask for (:class:`~fabflow.schema.Limits`)."""
+    allow_outside_paths: Switch = False
+    """Files named in the project may lie outside its folder (absolute paths, ``../``)."""
 
     path: Path | None = Field(default=None, exclude=True)
     """The file the project was loaded from (not part of the file itself)."""
 
+    @model_validator(mode="before")
+    @classmethod
+    def _default_format_of_the_robot(cls, data: Any) -> Any:
+        """Without ``program.format`` a robot gets its vendor's language (JSON if none)."""
+        robot = data.get("robot") if isinstance(data, dict) else None
+        model = robot.get("model", "kuka_kr60_3") if isinstance(robot, dict) else None
+        program = data.get("program", {}) if isinstance(data, dict) else None
+        if model in ROBOT_NAMES and isinstance(program, dict) and "format" not in program:
+            data = {**data, "program": {**program, "format": formats_of(model)[0]}}
+        return data
+
+    @model_validator(mode="after")
+    def _format_fits_robot(self) -> Project:
+        why = format_mismatch(self.program.format, self.robot.model)
+        if why is not None:
+            raise located(("program", "format"), why)
+        return self
+
+    @model_validator(mode="after")
+    def _work_within_limits(self) -> Project:
+        lim = self.limits
+        bounds = [element_count_bound(source) for source in self.elements]
+        if sum(bounds) > lim.max_elements:
+            i = max(range(len(bounds)), key=bounds.__getitem__)
+            kind = next(
+                k
+                for k in ("cabin", "print_path", "task_points")
+                if getattr(self.elements[i], k) is not None
+            )
+            raise located(
+                ("elements", i, kind),
+                f"the project makes up to {sum(bounds):.4g} elements ({bounds[i]:.4g} from "
+                f"this entry), more than limits.max_elements = {lim.max_elements}; raise it "
+                "in a 'limits' section if this is meant",
+            )
+        spacing = self.planning.candidate_spacing
+        (x0, y0), (x1, y1) = self.site.extent_min, self.site.extent_max
+        n_cand = (
+            _grid_points(x0, x1, spacing)
+            * _grid_points(y0, y1, spacing)
+            * len(self.planning.headings_deg)
+        )
+        if n_cand > lim.max_candidates:
+            raise located(
+                ("planning", "candidate_spacing"),
+                f"a site of {x1 - x0:g} x {y1 - y0:g} m at {spacing:g} m spacing with "
+                f"{len(self.planning.headings_deg)} headings makes {n_cand:.4g} candidate "
+                f"stations, more than limits.max_candidates = {lim.max_candidates}",
+            )
+        uwb = self.localization.uwb
+        if uwb is not None:
+            ranges = uwb.dwell_s * uwb.rate_hz * len(uwb.tags) * len(uwb.anchors)
+            imu = uwb.dwell_s * uwb.imu_rate_hz
+            if max(ranges, imu) > lim.max_sensor_samples:
+                raise located(
+                    ("localization", "uwb", "dwell_s"),
+                    f"{uwb.dwell_s:g} s of ranging at {uwb.rate_hz:g} Hz ({len(uwb.tags)} tags, "
+                    f"{len(uwb.anchors)} anchors) and IMU records at {uwb.imu_rate_hz:g} Hz make "
+                    f"{max(ranges, imu):.4g} samples per station, more than "
+                    f"limits.max_sensor_samples = {lim.max_sensor_samples}",
+                )
+        if self.simulation.runs > lim.max_runs:
+            raise located(
+                ("simulation", "runs"),
+                f"{self.simulation.runs} runs, more than limits.max_runs = {lim.max_runs}",
+            )
+        return self
+
 
 # ------------------------------------------------------------------------ loading
-
-
-def format_loc(loc: tuple[Any, ...]) -> str:
-    """Turn a pydantic error location into a field path such as ``elements[2].cabin.x``."""
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        elif not out:
-            out = str(part)
-        else:
-            out += f".{part}"
-    return out or "(top level)"
-
-
-def _line_of(node: yaml.Node | None, loc: tuple[Any, ...]) -> int | None:
-    """1-based line of the YAML node at ``loc`` (or of its nearest existing parent)."""
-    line = None if node is None else node.start_mark.line + 1
-    for part in loc:
-        if isinstance(node, yaml.MappingNode):
-            match = next((v for k, v in node.value if getattr(k, "value", None) == part), None)
-            if match is None:
-                # an extra key: point at the key itself
-                key = next((k for k, _ in node.value if getattr(k, "value", None) == part), None)
-                return key.start_mark.line + 1 if key is not None else line
-            node = match
-        elif isinstance(node, yaml.SequenceNode) and isinstance(part, int):
-            if part >= len(node.value):
-                return line
-            node = node.value[part]
-        else:
-            return line
-        line = node.start_mark.line + 1
-    return line
-
-
-def _describe(error: dict[str, Any]) -> str:
-    kind = error["type"]
-    if kind == "missing":
-        return "required field is missing"
-    if kind == "extra_forbidden":
-        return "unknown key (not part of the project schema)"
-    msg = error["msg"]
-    for prefix in ("Value error, ", "Assertion failed, "):
-        msg = msg.removeprefix(prefix)
-    given = error.get("input")
-    if given is not None and not isinstance(given, dict | list):
-        shown = repr(given)
-        if len(shown) <= 60:
-            msg += f" (got {shown})"
-    return msg
 
 
 def parse_project(
@@ -428,7 +471,9 @@ def parse_project(
     source
         Name of the file, used in error messages.
     base_dir
-        Folder that relative paths resolve against (the project file's folder).
+        The project folder: relative paths resolve against it, and files must lie
+        inside it unless the project sets ``allow_outside_paths: true`` (default:
+        the working folder).
 
     Raises
     ------
@@ -436,25 +481,18 @@ def parse_project(
         For YAML that does not parse or a project that does not validate; the
         message names the file, the line, the field path and what was expected.
     """
-    try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else None
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise InputError(f"YAML does not parse: {problem}", source, where) from None
+    node, data = parse_yaml(text, source)
+    return _validate(node, data, source, base_dir)
+
+
+def _validate(node: Any, data: Any, source: str | Path, base_dir: Path | None) -> Project:
     if not isinstance(data, dict):
         raise InputError("expected a mapping of project fields at the top level", source)
+    context = {"base_dir": base_dir, "allow_outside_paths": data.get("allow_outside_paths")}
     try:
-        return Project.model_validate(data, context={"base_dir": base_dir})
+        return Project.model_validate(data, context=context)
     except ValidationError as exc:
-        lines = []
-        for error in exc.errors():
-            loc = error["loc"]
-            line = _line_of(node, loc)
-            at = f"line {line}: " if line else ""
-            lines.append(f"{at}{format_loc(loc)}: {_describe(error)}")
+        lines = error_lines(exc, Project, node)
         message = "invalid project\n  " + "\n  ".join(lines)
         raise InputError(message, source) from None
 
@@ -465,7 +503,8 @@ def load_project(path: str | Path) -> Project:
     Parameters
     ----------
     path
-        A project YAML file, or a folder holding ``project.yaml``.
+        A project YAML file, or a folder holding ``project.yaml``; at most
+        :data:`~fabflow.yaml_input.MAX_YAML_BYTES`, UTF-8.
 
     Returns
     -------
@@ -475,13 +514,8 @@ def load_project(path: str | Path) -> Project:
     path = Path(path)
     if path.is_dir():
         path = path / "project.yaml"
-    if not path.exists():
-        raise InputError("project file does not exist", path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read project file: {exc}", path) from None
-    project = parse_project(text, source=path, base_dir=path.parent.resolve())
+    node, data = read_yaml(path, "project file")
+    project = _validate(node, data, path, path.parent.resolve())
     return project.model_copy(update={"path": path.resolve()})
 
 

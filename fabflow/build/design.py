@@ -64,7 +64,7 @@ def stage_design(ctx: BuildContext) -> None:
 
     Sets ``ctx.elements`` (world frame).
     """
-    elements = generate_elements(ctx.project.elements, ctx.project.path)
+    elements = generate_elements(ctx.project.elements, ctx.project.path, ctx.project.limits)
     ctx.elements = elements
     write_json(
         ctx.out / "elements.json",

@@ -49,12 +49,13 @@ def stage_localize(ctx: BuildContext) -> None:
         )
     ctx.add("localize", "method", project.localization.method)
     ctx.add("localize", "visits localized", len(errors))
-    ctx.add(
-        "localize",
-        "XY error, simulated (mean / max)",
-        f"{1000 * np.mean(errors):.1f} / {1000 * np.max(errors):.1f} mm",
-    )
-    ctx.add("localize", "XY sigma, predicted (mean)", f"{1000 * np.mean(sigma):.1f} mm")
+    if errors:  # a plan without robot-built elements has no visits
+        ctx.add(
+            "localize",
+            "XY error, simulated (mean / max)",
+            f"{1000 * np.mean(errors):.1f} / {1000 * np.max(errors):.1f} mm",
+        )
+        ctx.add("localize", "XY sigma, predicted (mean)", f"{1000 * np.mean(sigma):.1f} mm")
     for item, value in integrity_rows(results):
         ctx.add("localize", item, value)
     for message in warnings:

@@ -129,6 +129,25 @@ def cabin_layer_counts(spec: CabinSpec) -> tuple[int, int]:
     return math.floor(spec.eave_height / h + 1e-6), math.floor(spec.height / h + 1e-6)
 
 
+def cabin_block_bound(spec: CabinSpec) -> float:
+    """An upper bound of the number of blocks of a cabin, without generating them.
+
+    Every row of a wall between two openings is cut into at most
+    ``span / block length + 2`` pieces, each opening adds a free interval and a
+    lintel; the bound multiplies one layer of all four walls by the number of
+    layers up to the ridge. Computed in floating point, so that a block height of a
+    nanometre gives a large number quickly instead of a long loop.
+    """
+    h, L = spec.block.height, spec.block.length
+    n_total = math.floor(spec.height / h + 1e-6)
+    per_layer = 0.0
+    for wall in ("right", "front", "left", "rear"):
+        span = spec.length if wall in _X_WALLS else spec.width
+        k = sum(o.wall == wall for o in spec.openings)
+        per_layer += span / L + 2.0 * (k + 1) + k
+    return float(n_total) * per_layer
+
+
 def _rows(spec: CabinSpec) -> list[tuple[int, str, str, float, float, bool]]:
     """Every piece of every row: (layer, wall, piece key, start, end, is_lintel).
 

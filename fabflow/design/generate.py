@@ -9,12 +9,29 @@ from pathlib import Path
 
 import numpy as np
 
-from fabflow.design.cabin import cabin_elements
+from fabflow.design.cabin import cabin_block_bound, cabin_elements
 from fabflow.design.elements import Element
 from fabflow.design.print_path import print_path_elements
 from fabflow.design.specs import ElementSource, TaskPoint
 from fabflow.design.supports import compute_supports
 from fabflow.errors import InputError
+from fabflow.schema import Limits
+
+
+def element_count_bound(source: ElementSource) -> float:
+    """An upper bound of the elements one ``elements`` entry makes, from the file alone.
+
+    A cabin: :func:`~fabflow.design.cabin.cabin_block_bound`; print paths from a
+    drawing: ``n_layers``; from a mesh: ``n_layers`` when given (its height is
+    checked when it is read); task points: their number.
+    """
+    if source.cabin is not None:
+        return cabin_block_bound(source.cabin)
+    if source.print_path is not None:
+        spec = source.print_path
+        given = spec.dxf is not None or "n_layers" in spec.model_fields_set
+        return float(spec.n_layers) if given else 0.0
+    return float(len(source.task_points or ()))
 
 
 def task_point_elements(points: list[TaskPoint], source_index: int = 0) -> list[Element]:
@@ -54,7 +71,9 @@ def with_block_supports(elements: list[Element]) -> list[Element]:
 
 
 def generate_elements(
-    sources: Sequence[ElementSource], source_file: str | Path | None = None
+    sources: Sequence[ElementSource],
+    source_file: str | Path | None = None,
+    limits: Limits | None = None,
 ) -> list[Element]:
     """Every element of a project's sources, in file order, with unique ids.
 
@@ -68,12 +87,16 @@ def generate_elements(
         The ``elements`` entries of a project (``project.elements``).
     source_file
         The project file, named in error messages (``project.path``).
+    limits
+        The project's limits (``project.limits``; default
+        :class:`~fabflow.schema.Limits`), checked against what a drawing or mesh
+        holds before its layers are made.
 
     Raises
     ------
     InputError
         When a task point id is used twice or collides with a generated id, or a
-        source's drawing or mesh is bad.
+        source's drawing or mesh is bad or asks for more work than ``limits``.
     """
     elements: list[Element] = []
     n_blocks = n_paths = 0
@@ -82,7 +105,9 @@ def generate_elements(
             new = cabin_elements(source.cabin, id_start=n_blocks)
             n_blocks += len(new)
         elif source.print_path is not None:
-            new = print_path_elements(source.print_path, id_start=n_paths, source_index=i)
+            new = print_path_elements(
+                source.print_path, id_start=n_paths, source_index=i, limits=limits
+            )
             n_paths += len(new)
         else:
             assert source.task_points is not None

@@ -20,6 +20,7 @@ path, y = z cross x.
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -31,6 +32,7 @@ from fabflow.design.elements import Element
 from fabflow.design.hermite import SampledPath, polyline_tangents, sample_hermite
 from fabflow.design.specs import PrintPathSpec
 from fabflow.errors import InputError
+from fabflow.schema import Limits
 from fabflow.transforms.se3 import make_T
 
 if TYPE_CHECKING:
@@ -151,6 +153,15 @@ def order_contours(
     return LayerPath(points=points, extrude=extrude)
 
 
+def mesh_layer_count(
+    mesh: trimesh.Trimesh, layer_height: float, n_layers: int | None = None
+) -> int:
+    """Number of layers :func:`slice_mesh` cuts: the mesh's height in ``layer_height`` steps."""
+    z0, z1 = mesh.bounds[:, 2]
+    n = int(np.floor((z1 - z0) / layer_height + 1e-9))
+    return n if n_layers is None else min(n, n_layers)
+
+
 def slice_mesh(
     mesh: trimesh.Trimesh, layer_height: float, n_layers: int | None = None
 ) -> list[tuple[float, list[np.ndarray]]]:
@@ -165,10 +176,8 @@ def slice_mesh(
         The cut height (mesh frame, metres) and the closed contours there, each
         (N, 3) with the first vertex repeated at the end.
     """
-    z0, z1 = mesh.bounds[:, 2]
-    n = int(np.floor((z1 - z0) / layer_height + 1e-9))
-    if n_layers is not None:
-        n = min(n, n_layers)
+    z0 = mesh.bounds[0, 2]
+    n = mesh_layer_count(mesh, layer_height, n_layers)
     heights = (np.arange(n) + 0.5) * layer_height
     sections = mesh.section_multiplane(
         plane_origin=[0.0, 0.0, z0], plane_normal=[0.0, 0.0, 1.0], heights=heights
@@ -215,8 +224,63 @@ def _load_mesh(path: Path, factor: float) -> trimesh.Trimesh:
 _MESH_UNITS = {"auto": 1.0, "m": 1.0, "cm": 0.01, "mm": 1e-3, "in": 0.0254, "ft": 0.3048}
 
 
+def _check_samples(
+    spec: PrintPathSpec, layers: list[tuple[float, LayerPath, bool]], limits: Limits, source: Path
+) -> None:
+    """Refuse print paths whose samples exceed ``limits.max_path_samples``.
+
+    A layer has its waypoints plus ``length * sample_rate_hz / speed`` samples
+    (what :func:`sample_print_path` makes of it).
+    """
+    distinct = {id(path): path for _, path, _ in layers}
+    times = Counter(id(path) for _, path, _ in layers)
+    waypoints = sum(len(p.points) * times[k] for k, p in distinct.items())
+    length = sum((p.print_length + p.travel_length) * times[k] for k, p in distinct.items())
+    samples = waypoints + length * spec.sample_rate_hz / spec.speed
+    if samples > limits.max_path_samples:
+        raise InputError(
+            f"the {len(layers)} print path layers ({length:.6g} m of path, {waypoints} "
+            f"waypoints) at {spec.sample_rate_hz:g} Hz and {spec.speed:g} m/s make "
+            f"{samples:.3g} samples, more than limits.max_path_samples = "
+            f"{limits.max_path_samples}; raise it in the project's 'limits' section if "
+            "this is meant",
+            source,
+        )
+
+
+def _mesh_layers(
+    spec: PrintPathSpec, limits: Limits
+) -> tuple[float, list[tuple[float, LayerPath, bool]]]:
+    """The lowest point of the mesh and its layers, refused beyond ``limits.max_elements``."""
+    assert spec.mesh is not None
+    mesh = _load_mesh(spec.mesh, _MESH_UNITS[spec.units])
+    n_layers = spec.n_layers if "n_layers" in spec.model_fields_set else None
+    n = mesh_layer_count(mesh, spec.layer_height, n_layers)
+    if n > limits.max_elements:
+        raise InputError(
+            f"slicing the mesh every {spec.layer_height:g} m makes {n} layers, more than "
+            f"limits.max_elements = {limits.max_elements}",
+            spec.mesh,
+        )
+    if n == 0:
+        raise InputError(
+            f"the mesh is lower than one layer ({spec.layer_height:g} m): nothing to print",
+            spec.mesh,
+        )
+    z0 = float(mesh.bounds[0, 2])
+    layers = []
+    for k, (z_cut, rings) in enumerate(slice_mesh(mesh, spec.layer_height, n_layers)):
+        if not rings:
+            raise InputError(f"the mesh has no cross-section at z = {z_cut:.4f} m", spec.mesh)
+        flat = [np.column_stack([r[:, :2], np.zeros(len(r))]) for r in rings]
+        layers.append(
+            (z0 + (k + 1) * spec.layer_height, order_contours(flat, [True] * len(flat)), True)
+        )
+    return z0, layers
+
+
 def print_path_elements(
-    spec: PrintPathSpec, id_start: int = 0, source_index: int = 0
+    spec: PrintPathSpec, id_start: int = 0, source_index: int = 0, limits: Limits | None = None
 ) -> list[Element]:
     """One ``print_path`` element per printed layer.
 
@@ -228,6 +292,9 @@ def print_path_elements(
         Number of the first element id (``"P000"`` for 0).
     source_index
         Index of the source in ``project.elements`` (recorded in the attributes).
+    limits
+        The project's limits (default :class:`~fabflow.schema.Limits`): mesh layers
+        and path samples are checked before the elements are made.
 
     Returns
     -------
@@ -235,7 +302,13 @@ def print_path_elements(
         Layer ``k``: element frame at the drawing origin raised to the top of the
         layer, ``(k + 1) * layer_height``; ``polyline`` the layer's waypoints in
         that frame; ``supports`` the layer below.
+
+    Raises
+    ------
+    InputError
+        A bad drawing or mesh, or more layers or samples than ``limits`` allow.
     """
+    limits = Limits() if limits is None else limits
     T_world_origin = spec.origin.matrix()
     common = {
         "layer_height": spec.layer_height,
@@ -251,23 +324,18 @@ def print_path_elements(
         )
         layer_path = order_contours([c.points for c in contours], [c.closed for c in contours])
         all_closed = all(c.closed for c in contours)
-        for k in range(spec.n_layers):
-            layers.append(((k + 1) * spec.layer_height, layer_path, all_closed))
+        layers = [
+            ((k + 1) * spec.layer_height, layer_path, all_closed) for k in range(spec.n_layers)
+        ]
         common["source"] = spec.dxf.name
         common["dxf_layers"] = sorted({c.layer for c in contours})
+        source = spec.dxf
     else:
         assert spec.mesh is not None
-        mesh = _load_mesh(spec.mesh, _MESH_UNITS[spec.units])
-        n_layers = spec.n_layers if "n_layers" in spec.model_fields_set else None
-        z0 = float(mesh.bounds[0, 2])
-        for k, (z_cut, rings) in enumerate(slice_mesh(mesh, spec.layer_height, n_layers)):
-            if not rings:
-                raise InputError(f"the mesh has no cross-section at z = {z_cut:.4f} m", spec.mesh)
-            flat = [np.column_stack([r[:, :2], np.zeros(len(r))]) for r in rings]
-            layers.append(
-                (z0 + (k + 1) * spec.layer_height, order_contours(flat, [True] * len(flat)), True)
-            )
+        _, layers = _mesh_layers(spec, limits)
         common["source"] = spec.mesh.name
+        source = spec.mesh
+    _check_samples(spec, layers, limits, source)
     elements = []
     for k, (z, path, all_closed) in enumerate(layers):
         T_origin_layer = np.eye(4)

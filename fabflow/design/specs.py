@@ -9,6 +9,7 @@ functions (:mod:`fabflow.design.cabin`, :mod:`fabflow.design.print_path`,
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Annotated, Literal
 
@@ -18,13 +19,19 @@ from pydantic import (
 )
 
 from fabflow.schema import (
-    ExistingPath,
+    Count,
+    ModelPath,
     NonNegativeFloat,
     PoseSpec,
     PositiveFloat,
+    Real,
     StrictModel,
+    Switch,
     Vec3,
 )
+
+MAX_LAYER = 100_000
+"""Highest build-order layer a task point may name."""
 
 
 class BlockSize(StrictModel):
@@ -47,7 +54,7 @@ class Opening(StrictModel):
 
     wall: Literal["front", "rear", "left", "right"]
     kind: Literal["door", "window"] = "window"
-    center: float
+    center: Real
     width: PositiveFloat
     sill: NonNegativeFloat = 0.0
     height: PositiveFloat
@@ -91,7 +98,7 @@ class CabinSpec(StrictModel):
     """
 
     origin: Vec3 = (0.0, 0.0, 0.0)
-    heading_deg: float = 0.0
+    heading_deg: Real = 0.0
     length: PositiveFloat = 4.00
     width: PositiveFloat = 3.30
     height: PositiveFloat = 4.20
@@ -120,6 +127,12 @@ class CabinSpec(StrictModel):
         missing = [k for k in pieces if k not in self.parts]
         if missing:
             raise ValueError(f"'parts' lacks {', '.join(missing)}")
+        unknown = [p for p in self.robot_parts if p not in self.parts.values()]
+        if unknown:
+            raise ValueError(
+                f"'robot_parts' names {unknown[0]!r}, which no wall or gable belongs to "
+                f"(the parts are {', '.join(sorted(set(self.parts.values())))})"
+            )
         n_wall = math.floor(self.eave_height / b.height + 1e-6)
         spans = {"front": self.width, "rear": self.width, "left": self.length, "right": self.length}
         reach: dict[str, list[tuple[float, float, int]]] = {}
@@ -137,13 +150,15 @@ class CabinSpec(StrictModel):
                     f"openings[{i}]: the top of the opening plus its lintel must stay below "
                     f"the eave ({self.eave_height} m)"
                 )
-            for j_lo, j_hi, j in reach.get(o.wall, []):
-                if lo < j_hi and hi > j_lo:
-                    raise ValueError(
-                        f"openings[{i}] and openings[{j}] overlap (with lintel bearings) "
-                        f"on the {o.wall} wall"
-                    )
             reach.setdefault(o.wall, []).append((lo, hi, i))
+        for wall, spans_on_wall in reach.items():
+            ordered = sorted(spans_on_wall)
+            for (_, hi0, i), (lo1, _, j) in itertools.pairwise(ordered):
+                if lo1 < hi0:
+                    raise ValueError(
+                        f"openings[{min(i, j)}] and openings[{max(i, j)}] overlap (with lintel "
+                        f"bearings) on the {wall} wall"
+                    )
         return self
 
 
@@ -156,18 +171,18 @@ class PrintPathSpec(StrictModel):
     is given).
     """
 
-    dxf: ExistingPath | None = None
-    mesh: ExistingPath | None = None
+    dxf: ModelPath | None = None
+    mesh: ModelPath | None = None
     layers: list[str] = []
     """DXF layers holding the path geometry (all layers when empty)."""
     units: Literal["auto", "m", "cm", "mm", "in", "ft"] = "auto"
     """Drawing units; ``auto``: $INSUNITS of a DXF (mm when unset), metres for a mesh."""
-    closed: bool = True
+    closed: Switch = True
     """Every contour must be closed (a wall outline); ``false`` allows open paths."""
     origin: PoseSpec = PoseSpec()
     """Where the drawing's origin sits in the world."""
     layer_height: PositiveFloat = 0.02
-    n_layers: Annotated[int, Field(ge=1)] = 10
+    n_layers: Annotated[Count, Field(ge=1)] = 10
     bead_width: PositiveFloat = 0.03
     speed: PositiveFloat = 0.1
     """Tool speed along the path (m/s)."""
@@ -186,8 +201,8 @@ class TaskPoint(StrictModel):
     id: Annotated[str, Field(min_length=1)]
     pose: PoseSpec
     action: Literal["drill", "mark", "measure"] = "mark"
-    params: dict[str, float | str] = {}
-    layer: Annotated[int, Field(ge=0)] = 0
+    params: dict[str, Real | str] = {}
+    layer: Annotated[Count, Field(le=MAX_LAYER)] = 0
     """Build-order layer (0 = first)."""
 
 

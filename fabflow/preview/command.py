@@ -111,7 +111,7 @@ def run_preview(
     project = load_project(project_path)
     elements, plan = read_build_outputs(sim) if sim is not None else (None, None)
     if plan is None or elements is None:
-        elements = generate_elements(project.elements, project.path)
+        elements = generate_elements(project.elements, project.path, project.limits)
         plan = plan_project(project, elements)
     model = model_for_project(project, elements, plan, sim_dir=sim)
     if colour_by == "deviation" and model.deviation is None:

@@ -70,7 +70,7 @@ def model_for_project(
         if elements is None and plan is None and built_plan is not None:
             elements, plan = built_elements, built_plan
     if elements is None:
-        elements = generate_elements(project.elements, project.path)
+        elements = generate_elements(project.elements, project.path, project.limits)
     if plan is None:
         plan = plan_project(project, elements)
     elements = with_pieces(elements, plan.split_elements)

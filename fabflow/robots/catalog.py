@@ -238,6 +238,34 @@ def format_vendor(fmt: str) -> str | None:
     return next((k for k, v in VENDORS.items() if v.language == fmt), None)
 
 
+def formats_of(name: str) -> tuple[str, ...]:
+    """The program formats a catalogue robot runs: its vendor's language, then the neutral ones.
+
+    ``("rapid", "json")`` for ``"abb_irb4600_60_205"``; a machine without a
+    language of its own runs the neutral formats only.
+    """
+    language = VENDORS[vendor_of(name)].language
+    return (*((language,) if language is not None else ()), *NEUTRAL_FORMATS)
+
+
+def format_mismatch(fmt: str, name: str) -> str | None:
+    """Why programs of ``fmt`` do not run on robot ``name``, with the formats that do.
+
+    Returns
+    -------
+    str or None
+        ``None`` when they do (or ``fmt`` is unknown: the caller reports that).
+    """
+    vendor = format_vendor(fmt)
+    if vendor is None or vendor == vendor_of(name):
+        return None
+    fits = " or ".join(f"'{f}'" for f in formats_of(name))
+    return (
+        f"'{fmt}' programs run on {VENDORS[vendor].name} controllers, but the robot "
+        f"'{name}' is by {VENDORS[vendor_of(name)].name}; use format {fits}"
+    )
+
+
 def _check_name(name: str) -> None:
     if not isinstance(name, str) or name not in _CATALOGUE:
         raise UnsupportedError(

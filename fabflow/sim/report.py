@@ -366,7 +366,7 @@ def simulate_project(
             location="--fidelity",
         )
     methods = list(methods or [project.localization.method])
-    elements = generate_elements(project.elements, project.path)
+    elements = generate_elements(project.elements, project.path, project.limits)
     plan = plan_project(project, elements)
     studies = [prepare_study(project, m, elements, plan) for m in methods]
     rows: list[dict[str, Any]] = []

@@ -170,7 +170,7 @@ def prepare_study(
             "localization.uwb",
         )
     if elements is None:
-        elements = generate_elements(project.elements, project.path)
+        elements = generate_elements(project.elements, project.path, project.limits)
     if plan is None:
         plan = plan_project(project, elements)
     elements = with_pieces(elements, plan.split_elements)

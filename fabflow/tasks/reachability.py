@@ -26,9 +26,9 @@ from fabflow.robots.reach_model import ReachModel
 from fabflow.tasks.stations import (
     Candidates,
     coverage,
-    element_polygons,
     footprint_polygons,
     obstacle_polygons,
+    unique_outlines,
 )
 from fabflow.tasks.targets import approach_poses, element_tool_frames
 from fabflow.tasks.verify import ik_lift_masks
@@ -60,8 +60,17 @@ def explain_unreachable(
     names = [ob.box.name if ob.box is not None else ob.polygon.name for ob in site.obstacles]  # type: ignore[union-attr]
     lo = np.asarray(site.extent_min)
     hi = np.asarray(site.extent_max)
-    el_tree = shapely.STRtree(element_polygons(elements))
+    # One prepared outline per kind (stacked layers share one): testing the footprints
+    # against it is fast however many elements stand on the same spot.
     robot_built = np.array([e.robot_built for e in elements], dtype=bool)
+    outlines, outline_of = unique_outlines(elements)
+    merged = {}
+    kinds = {"pre-built elements": ~robot_built, "robot-built elements": robot_built}
+    for kind, which in kinds.items():
+        used = np.bincount(outline_of[which], minlength=len(outlines)) > 0
+        if used.any():
+            merged[kind] = shapely.union_all(outlines[used])
+            shapely.prepare(merged[kind])
     groups: dict[str, list[str]] = {}
     for i in missing:
         p = p_target[i]
@@ -112,11 +121,9 @@ def explain_unreachable(
                     for name, ob in zip(names, obstacles, strict=True):
                         if shapely.intersects(fp, ob).any():
                             causes.add(f"obstacle '{name}'")
-                    hit = el_tree.query(fp, predicate="intersects")[1]
-                    if (~robot_built[hit]).any():
-                        causes.add("pre-built elements")
-                    if robot_built[hit].any():
-                        causes.add("robot-built elements")
+                    for kind, outline in merged.items():
+                        if shapely.intersects(outline, fp).any():
+                            causes.add(kind)
                 why = (
                     f"at its height the arm reaches {r_ok:.1f} m at most, and every platform "
                     f"pose that close (footprint plus {platform.safety_margin:.2f} m margin) "

@@ -399,7 +399,7 @@ def coverage(
         keep = mask != 0
         f, cand, mask = f[keep], cand[keep], mask[keep]
         e = owner[f]
-        if not single:
+        if not single and len(f):
             key = cand.astype(np.int64) * n_elements + e
             order = np.argsort(key, kind="stable")
             key, mask = key[order], mask[order]

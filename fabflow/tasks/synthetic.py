@@ -50,4 +50,4 @@ def cabin_rows(project: Project, n_cabins: int, gap: float = 3.0) -> tuple[Proje
         obstacles=[],
     )
     big = project.model_copy(update={"elements": sources, "site": site})
-    return big, generate_elements(big.elements, big.path)
+    return big, generate_elements(big.elements, big.path, big.limits)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import shutil
+import time
 
 import ezdxf
 import numpy as np
@@ -15,7 +17,7 @@ from hypothesis import strategies as st
 
 from fabflow.build.context import BuildContext
 from fabflow.build.design import stage_design
-from fabflow.design.cabin import cabin_blocks, cabin_layer_counts
+from fabflow.design.cabin import cabin_block_bound, cabin_blocks, cabin_layer_counts
 from fabflow.design.elements import Element, elements_from_json, elements_to_json
 from fabflow.design.generate import generate_elements
 from fabflow.design.specs import BlockSize, CabinSpec, Opening
@@ -222,9 +224,9 @@ elements:
 @pytest.fixture(scope="module")
 def mixed_project(tmp_path_factory):
 
-    dxf = PROJECTS / "print_path" / "sine_wall.dxf"
     folder = tmp_path_factory.mktemp("mixed")
-    return parse_project(PROJECT.format(dxf=dxf), folder / "project.yaml", folder)
+    shutil.copy(PROJECTS / "print_path" / "sine_wall.dxf", folder)
+    return parse_project(PROJECT.format(dxf="sine_wall.dxf"), folder / "project.yaml", folder)
 
 
 @pytest.fixture(scope="module")
@@ -343,3 +345,67 @@ def test_site_sensors_in_world_frame() -> None:
     assert np.allclose(anchors["A1"], [-0.4, -1.0, 1.0]) and instrument is None
     anchors, instrument = site_sensors(load_project(PROJECTS / "print_path"))
     assert anchors is None and np.allclose(instrument[:3, 3], [-2.5, -2.5, 1.6])
+
+
+@settings(deadline=None, max_examples=30, derandomize=True)
+@given(
+    length=st.floats(2.0, 9.0),
+    width=st.floats(2.0, 9.0),
+    eave=st.floats(1.0, 3.5),
+    roof=st.floats(0.0, 2.0),
+    block_length=st.floats(0.4, 1.2),
+    block_height=st.floats(0.05, 0.3),
+    door=st.booleans(),
+)
+def test_block_bound_is_an_upper_bound(
+    length, width, eave, roof, block_length, block_height, door
+) -> None:
+    openings = (
+        [Opening(wall="front", kind="door", center=width / 2, width=0.8, height=eave * 0.5)]
+        if door and width > 1.4
+        else []
+    )
+    try:
+        spec = CabinSpec(
+            length=length,
+            width=width,
+            eave_height=eave,
+            height=eave + roof,
+            block=BlockSize(length=block_length, height=block_height),
+            openings=openings,
+        )
+    except ValueError:
+        return
+    assert cabin_block_bound(spec) >= len(cabin_blocks(spec))
+
+
+def test_block_bound_of_a_nanometre_block_is_quick() -> None:
+    t0 = time.perf_counter()
+    bound = cabin_block_bound(CabinSpec(block=BlockSize(height=1e-9)))
+    assert bound > 1e9 and time.perf_counter() - t0 < 0.1
+
+
+def test_many_openings_validate_fast() -> None:
+    openings = [
+        {"wall": "left", "center": 0.2 + 0.003 * i, "width": 1e-3, "height": 0.5}
+        for i in range(1200)
+    ]
+    t0 = time.perf_counter()
+    spec = CabinSpec(lintel_bearing=1e-4, openings=openings)
+    assert len(spec.openings) == 1200 and time.perf_counter() - t0 < 1
+    openings[700]["center"] = openings[699]["center"] + 1e-4
+    with pytest.raises(ValueError, match=r"openings\[699\] and openings\[700\] overlap"):
+        CabinSpec(lintel_bearing=1e-4, openings=openings)
+
+
+def test_cabin_without_robot_parts_builds(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from fabflow.cli import app
+
+    text = (PROJECTS / "cabin" / "project.yaml").read_text()
+    text = text.replace("origin: [0.0, 0.0, 0.0]", "origin: [0.0, 0.0, 0.0]\n      robot_parts: []")
+    (tmp_path / "project.yaml").write_text(text)
+    result = CliRunner().invoke(app, ["build", str(tmp_path), "-o", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    assert "nothing to plan" in (tmp_path / "out" / "plan.json").read_text()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import ezdxf
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fabflow.design.dxf_in import read_dxf_contours
+from fabflow.design.generate import generate_elements
 from fabflow.design.hermite import sample_hermite
 from fabflow.design.print_path import (
     element_tool_frames,
@@ -22,8 +25,10 @@ from fabflow.design.print_path import (
     tool_frames,
 )
 from fabflow.design.specs import PrintPathSpec
-from fabflow.errors import InputError
-from fabflow.schema import PoseSpec
+from fabflow.errors import FabflowError, InputError
+from fabflow.project import parse_project
+from fabflow.schema import Limits, PoseSpec
+from fabflow.tasks.planner import make_plan
 
 SINE_WALL = PROJECTS / "print_path" / "sine_wall.dxf"
 MAX_DEVIATION = 5e-4  # metres: the bound on the sampled path vs the drawing
@@ -214,3 +219,39 @@ def test_tool_frames_survive_repeated_waypoints() -> None:
     assert np.allclose(T[0, :3, 0], [1, 0, 0]) and np.allclose(T[-1, :3, 0], [0, 1, 0])
     sampled, _ = sample_print_path(e)
     assert _distance_to(poly, sampled.points).max() < MAX_DEVIATION
+
+
+def _column(tmp_path, height: float = 0.1) -> object:
+    cyl = trimesh.creation.cylinder(radius=0.4, height=height, sections=48)
+    cyl.apply_translation([0, 0, height / 2])
+    path = tmp_path / "column.stl"
+    cyl.export(path)
+    return path
+
+
+def test_mesh_slices_and_path_samples_are_bounded_by_the_limits(tmp_path) -> None:
+    path = _column(tmp_path)
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match=r"makes 10000000 layers.*limits\.max_elements"):
+        print_path_elements(PrintPathSpec(mesh=path, layer_height=1e-8))
+    with pytest.raises(InputError, match="lower than one layer"):
+        print_path_elements(PrintPathSpec(mesh=path, layer_height=1.0))
+    with pytest.raises(InputError, match=r"limits\.max_path_samples"):
+        print_path_elements(PrintPathSpec(dxf=SINE_WALL, layers=["WALL_OUTER"], speed=1e-9))
+    few = Limits(max_path_samples=1000)
+    with pytest.raises(InputError, match=r"more than limits\.max_path_samples = 1000"):
+        print_path_elements(PrintPathSpec(dxf=SINE_WALL, layers=["WALL_OUTER"]), limits=few)
+    assert time.perf_counter() - t0 < 5
+    assert len(print_path_elements(PrintPathSpec(mesh=path, layer_height=0.025))) == 4
+
+
+def test_tall_layers_are_refused_by_the_planner_not_a_crash() -> None:
+    project = parse_project(
+        (PROJECTS / "print_path" / "project.yaml")
+        .read_text()
+        .replace("layer_height: 0.02", "layer_height: 100"),
+        base_dir=PROJECTS / "print_path",
+    )
+    elements = generate_elements(project.elements, project.path, project.limits)
+    with pytest.raises(FabflowError, match="outside what the arm reaches"):
+        make_plan(project, elements)

@@ -134,6 +134,7 @@ def test_project_with_measured_observations(tmp_path: Path) -> None:
 
     text = f"""
 name: measured
+allow_outside_paths: true
 elements:
   - task_points:
       - id: a

@@ -167,3 +167,28 @@ def test_yaw_invariance_only_for_axial_tools() -> None:
     rm = reach_map("kuka_kr60_3", offset, step=0.1, n_yaw=6, disk_cache=False)
     assert 0.0 < rm.yaw_fraction[rm.grid].min() <= 1.0
     assert (rm.yaw_fraction[rm.grid] < 1.0).any()  # some nodes only at some yaws
+
+
+@pytest.mark.parametrize("margin", [0.02, 0.05, 0.08, 0.15, 0.3])
+def test_shrunk_reach_is_the_disk_erosion(margin: float) -> None:
+    from scipy import ndimage
+
+    from fabflow.robots.reach_model import reach_model
+
+    model = reach_model("kuka_kr60_3", np.eye(4))
+    cells = int(np.ceil(margin / min(model.r_step, model.z_step) - 1e-9))
+    ii, jj = np.mgrid[-cells : cells + 1, -cells : cells + 1]
+    disk = (ii * model.r_step) ** 2 + (jj * model.z_step) ** 2 <= margin**2 + 1e-12
+    expected = ndimage.binary_erosion(model.table, structure=disk, border_value=0)
+    assert np.array_equal(model.shrunk(margin).table, expected)
+
+
+def test_a_margin_beyond_the_reach_is_quick_and_empty() -> None:
+    import time
+
+    from fabflow.robots.reach_model import reach_model
+
+    model = reach_model("kuka_kr60_3", np.eye(4))
+    t0 = time.perf_counter()
+    assert not model.shrunk(5.0).table.any()
+    assert time.perf_counter() - t0 < 1

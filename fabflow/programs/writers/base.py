@@ -17,7 +17,7 @@ import numpy as np
 
 from fabflow.errors import InputError, UnsupportedError
 from fabflow.programs.ir import Move, Program
-from fabflow.robots.catalog import NEUTRAL_FORMATS, format_vendor, vendor_of
+from fabflow.robots.catalog import format_mismatch, format_vendor
 
 
 def fixed(value: float, digits: int) -> str:
@@ -51,13 +51,9 @@ class Writer:
 
     def check_robot(self, robot: str) -> None:
         """Raise :class:`UnsupportedError` when the format does not run on ``robot``."""
-        vendor = self.vendor
-        if vendor is not None and vendor_of(robot) != vendor:
-            raise UnsupportedError(
-                f"'{self.format}' programs run on {vendor.upper()} controllers, but the "
-                f"project's robot is '{robot}'; use format '{NEUTRAL_FORMATS[0]}', or a robot "
-                f"by {vendor.upper()}"
-            )
+        why = format_mismatch(self.format, robot)
+        if why is not None:
+            raise UnsupportedError(why)
 
     def validate(self, program: Program) -> None:
         """Raise for a program this format cannot carry.

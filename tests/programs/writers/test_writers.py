@@ -185,6 +185,10 @@ def test_non_finite_values_are_refused_before_writing(fmt: str, robot: str) -> N
 def test_vendor_format_must_fit_robot() -> None:
     with pytest.raises(UnsupportedError, match="KUKA"):
         writer_for("krl", "ur10e")
+    with pytest.raises(UnsupportedError, match="use format 'rapid' or 'json'"):
+        writer_for("krl", "abb_irb4600_60_205")
+    with pytest.raises(UnsupportedError, match=r"use format 'json'$"):
+        writer_for("rapid", "brokk_170")
     with pytest.raises(UnsupportedError, match="unknown program format"):
         writer_for("gcode", "kuka_kr60_3")
     writer_for("json", "brokk_170")
