@@ -10,7 +10,7 @@ written.
 
 The runs here are seeded and sized for CI (1,500 validations and 60 builds, about
 40 s). A larger run with a fresh random seed each time (N validations, N / 50
-builds): ``FABFLOW_FUZZ_EXAMPLES=20000 pytest -m slow tests/test_project_fuzz.py``.
+builds): ``FABFLOW_FUZZ_EXAMPLES=20000 pytest tests/test_project_fuzz.py``.
 """
 
 from __future__ import annotations
@@ -330,8 +330,13 @@ def _validate_run(folder: Path, examples: int, derandomize: bool = True) -> None
     run()
 
 
+LARGE = int(os.environ.get("FABFLOW_FUZZ_EXAMPLES", "0"))
+"""With ``FABFLOW_FUZZ_EXAMPLES=N`` the same tests run N validations and N / 50
+builds with a fresh random seed each time, instead of CI's seeded sample."""
+
+
 def test_fuzz_validate(folder: Path) -> None:
-    _validate_run(folder, 1500)
+    _validate_run(folder, LARGE or 1500, derandomize=not LARGE)
 
 
 def _reject_constant(token: str) -> float:
@@ -377,14 +382,4 @@ def _build_run(folder: Path, examples: int, derandomize: bool = True) -> None:
 
 
 def test_fuzz_program_build(folder: Path) -> None:
-    _build_run(folder, 60)
-
-
-LARGE = int(os.environ.get("FABFLOW_FUZZ_EXAMPLES", "0"))
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not LARGE, reason="set FABFLOW_FUZZ_EXAMPLES=N for the larger fuzz run")
-def test_fuzz_large(folder: Path) -> None:
-    _validate_run(folder, LARGE, derandomize=False)
-    _build_run(folder, max(LARGE // 50, 1), derandomize=False)
+    _build_run(folder, max(LARGE // 50, 1) if LARGE else 60, derandomize=not LARGE)
