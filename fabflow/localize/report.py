@@ -1,21 +1,76 @@
-"""What ``fabflow localize`` reports: the rows of its summary, and the alert limit.
+"""What ``fabflow localize`` takes and reports: its numeric options, its summary, the alert limit.
 
 Plain data for the command line (:mod:`fabflow.cli` prints them): the pose with
 its uncertainty, then the integrity block (status and reason, global test,
 largest w-test, what was left out, protection level; docs/integrity.md).
+:func:`check_options` holds the numeric options of the three ``localize``
+commands (and the same parameters of the library) to :data:`OPTION_BOUNDS`.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 
 import numpy as np
 
 from fabflow.errors import InputError
 from fabflow.positioning.integrity import Integrity, guard_exclusion
+from fabflow.positioning.polar import INSTRUMENT_BOUNDS, MAX_COORDINATE_M, MAX_HEIGHT_M
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project, Tolerances
+
+Bound = tuple[float, float, str, bool]
+"""``(low, high, unit, low_open)``: a value in ``[low, high]``, or ``(low, high]``."""
+
+_ANGLE: Bound = (-360.0, 360.0, "degrees", False)
+_SITE: Bound = (-1e7, 1e7, "metres", False)
+OPTION_BOUNDS: dict[str, tuple[Bound, ...]] = {
+    "robot_sigma": ((0.0, 1.0, "metres", False),),
+    **{name: ((low, high, unit, False),) for name, (low, high, unit) in INSTRUMENT_BOUNDS.items()},
+    "instrument_height": ((-MAX_HEIGHT_M, MAX_HEIGHT_M, "metres", False),),
+    "instrument_xyz": ((-MAX_COORDINATE_M, MAX_COORDINATE_M, "metres", False),) * 3,
+    "instrument_abc_deg": (_ANGLE,) * 3,
+    "tcp_xyz": ((-10.0, 10.0, "metres", False),) * 3,
+    "init": (_SITE, _SITE, _ANGLE),
+    "lift": ((-100.0, 100.0, "metres", False),),
+}
+"""Accepted values of the numeric options of ``fabflow localize`` (by parameter
+name; one bound per component of a vector): finite, with the sign and size the
+quantity can have. A robot sigma of more than a metre, a zero instrument sigma
+(every covariance singular) or a prism 10 m from the flange is a mistake."""
+
+
+def check_options(values: Mapping[str, float | Sequence[float] | None], cli: bool = False) -> None:
+    """Refuse option values outside :data:`OPTION_BOUNDS` (``None`` is not given).
+
+    Parameters
+    ----------
+    values
+        Values by parameter name (``robot_sigma``); a vector option is a sequence.
+    cli
+        Name the command-line option (``--robot-sigma``) instead of the parameter.
+
+    Raises
+    ------
+    InputError
+        A value that is not a finite number within its bounds, naming the option.
+    """
+    for name, value in values.items():
+        if value is None:
+            continue
+        option = "--" + name.replace("_", "-") if cli else name
+        parts = [value] if isinstance(value, int | float) else list(value)
+        for x, (low, high, unit, low_open) in zip(parts, OPTION_BOUNDS[name], strict=True):
+            inside = x > low if low_open else x >= low
+            if not (math.isfinite(x) and inside and x <= high):
+                shown = ", ".join(f"{v:g}" for v in parts)
+                raise InputError(
+                    f"expected {'more than' if low_open else 'at least'} {low:g} and at most "
+                    f"{high:g} {unit}, got {shown}",
+                    location=option,
+                )
 
 
 def alert_limit_for(value: float | None, project: Project | None) -> float:
