@@ -332,7 +332,7 @@ def _polyline_box(e: ezdxf.entities.DXFGraphic, sagitta: float) -> tuple[np.ndar
 
 def _handle(e: ezdxf.entities.DXFGraphic) -> str:
     """The entity's handle, shortened (it comes from the file)."""
-    return str(e.dxf.handle)[:16]
+    return str(e.dxf.get("handle", "?"))[:16]
 
 
 def _reason(exc: BaseException) -> str:
@@ -457,12 +457,15 @@ def read_dxf_contours(
             f"the drawing has {len(msp)} entities, more than the {MAX_DXF_ENTITIES} fabflow reads",
             path,
         )
-    all_layers = sorted({e.dxf.layer for e in msp})
+    try:
+        entity_layers = [(e, str(e.dxf.layer)) for e in msp]
+        table_layers = {str(layer.dxf.name).casefold() for layer in doc.layers}
+    except _EZDXF_FAILURES as exc:
+        raise InputError(f"not a valid DXF file ({_reason(exc)})", path) from None
+    all_layers = sorted({layer for _, layer in entity_layers})
     wanted = {name.casefold() for name in layers}
     if wanted:
-        known = {name.casefold() for name in all_layers} | {
-            layer.dxf.name.casefold() for layer in doc.layers
-        }
+        known = {name.casefold() for name in all_layers} | table_layers
         missing = [name for name in layers if name.casefold() not in known]
         if missing:
             shown = ", ".join(show(name, 30) for name in all_layers[:12])
@@ -476,8 +479,7 @@ def read_dxf_contours(
     unsupported: list[str] = []
     n_entities, n_vertices = 0, 0
     sagitta, tol = flatten_tol / factor, ZERO_LENGTH / factor
-    for e in msp:
-        layer = e.dxf.layer
+    for e, layer in entity_layers:
         if wanted and layer.casefold() not in wanted:
             continue
         if e.dxftype() not in SUPPORTED:

@@ -105,13 +105,13 @@ def guarded(pose: BasePose, alert_limit: float) -> BasePose:
 def pose_rows(pose: BasePose) -> list[tuple[str, str]]:
     """Summary rows of a base pose: position, heading, sigmas, RMSE, then its integrity."""
     T = pose.T_world_base
-    sd = np.sqrt(np.diag(pose.covariance))
+    sd = np.sqrt(np.maximum(np.diag(pose.covariance), 0.0))
     return [
-        ("position (m)", ", ".join(f"{v:.4f}" for v in T[:3, 3])),
-        ("heading (deg)", f"{np.degrees(np.arctan2(T[1, 0], T[0, 0])):.4f}"),
-        ("sigma xyz (mm)", ", ".join(f"{1e3 * v:.2f}" for v in sd[:3])),
-        ("sigma heading (deg)", f"{np.degrees(sd[5]):.4f}"),
-        ("rmse (mm)", f"{1e3 * pose.rmse:.2f}"),
+        ("position (m)", ", ".join(_num(v, ".4f") for v in T[:3, 3])),
+        ("heading (deg)", _num(np.degrees(np.arctan2(T[1, 0], T[0, 0])), ".4f")),
+        ("sigma xyz (mm)", ", ".join(_num(1e3 * v, ".2f") for v in sd[:3])),
+        ("sigma heading (deg)", _num(np.degrees(sd[5]), ".4f")),
+        ("rmse (mm)", _num(1e3 * pose.rmse, ".2f")),
         *integrity_rows(pose.integrity),
     ]
 
@@ -126,8 +126,9 @@ def integrity_rows(integrity: Integrity | None) -> list[tuple[str, str]]:
         rows.append(
             (
                 "global test",
-                f"{g['statistic']:.1f} {'<=' if g['passed'] else '>'} {g['threshold']:.1f} "
-                f"({integrity.redundancy} dof, variance factor {g['variance_factor']:.2f})",
+                f"{_num(g['statistic'], '.1f')} {'<=' if g['passed'] else '>'} "
+                f"{_num(g['threshold'], '.1f')} ({integrity.redundancy} dof, variance factor "
+                f"{_num(g.get('variance_factor'), '.2f')})",
             )
         )
     w = integrity.w_test
@@ -135,8 +136,8 @@ def integrity_rows(integrity: Integrity | None) -> list[tuple[str, str]]:
         rows.append(
             (
                 "largest w-test",
-                f"{w['max']:.2f} {'<=' if w['passed'] else '>'} {w['threshold']:.2f} "
-                f"({w['suspect']})",
+                f"{_num(w['max'], '.2f')} {'<=' if w['passed'] else '>'} "
+                f"{_num(w.get('threshold'), '.2f')} ({w.get('suspect')})",
             )
         )
     for e in integrity.excluded:
@@ -163,3 +164,10 @@ def _millimetres(value: float | None) -> str:
     if value is None or not math.isfinite(value):
         return "unbounded"
     return f"{1e3 * value:.1f}"
+
+
+def _num(value: float | None, fmt: str) -> str:
+    """``value`` formatted with ``fmt``; ``n/a`` when it is missing or not finite."""
+    if value is None or not math.isfinite(value):
+        return "n/a"
+    return format(value, fmt)

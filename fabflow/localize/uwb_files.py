@@ -63,6 +63,8 @@ MAX_ANCHORS = 24
 """Most anchors an anchors file may list (a site has 4 to a dozen)."""
 MAX_TAGS = 8
 """Most tags on the platform (two give the heading; four are plenty)."""
+MIN_SIGMA_M = 1e-4
+"""Smallest range noise ``sigma`` (metres at 1 m): no UWB ranges to a tenth of a millimetre."""
 MAX_LENGTH_M = 10_000.0
 """Largest magnitude of a length in the anchors file (metres): coordinates, lever arms,
 calibration offsets and sigmas; 10 km is far beyond the reach of UWB ranging."""
@@ -83,7 +85,7 @@ def load_anchors_file(path: str | Path) -> tuple[UwbSetup, np.ndarray]:
     :data:`MAX_ANCHORS_BYTES`, bounded nesting, no duplicate keys, finite
     numbers) and validated as the project's ``localization.uwb`` section; its
     sizes and lengths are bounded (:data:`MAX_ANCHORS`, :data:`MAX_TAGS`,
-    :data:`MAX_LENGTH_M`, :data:`SCALE_BOUNDS`).
+    :data:`MIN_SIGMA_M`, :data:`MAX_LENGTH_M`, :data:`SCALE_BOUNDS`).
 
     Raises
     ------
@@ -180,6 +182,8 @@ def _out_of_bounds(
         for loc, v in lengths
         if abs(v) > MAX_LENGTH_M
     ]
+    if setup.sigma < MIN_SIGMA_M:
+        out.append((("sigma",), f"{setup.sigma:.6g} m is below {MIN_SIGMA_M:g} m"))
     lo, hi = SCALE_BOUNDS
     out += [
         (("calibration", k, 1), f"scale {ab[1]:.6g} is outside [{lo:g}, {hi:g}]")

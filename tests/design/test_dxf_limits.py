@@ -36,7 +36,9 @@ def test_not_a_drawing(tmp_path: Path) -> None:
     data = good.read_bytes()
     broken = data.replace(b"\n 40\n100.0\n", b"\n 40\n1OO.O\n")
     assert broken != data
-    for k, bad in enumerate((b"\x00\xff" * 300, b"hello\n", broken)):
+    poly = _save(tmp_path, lambda m: m.add_lwpolyline([(0, 0), (5, 0), (5, 5)], dxfattribs=PATH))
+    nul_type = poly.read_bytes().replace(b"\nLWPOLYLINE\n", b"\n\x00LWPOLYLINE\n")  # fuzz find
+    for k, bad in enumerate((b"\x00\xff" * 300, b"hello\n", broken, nul_type)):
         path = tmp_path / f"bad{k}.dxf"
         path.write_bytes(bad)
         with pytest.raises(InputError) as exc:

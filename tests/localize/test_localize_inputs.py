@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from fabflow.cli import app
 from fabflow.errors import InputError, LocalizationError
 from fabflow.localize import uwb_files
 from fabflow.localize.icp import localize_files as localize_icp
+from fabflow.localize.report import pose_rows
 from fabflow.localize.total_station import localize_files as localize_ts
 from fabflow.localize.uwb_files import load_anchors_file, localize_from_files
 from fabflow.positioning.pointcloud_io import write_point_cloud
@@ -143,6 +145,11 @@ def test_uwb_problems_name_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPa
             "more than 24",
         ),
         ("anchors: {A1: [0, 0, 1]}\n", "line 1", "at least 3 items"),
+        (
+            "anchors: {A1: [0, 0, 1], A2: [4, 0, 1], A3: [4, 6, 1]}\nsigma: 7e-259\n",
+            "line 2",
+            "below 0.0001 m",
+        ),
     ],
 )
 def test_anchors_file_problems_have_their_line(
@@ -171,3 +178,17 @@ def test_a_scan_that_gives_no_pose_is_named(tmp_path: Path) -> None:
     with pytest.raises(LocalizationError) as exc:
         localize_icp(tmp_path / "scan.xyz", tmp_path / "map.ply", (1.0, 1.0, 0.0))
     assert exc.value.source == str(tmp_path / "scan.xyz")
+
+
+def test_summary_rows_never_print_nan() -> None:
+    pose = localize_from_files(STATIC / "ranges.csv", STATIC / "anchors.yaml")
+    assert pose.integrity is not None
+    odd = dataclasses.replace(
+        pose.integrity,
+        global_test={"statistic": np.nan, "threshold": np.inf, "passed": False},
+        w_test={"max": np.nan, "threshold": None, "passed": False, "suspect": "A1"},
+    )
+    rows = pose_rows(dataclasses.replace(pose, integrity=odd, rmse=np.nan))
+    text = " ".join(value for _, value in rows)
+    assert "nan" not in text.lower() and "inf" not in text.replace("info", "")
+    assert "n/a" in text
