@@ -317,10 +317,25 @@ def localize_total_station(
 ) -> None:
     """Localize the robot base from total station readings of prisms on the robot."""
 
-    from fabflow.localize.report import alert_limit_for
+    from fabflow.localize.report import alert_limit_for, check_options
     from fabflow.localize.total_station import localize_files
     from fabflow.project import load_project
 
+    numbers = {
+        "distance_sigma_mm": distance_sigma_mm,
+        "distance_ppm": distance_ppm,
+        "angle_sigma_arcsec": angle_sigma_arcsec,
+        "instrument_xyz": _optional_numbers(
+            instrument_xyz, "--instrument-xyz", "x,y,z", " (metres, world frame)"
+        ),
+        "instrument_abc_deg": _optional_numbers(
+            instrument_abc_deg, "--instrument-abc-deg", "A,B,C", " (degrees, Rz Ry Rx)"
+        ),
+        "instrument_height": instrument_height,
+        "robot_sigma": robot_sigma,
+        "tcp_xyz": _optional_numbers(tcp_xyz, "--tcp-xyz", "x,y,z", " (metres, flange frame)"),
+    }
+    check_options(numbers, cli=True)
     loaded = None if project is None else load_project(project)
     limit = alert_limit_for(alert_limit, loaded)
     pose = localize_files(
@@ -328,22 +343,11 @@ def localize_total_station(
         robot_points,
         project=loaded,
         instrument=instrument,
-        distance_sigma_mm=distance_sigma_mm,
-        distance_ppm=distance_ppm,
-        angle_sigma_arcsec=angle_sigma_arcsec,
-        instrument_xyz=_optional_numbers(
-            instrument_xyz, "--instrument-xyz", "x,y,z", " (metres, world frame)"
-        ),
-        instrument_abc_deg=_optional_numbers(
-            instrument_abc_deg, "--instrument-abc-deg", "A,B,C", " (degrees, Rz Ry Rx)"
-        ),
-        instrument_height=instrument_height,
-        robot_sigma=robot_sigma,
         method="optimize" if optimize else "closed_form",
         reject_outlier=not keep_outliers,
         station=station,
         robot=robot,
-        tcp_xyz=_optional_numbers(tcp_xyz, "--tcp-xyz", "x,y,z", " (metres, flange frame)"),
+        **numbers,  # type: ignore[arg-type]
     )
     q = pose.quality
     rows = [("points used", f"{q['n_inliers']} of {q['n_points']}")]
@@ -404,19 +408,14 @@ def localize_icp(
     """Localize the robot base by ICP of a LiDAR scan against a map; writes OUT/base_pose.json."""
 
     from fabflow.localize.icp import localize_files
-    from fabflow.localize.report import alert_limit_for
+    from fabflow.localize.report import alert_limit_for, check_options
     from fabflow.project import load_project
 
+    start = parse_numbers(init, "--init", "x,y,yaw", " (metres, metres, degrees)")
+    check_options({"init": start, "lift": lift}, cli=True)
     loaded = None if project is None else load_project(project)
     limit = alert_limit_for(alert_limit, loaded)
-    pose = localize_files(
-        scan,
-        map_file,
-        parse_numbers(init, "--init", "x,y,yaw", " (metres, metres, degrees)"),
-        project=loaded,
-        lift=lift,
-        station=station,
-    )
+    pose = localize_files(scan, map_file, start, project=loaded, lift=lift, station=station)
     q = pose.quality
     rows = [
         ("scan points", f"{q['n_points']} used of {q['n_scan_points']}"),

@@ -481,8 +481,8 @@ def parse_project(
         For YAML that does not parse or a project that does not validate; the
         message names the file, the line, the field path and what was expected.
     """
-    node, data = parse_yaml(text, source)
-    return _validate(node, data, source, base_dir)
+    doc = parse_yaml(text, source)
+    return _validate(doc.node, doc.data, source, base_dir)
 
 
 def _validate(node: Any, data: Any, source: str | Path, base_dir: Path | None) -> Project:
@@ -514,8 +514,8 @@ def load_project(path: str | Path) -> Project:
     path = Path(path)
     if path.is_dir():
         path = path / "project.yaml"
-    node, data = read_yaml(path, "project file")
-    project = _validate(node, data, path, path.parent.resolve())
+    doc = read_yaml(path, "project file")
+    project = _validate(doc.node, doc.data, path, path.parent.resolve())
     return project.model_copy(update={"path": path.resolve()})
 
 

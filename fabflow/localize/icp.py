@@ -21,8 +21,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from fabflow.design.elements import Element
+from fabflow.errors import FabflowError
+from fabflow.localize.report import check_options
 from fabflow.localize.site import site_obstacles
-from fabflow.positioning.pointcloud import read_point_cloud
+from fabflow.positioning.pointcloud_io import read_point_cloud
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.scan_matching import (
     ScanLocalization,
@@ -240,11 +242,13 @@ def localize_files(
     Raises
     ------
     InputError
-        An unreadable scan or map file.
+        An unreadable scan or map file (naming it and the line), or ``init`` or
+        ``lift`` outside :data:`fabflow.localize.report.OPTION_BOUNDS`.
     LocalizationError
-        When no pose can be computed (too few scan points or correspondences).
+        When no pose can be computed (too few scan points or correspondences),
+        naming the scan file.
     """
-
+    check_options({"init": init, "lift": lift})
     setup = (project.localization.icp if project is not None else None) or IcpSetup()
     mounting = (project.robot.platform if project is not None else Platform()).T_platform_base
     T_platform_base = platform.T_platform_base_at(mounting.matrix(), lift)
@@ -254,7 +258,13 @@ def localize_files(
     T_world_platform = np.array([[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, 0], [0, 0, 0, 1.0]])
     scan = read_point_cloud(scan_path).points
     scan_map = load_map(map_path, setup.map_voxel_size)
-    loc = _localize_scan(scan, scan_map, T_world_platform @ T_platform_lidar, setup)
+    try:
+        loc = _localize_scan(scan, scan_map, T_world_platform @ T_platform_lidar, setup)
+    except FabflowError as exc:
+        if exc.source is not None:
+            raise
+        # the scan gave no pose (too few points, no correspondences): name it
+        raise type(exc)(exc.message, scan_path, exc.location) from None
     return to_base_pose(
         loc,
         inv_T(T_platform_base) @ T_platform_lidar,

@@ -22,6 +22,7 @@ import numpy as np
 
 from fabflow.design.elements import Element, element_boxes
 from fabflow.errors import InputError, LocalizationError
+from fabflow.localize.report import check_options
 from fabflow.positioning.integrity import ALPHA
 from fabflow.positioning.point_selection import (
     Boxes,
@@ -48,6 +49,7 @@ from fabflow.positioning.total_station import (
 )
 from fabflow.positioning.ts_io import read_observations, read_robot_points
 from fabflow.project import Project, TotalStationSetup
+from fabflow.robots.catalog import get_robot
 from fabflow.robots.prism import PrismReach, prism_points_from_joints, prism_reach
 from fabflow.schema import PoseSpec
 from fabflow.sensors.total_station import simulate_polar
@@ -333,7 +335,30 @@ def localize_files(
     turned into prism positions by forward kinematics of ``robot`` (else the
     project's robot) with the prism at the project's TCP, or at ``tcp_xyz``
     (metres, flange frame).
+
+    Raises
+    ------
+    InputError
+        A numeric argument outside :data:`fabflow.localize.report.OPTION_BOUNDS`
+        (naming it), or a problem of either file (naming the file and the line).
+    LocalizationError
+        Too few matching points, or points that do not span a plane.
     """
+    instrument_xyz = _three(instrument_xyz, "instrument_xyz")
+    instrument_abc_deg = _three(instrument_abc_deg, "instrument_abc_deg")
+    tcp_xyz = _three(tcp_xyz, "tcp_xyz")
+    check_options(
+        {
+            "distance_sigma_mm": distance_sigma_mm,
+            "distance_ppm": distance_ppm,
+            "angle_sigma_arcsec": angle_sigma_arcsec,
+            "instrument_xyz": instrument_xyz,
+            "instrument_abc_deg": instrument_abc_deg,
+            "instrument_height": instrument_height,
+            "robot_sigma": robot_sigma,
+            "tcp_xyz": tcp_xyz,
+        }
+    )
     setup = TotalStationSetup()
     if project is not None and project.localization.total_station is not None:
         setup = project.localization.total_station
@@ -344,9 +369,6 @@ def localize_files(
         distance_ppm if distance_ppm is not None else setup.distance_ppm,
         angle_sigma_arcsec if angle_sigma_arcsec is not None else setup.angle_sigma_arcsec,
     )
-    instrument_xyz = _three(instrument_xyz, "instrument_xyz")
-    instrument_abc_deg = _three(instrument_abc_deg, "instrument_abc_deg")
-    tcp_xyz = _three(tcp_xyz, "tcp_xyz")
     if instrument_xyz is not None or instrument_abc_deg is not None:
         pose = PoseSpec(
             xyz=instrument_xyz if instrument_xyz is not None else pose.xyz,
@@ -365,6 +387,15 @@ def localize_files(
             raise InputError(
                 "the robot point file holds joint values; name the robot (--robot or --project)",
                 rp.source,
+                f"line {rp.header_line}",
+            )
+        dof = get_robot(model).dof
+        if rp.joints.shape[1] != dof:
+            raise InputError(
+                f"{model} has {dof} joints but the file gives {rp.joints.shape[1]} "
+                f"(q1_deg..q{rp.joints.shape[1]}_deg)",
+                rp.source,
+                f"line {rp.header_line}",
             )
         T_flange_tool = (
             project.robot.tool.T_flange_tool.matrix() if project is not None else np.eye(4)
@@ -382,6 +413,7 @@ def localize_files(
         method,
         reject_outlier,
         alpha=ALPHA if project is None else project.localization.integrity.alpha,
+        robot_source=rp.source,
     )
     if project is not None:
         reg = add_instrument_uncertainty(reg, T_world_instrument, instrument_covariance(setup))

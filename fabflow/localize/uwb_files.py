@@ -10,14 +10,14 @@ UWB/IMU ESKF (:mod:`fabflow.positioning.eskf`) runs over the whole record.
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from pydantic import ValidationError
 
-from fabflow.errors import InputError
+from fabflow.errors import FabflowError, InputError, LocalizationError
 from fabflow.localize.site import anchors_world
 from fabflow.positioning.eskf import (
     Eskf,
@@ -31,7 +31,12 @@ from fabflow.positioning.eskf_input import coverage_problem
 from fabflow.positioning.eskf_integrity import eskf_integrity
 from fabflow.positioning.integrity import Integrity
 from fabflow.positioning.result import BasePose
-from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Sigma, locate
+from fabflow.positioning.uwb import (
+    UNOBSERVED_VARIANCE,
+    Sigma,
+    anchor_geometry_problem,
+    locate,
+)
 from fabflow.positioning.uwb_calibration import (
     RangeCalibration,
     reject_outliers,
@@ -50,41 +55,142 @@ from fabflow.schema import PoseSpec
 from fabflow.sensors.uwb import UwbErrorModel
 from fabflow.transforms.se3 import compose_covariance
 from fabflow.transforms.so3 import matrix_from_quat, skew
+from fabflow.yaml_input import read_yaml
+
+MAX_ANCHORS_BYTES = 64 * 2**10
+"""Largest anchors file read (bytes): a setup of two dozen anchors takes two kilobytes."""
+MAX_ANCHORS = 24
+"""Most anchors an anchors file may list (a site has 4 to a dozen)."""
+MAX_TAGS = 8
+"""Most tags on the platform (two give the heading; four are plenty)."""
+MIN_SIGMA_M = 1e-4
+"""Smallest range noise ``sigma`` (metres at 1 m): no UWB ranges to a tenth of a millimetre."""
+MAX_LENGTH_M = 10_000.0
+"""Largest magnitude of a length in the anchors file (metres): coordinates, lever arms,
+calibration offsets and sigmas; 10 km is far beyond the reach of UWB ranging."""
+MAX_STATIC_RANGES = 20_000
+"""Most ranges of a static localization (no IMU): 40 s of a platform standing still,
+ranged at 60 Hz from four anchors to two tags. The joint adjustment refits all of
+them once per anchor it tests, so a longer stand adds work, not accuracy."""
+MAX_EPOCH_CELLS = 20_000_000
+"""Largest table of ranges by epoch, tag and anchor the estimators build (160 MB)."""
+SCALE_BOUNDS = (0.5, 2.0)
+"""Range of a ranging calibration scale: a scale error of a factor two is not a calibration."""
 
 
-def load_anchors_file(path: str | Path) -> tuple[Any, np.ndarray]:
+def load_anchors_file(path: str | Path) -> tuple[UwbSetup, np.ndarray]:
     """Read ANCHORS.yaml: the UWB setup and ``T_platform_base`` (4x4).
+
+    The file is read safely (:func:`fabflow.yaml_input.read_yaml`: at most
+    :data:`MAX_ANCHORS_BYTES`, bounded nesting, no duplicate keys, finite
+    numbers) and validated as the project's ``localization.uwb`` section; its
+    sizes and lengths are bounded (:data:`MAX_ANCHORS`, :data:`MAX_TAGS`,
+    :data:`MIN_SIGMA_M`, :data:`MAX_LENGTH_M`, :data:`SCALE_BOUNDS`).
 
     Raises
     ------
     InputError
-        YAML that does not parse or fields that do not validate (with the field path).
+        YAML that does not parse or fields that do not validate, each with
+        its line and field path.
     """
-
-    path = Path(path)
-    if not path.exists():
-        raise InputError("file does not exist", path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read file: {exc}", path) from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}" if mark else None
-        raise InputError(
-            f"YAML does not parse: {getattr(exc, 'problem', exc)}", path, where
-        ) from None
+    doc = read_yaml(path, "anchors file", MAX_ANCHORS_BYTES, finite=True)
+    data = doc.data
     if not isinstance(data, dict):
-        raise InputError("expected a mapping with 'anchors' (and optional UWB settings)", path)
+        raise InputError(
+            "expected a mapping with 'anchors' (and optional UWB settings)", path, "line 1"
+        )
     data = dict(data)
     pose = data.pop("T_platform_base", None)
+    problems: list[tuple[tuple[Any, ...], str]] = []
     try:
         setup = UwbSetup.model_validate(data)
-        T_platform_base = PoseSpec.model_validate(pose or {}).matrix()
     except ValidationError as exc:
-        msgs = [f"{format_loc(e['loc'])}: {e['msg']}" for e in exc.errors()]
-        raise InputError("invalid anchors file\n  " + "\n  ".join(msgs), path) from None
+        problems += [(tuple(e["loc"]), e["msg"]) for e in exc.errors()]
+    try:
+        T_platform_base = PoseSpec.model_validate({} if pose is None else pose).matrix()
+    except ValidationError as exc:
+        problems += [(("T_platform_base", *e["loc"]), e["msg"]) for e in exc.errors()]
+    if not problems:
+        problems = _out_of_bounds(setup, T_platform_base)
+    if problems:
+        # pydantic's messages may quote the file (an unknown anchor id): keep them short
+        problems = [(loc, _short(msg)) for loc, msg in problems]
+        lines = []
+        for loc, msg in problems[:10]:
+            line = doc.line_of(loc)
+            lines.append(f"{'' if line is None else f'line {line}: '}{_field(loc)}: {msg}")
+        if len(lines) == 1:
+            loc, msg = problems[0]
+            line = doc.line_of(loc)
+            raise InputError(
+                f"{_field(loc)}: {msg}", path, None if line is None else f"line {line}"
+            )
+        more = [f"... and {len(problems) - 10} more"] if len(problems) > 10 else []
+        raise InputError("invalid anchors file\n  " + "\n  ".join(lines + more), path)
     return setup, T_platform_base
+
+
+def _short(message: str) -> str:
+    """``message`` with every long word and the whole cut short (it may quote the file)."""
+    message = re.sub(r"\S{41,}", lambda m: m.group()[:40] + "...", message)
+    return message if len(message) <= 200 else message[:200] + "..."
+
+
+def _field(loc: tuple[Any, ...]) -> str:
+    """The field path of ``loc``, keys from the file shortened."""
+    return format_loc(
+        tuple(k if not isinstance(k, str) or len(k) <= 40 else k[:40] + "..." for k in loc)
+    )
+
+
+def _floats(data: Any, loc: tuple[Any, ...] = ()) -> list[tuple[tuple[Any, ...], float]]:
+    """Every float in plain data with its field path."""
+    if isinstance(data, float):
+        return [(loc, data)]
+    if isinstance(data, dict):
+        return [x for k, v in data.items() for x in _floats(v, (*loc, k))]
+    if isinstance(data, list | tuple):
+        return [x for i, v in enumerate(data) for x in _floats(v, (*loc, i))]
+    return []
+
+
+def _out_of_bounds(
+    setup: UwbSetup, T_platform_base: np.ndarray
+) -> list[tuple[tuple[Any, ...], str]]:
+    """Field paths and messages of the values beyond the bounds of an anchors file."""
+    floats = _floats(setup.model_dump())
+    out = [(loc, f"{v} is not finite") for loc, v in floats if not math.isfinite(v)]
+    if out:
+        return out  # a text such as 'nan' the model read as a number
+    if len(setup.anchors) > MAX_ANCHORS:
+        out.append((("anchors",), f"{len(setup.anchors)} anchors, more than {MAX_ANCHORS}"))
+    if len(setup.tags) > MAX_TAGS:
+        out.append((("tags",), f"{len(setup.tags)} tags, more than {MAX_TAGS}"))
+    if not np.all(np.isfinite(T_platform_base)):
+        out.append((("T_platform_base",), "is not a finite pose"))
+    lengths: list[tuple[tuple[Any, ...], float]] = [
+        *((("anchors", k, i), v) for k, xyz in setup.anchors.items() for i, v in enumerate(xyz)),
+        *((("tags", j, i), v) for j, xyz in enumerate(setup.tags) for i, v in enumerate(xyz)),
+        *((("T_world_uwb", "xyz", i), v) for i, v in enumerate(setup.T_world_uwb.xyz)),
+        *((("T_platform_base", "xyz", i), float(v)) for i, v in enumerate(T_platform_base[:3, 3])),
+        *((("calibration", k, 0), ab[0]) for k, ab in setup.calibration.items()),
+        (("sigma",), setup.sigma),
+        (("calibration_sigma",), setup.calibration_sigma),
+    ]
+    out += [
+        (loc, f"{v:.6g} m is beyond the {MAX_LENGTH_M:g} m an anchors file may give")
+        for loc, v in lengths
+        if abs(v) > MAX_LENGTH_M
+    ]
+    if setup.sigma < MIN_SIGMA_M:
+        out.append((("sigma",), f"{setup.sigma:.6g} m is below {MIN_SIGMA_M:g} m"))
+    lo, hi = SCALE_BOUNDS
+    out += [
+        (("calibration", k, 1), f"scale {ab[1]:.6g} is outside [{lo:g}, {hi:g}]")
+        for k, ab in setup.calibration.items()
+        if not lo <= ab[1] <= hi
+    ]
+    return out
 
 
 def localize_from_files(
@@ -97,14 +203,62 @@ def localize_from_files(
     ESKF runs over the whole record and the pose at its end is returned; with a
     single tag its initial heading is the direction of the first motion (the
     platform drives along its x axis). The ESKF pose carries the filter's tests
-    as its integrity record (:mod:`fabflow.positioning.eskf_integrity`); an IMU
-    record beyond what an IMU measures, or one that does not cover the ranges,
-    is an InputError.
+    as its integrity record (:mod:`fabflow.positioning.eskf_integrity`).
+
+    Raises
+    ------
+    InputError
+        A problem of one of the files (naming it, and the line where there is
+        one): see :func:`load_anchors_file`,
+        :func:`~fabflow.positioning.uwb_io.read_ranges_csv` and
+        :func:`~fabflow.positioning.uwb_io.read_imu_csv`; an IMU record that does
+        not cover the ranges; a static record of more than
+        :data:`MAX_STATIC_RANGES` ranges; more than :data:`MAX_EPOCH_CELLS` cells of
+        epochs.
+    LocalizationError
+        Anchors that cannot fix a position (naming the anchors file), or ranges
+        that give no pose (naming the ranges file).
     """
     setup, T_platform_base = load_anchors_file(anchors_yaml)
     ids, A = anchors_world(setup)
+    problem = anchor_geometry_problem(A)
+    if problem is not None:
+        raise LocalizationError(problem, anchors_yaml)
     L = np.asarray(setup.tags, dtype=float)
     log = read_ranges_csv(ranges_csv, ids, len(L))
+    if imu_csv is None and log.range.size > MAX_STATIC_RANGES:
+        raise InputError(
+            f"{log.range.size} ranges, more than the {MAX_STATIC_RANGES} of a static "
+            "localization: give the ranges of one stand (or an IMU record of the motion)",
+            ranges_csv,
+        )
+    n_epochs = int(np.bincount(log.tag * len(ids) + log.anchor).max())
+    if n_epochs * len(L) * len(ids) > MAX_EPOCH_CELLS:
+        raise InputError(
+            f"one tag-anchor pair has {n_epochs} ranges: with {len(L)} tag(s) and "
+            f"{len(ids)} anchors the table of epochs would exceed {MAX_EPOCH_CELLS} cells",
+            ranges_csv,
+        )
+    try:
+        return _localize(setup, T_platform_base, ids, A, L, log, anchors_yaml, imu_csv)
+    except FabflowError as exc:
+        if exc.source is not None:
+            raise
+        # a problem of the estimation: the ranges did not give a pose
+        raise type(exc)(exc.message, ranges_csv, exc.location) from None
+
+
+def _localize(
+    setup: UwbSetup,
+    T_platform_base: np.ndarray,
+    ids: list[str],
+    A: np.ndarray,
+    L: np.ndarray,
+    log: RangeLog,
+    anchors_yaml: str | Path,
+    imu_csv: str | Path | None,
+) -> BasePose:
+    """:func:`localize_from_files` once the files are read."""
     cal = RangeCalibration.from_mapping(
         {k: {"offset": v[0], "scale": v[1]} for k, v in setup.calibration.items()},
         ids,

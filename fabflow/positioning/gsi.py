@@ -35,15 +35,32 @@ from pathlib import Path
 import numpy as np
 
 from fabflow.errors import InputError, UnsupportedError
-from fabflow.positioning.polar import DEG, GON, Observations
+from fabflow.files import read_bytes, show, text_lines
+from fabflow.positioning.polar import (
+    DEG,
+    GON,
+    MAX_COORDINATE_M,
+    MAX_HEIGHT_M,
+    MAX_READINGS,
+    MAX_READINGS_BYTES,
+    Observations,
+    reading_problem,
+)
 
 _ANGLE_WORDS = {"21", "22"}
 _LENGTH_WORDS = {"31", "81", "82", "83", "84", "85", "86", "87", "88"}
 _LENGTH_UNITS = {"0": (1.0, 3), "1": (0.3048, 3), "6": (1.0, 4), "7": (0.3048, 4), "8": (1.0, 5)}
 
 
+def _digits(digits: str) -> int:
+    """The data of a numeric word as an integer; ValueError unless it is ASCII digits."""
+    if not (digits.isascii() and digits.isdigit()):
+        raise ValueError("invalid literal")
+    return int(digits)
+
+
 def _angle(unit: str, digits: str, negative: bool) -> float:
-    value = int(digits)
+    value = _digits(digits)
     if unit == "2":
         rad = value * 1e-5 * GON
     elif unit == "3":
@@ -65,7 +82,7 @@ def _length(unit: str, digits: str, negative: bool) -> float:
     if unit not in _LENGTH_UNITS:
         raise ValueError(f"unknown length unit {unit!r} (expected 0, 6, 8 metres or 1, 7 feet)")
     scale, decimals = _LENGTH_UNITS[unit]
-    value = int(digits) * 10.0**-decimals * scale
+    value = _digits(digits) * 10.0**-decimals * scale
     return -value if negative else value
 
 
@@ -74,13 +91,14 @@ def _parse_word(word: str, gsi16: bool) -> tuple[str, str, str, bool]:
     expected = 16 if gsi16 else 8
     if len(word) != 7 + expected:
         raise ValueError(
-            f"word {word!r} has {len(word)} characters, expected {7 + expected} for GSI-{expected}"
+            f"word {show(word, 30)} has {len(word)} characters, expected {7 + expected} "
+            f"for GSI-{expected}"
         )
     wi, info, sign, data = word[:2], word[2:6], word[6], word[7:]
-    if not wi.isdigit():
-        raise ValueError(f"word {word!r} does not start with a two-digit word index")
+    if not (wi.isascii() and wi.isdigit()):
+        raise ValueError(f"word {show(word, 30)} does not start with a two-digit word index")
     if sign not in "+-":
-        raise ValueError(f"word {word!r} has no sign at position 7")
+        raise ValueError(f"word {show(word, 30)} has no sign at position 7")
     return wi, info, data, sign == "-"
 
 
@@ -97,7 +115,9 @@ def parse_gsi(text: str, source: str | Path = "<string>") -> Observations:
     Raises
     ------
     InputError
-        On a malformed word, an unknown unit, a block without point id, or a
+        On a malformed word, an unknown unit, a block without point id, a
+        station or instrument height beyond its bound, more than
+        :data:`~fabflow.positioning.polar.MAX_READINGS` observations, or a
         file without observations; the message names the line.
     """
     ids: list[str] = []
@@ -105,7 +125,7 @@ def parse_gsi(text: str, source: str | Path = "<string>") -> Observations:
     lines: list[int] = []
     station = [math.nan, math.nan, math.nan]
     instrument_height = 0.0
-    for lineno, raw in enumerate(text.splitlines(), start=1):
+    for lineno, raw in enumerate(text_lines(text), start=1):
         line = raw.strip()
         if not line:
             continue
@@ -127,13 +147,26 @@ def parse_gsi(text: str, source: str | Path = "<string>") -> Observations:
             except ValueError as exc:
                 msg = str(exc)
                 if "invalid literal" in msg:
-                    msg = f"word {word!r}: data is not a number"
+                    msg = f"word {show(word, 30)}: data is not a number"
                 raise InputError(msg, source, f"line {lineno}") from None
         for k, wi in enumerate(("84", "85", "86")):
             if wi in values:
+                if abs(values[wi]) > MAX_COORDINATE_M:
+                    raise InputError(
+                        f"station coordinate (word {wi}) is beyond {MAX_COORDINATE_M:g} m",
+                        source,
+                        f"line {lineno}",
+                    )
                 station[k] = values[wi]
         if "88" in values:
             instrument_height = values["88"]
+            if abs(instrument_height) > MAX_HEIGHT_M:
+                raise InputError(
+                    f"instrument height (word 88) {instrument_height:.6g} m is beyond "
+                    f"{MAX_HEIGHT_M:g} m",
+                    source,
+                    f"line {lineno}",
+                )
         has_polar = any(w in values for w in ("21", "22", "31"))
         has_coords = any(w in values for w in ("81", "82", "83"))
         if not (has_polar or has_coords):
@@ -142,17 +175,23 @@ def parse_gsi(text: str, source: str | Path = "<string>") -> Observations:
             raise InputError(
                 "observation block has no point id (word 11)", source, f"line {lineno}"
             )
+        if len(rows) == MAX_READINGS:
+            raise InputError(
+                f"more than {MAX_READINGS} observations, the most fabflow reads from a file",
+                source,
+                f"line {lineno}",
+            )
         if has_polar and not all(w in values for w in ("21", "22", "31")):
             missing = [w for w in ("21", "22", "31") if w not in values]
             raise InputError(
-                f"point {point_id!r}: polar observation lacks word(s) {', '.join(missing)} "
+                f"point {show(point_id)}: polar observation lacks word(s) {', '.join(missing)} "
                 "(21 Hz, 22 V, 31 slope distance)",
                 source,
                 f"line {lineno}",
             )
         if has_coords and not has_polar and not all(w in values for w in ("81", "82", "83")):
             raise InputError(
-                f"point {point_id!r}: coordinates need all of words 81, 82, 83",
+                f"point {show(point_id)}: coordinates need all of words 81, 82, 83",
                 source,
                 f"line {lineno}",
             )
@@ -183,10 +222,16 @@ def parse_gsi(text: str, source: str | Path = "<string>") -> Observations:
 
 
 def read_gsi(path: str | Path) -> Observations:
-    """Read a Leica GSI-8/GSI-16 file; see :func:`parse_gsi`."""
+    """Read a Leica GSI-8/GSI-16 file; see :func:`parse_gsi`.
+
+    The file holds at most :data:`~fabflow.positioning.polar.MAX_READINGS_BYTES`
+    bytes. GSI is ASCII; its bytes are read as Latin-1, so that any byte is a
+    character and a bad one is reported by :func:`parse_gsi` with its line. The
+    readings are checked by :func:`~fabflow.positioning.polar.reading_problem`.
+    """
     path = Path(path)
-    try:
-        text = path.read_bytes().decode("latin-1")
-    except OSError as exc:
-        raise InputError(f"cannot read GSI file: {exc.strerror}", path) from None
-    return parse_gsi(text, path)
+    obs = parse_gsi(read_bytes(path, "GSI file", MAX_READINGS_BYTES).decode("latin-1"), path)
+    problem = reading_problem(obs)
+    if problem is not None:
+        raise InputError(problem[1], path, obs.at(problem[0]))
+    return obs

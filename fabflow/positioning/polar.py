@@ -16,6 +16,13 @@ at the edges with :data:`GON` and :data:`DEG`.
 The accuracy model is the one on instrument data sheets: a distance standard
 deviation of ``a + b * sd`` (``a`` metres, ``b`` parts per million) and one angle
 standard deviation for both Hz and V.
+
+Readings from files are checked here (:func:`reading_problem`): a slope
+distance from :data:`MIN_DISTANCE_M` to :data:`MAX_DISTANCE_M`, angles within a
+turn, a zenith angle at least :data:`MIN_ZENITH_DISTANCE` from straight up or
+down (where the Hz reading, and with it the covariance, degenerates), coordinates up to
+:data:`MAX_COORDINATE_M` and heights up to :data:`MAX_HEIGHT_M`. The file
+bounds shared by the readers are :data:`MAX_READINGS_BYTES` and :data:`MAX_READINGS`.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fabflow.errors import InputError
+from fabflow.files import show
 
 GON = math.pi / 200.0
 """One gon in radians."""
@@ -33,6 +41,24 @@ DEG = math.pi / 180.0
 """One degree in radians."""
 ARCSEC = DEG / 3600.0
 """One arc second in radians."""
+
+MAX_READINGS_BYTES = 2 * 2**20
+"""Largest observation, GSI or robot point file read (bytes); a station's
+readings take a few kilobytes."""
+MAX_READINGS = 5000
+"""Most readings (or robot points) one file may hold; at most
+:data:`~fabflow.positioning.total_station.MAX_PRISM_POINTS` of them are adjusted."""
+MIN_DISTANCE_M = 0.2
+"""Shortest slope distance read (metres): no total station measures a prism closer."""
+MAX_DISTANCE_M = 10_000.0
+"""Longest slope distance read (metres): beyond any total station's reach to a prism."""
+MIN_ZENITH_DISTANCE = 0.1 * GON
+"""Closest a zenith angle may come to straight up (0) or down (200 gon), in radians."""
+MAX_COORDINATE_M = 1e8
+"""Largest magnitude of a coordinate computed by the instrument (metres; projected
+grid coordinates are below 1e7)."""
+MAX_HEIGHT_M = 100.0
+"""Largest magnitude of a prism or instrument height (metres)."""
 
 
 @dataclass(frozen=True)
@@ -68,6 +94,15 @@ INSTRUMENTS: dict[str, Instrument] = {
 """Data-sheet accuracies: Leica Nova MS50 (1 mm + 1.5 ppm, 1"), Hilti POS 150 (2 mm, 5")."""
 
 
+INSTRUMENT_BOUNDS = {
+    "distance_sigma_mm": (0.01, 1000.0, "mm"),
+    "distance_ppm": (0.0, 1000.0, "ppm"),
+    "angle_sigma_arcsec": (0.01, 3600.0, "arc seconds"),
+}
+"""Accepted accuracies ``(low, high, unit)``, bounds included: a zero sigma makes
+every point's covariance singular; the best instruments state 0.5 mm and 0.5"."""
+
+
 def make_instrument(
     name: str,
     distance_sigma_mm: float | None = None,
@@ -82,8 +117,27 @@ def make_instrument(
         ``"leica_ms50"``, ``"hilti_pos150"`` or ``"custom"`` (then all three
         accuracies must be given).
     distance_sigma_mm, distance_ppm, angle_sigma_arcsec
-        Overrides in data-sheet units: millimetres, ppm, arc seconds.
+        Overrides in data-sheet units: millimetres, ppm, arc seconds, within
+        :data:`INSTRUMENT_BOUNDS`.
+
+    Raises
+    ------
+    InputError
+        An unknown name, a missing accuracy of ``custom``, or an accuracy that
+        is not a finite number within its bounds (naming the parameter).
     """
+    given = {
+        "distance_sigma_mm": distance_sigma_mm,
+        "distance_ppm": distance_ppm,
+        "angle_sigma_arcsec": angle_sigma_arcsec,
+    }
+    for field, value in given.items():
+        low, high, unit = INSTRUMENT_BOUNDS[field]
+        if value is not None and not (math.isfinite(value) and low <= value <= high):
+            raise InputError(
+                f"expected at least {low:g} and at most {high:g} {unit}, got {value}",
+                location=field,
+            )
     if name == "custom":
         missing = [
             field
@@ -258,6 +312,10 @@ class Observations:
     def __len__(self) -> int:
         return len(self.point_ids)
 
+    def at(self, k: int) -> str | None:
+        """The location of row ``k`` in :attr:`source`, ``"line N"`` (``None`` without lines)."""
+        return f"line {self.lines[k]}" if self.lines else None
+
     def points(
         self, instrument: Instrument, T_world_instrument: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -278,10 +336,10 @@ class Observations:
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise InputError(
-                f"target {self.point_ids[i]!r} has neither Hz, V and slope distance "
+                f"target {show(self.point_ids[i])} has neither Hz, V and slope distance "
                 "nor coordinates",
                 self.source,
-                f"line {self.lines[i]}" if self.lines else None,
+                self.at(i),
             )
         out = np.zeros((n, 3))
         cov = np.zeros((n, 3, 3))
@@ -298,6 +356,85 @@ class Observations:
         if coords.any():
             station = T[:3, 3] if self.station_xyz is None else self.station_xyz
             hz, v, sd = cartesian_to_polar(self.xyz[coords] - station)
+            steep = (sd < MIN_DISTANCE_M) | (np.abs(np.sin(v)) < math.sin(MIN_ZENITH_DISTANCE))
+            if steep.any():
+                i = int(np.flatnonzero(coords)[np.argmax(steep)])
+                raise InputError(
+                    f"target {show(self.point_ids[i])} lies at or straight above or below the "
+                    "station: its coordinates cannot be weighted as a reading",
+                    self.source,
+                    self.at(i),
+                )
             out[coords] = self.xyz[coords]
             cov[coords] = polar_covariance(hz, v, sd, instrument)
         return out, cov
+
+
+def reading_problem(obs: Observations) -> tuple[int, str] | None:
+    """The first reading beyond what a total station measures, and why.
+
+    Parameters
+    ----------
+    obs
+        Readings as read from a file: polar rows (Hz, V, slope distance) or
+        coordinate rows (x, y, z), with prism heights.
+
+    Returns
+    -------
+    ``(row, message)`` of the first offending row, or ``None``: a value that is
+    not finite where it is given, a slope distance below :data:`MIN_DISTANCE_M` or
+    beyond :data:`MAX_DISTANCE_M`, an angle beyond a full turn, a zenith angle within
+    :data:`MIN_ZENITH_DISTANCE` of straight up or down, a coordinate beyond
+    :data:`MAX_COORDINATE_M`, a prism height beyond :data:`MAX_HEIGHT_M`.
+    """
+    polar = ~np.isnan(obs.hz) | ~np.isnan(obs.v) | ~np.isnan(obs.sd)
+    turn = 2.0 * math.pi
+    with np.errstate(invalid="ignore"):
+        sin_v = np.abs(np.sin(obs.v))
+        checks = [
+            (~np.isfinite(obs.prism_height), lambda k: "the prism height is not finite"),
+            (
+                np.abs(obs.prism_height) > MAX_HEIGHT_M,
+                lambda k: f"prism height {obs.prism_height[k]:.6g} m is beyond {MAX_HEIGHT_M:g} m",
+            ),
+            (
+                polar & ~(np.isfinite(obs.hz) & np.isfinite(obs.v) & np.isfinite(obs.sd)),
+                lambda k: "needs Hz, V and slope distance, all finite",
+            ),
+            (
+                polar & ((obs.sd < MIN_DISTANCE_M) | (obs.sd > MAX_DISTANCE_M)),
+                lambda k: (
+                    f"slope distance {obs.sd[k]:.6g} m is not between {MIN_DISTANCE_M:g} and "
+                    f"{MAX_DISTANCE_M:g} m"
+                ),
+            ),
+            (
+                polar & ((np.abs(obs.hz) > turn) | (obs.v < 0) | (obs.v > turn)),
+                lambda k: (
+                    f"angles Hz = {obs.hz[k] / GON:.6g} gon, V = {obs.v[k] / GON:.6g} gon "
+                    "lie beyond a full turn (Hz within +-400 gon, V within 0 to 400 gon)"
+                ),
+            ),
+            (
+                polar & (sin_v < math.sin(MIN_ZENITH_DISTANCE)),
+                lambda k: (
+                    f"zenith angle V = {obs.v[k] / GON:.6g} gon points straight up or "
+                    f"down (within {MIN_ZENITH_DISTANCE / GON:g} gon), where Hz is not defined"
+                ),
+            ),
+            (
+                ~polar & ~np.all(np.isfinite(obs.xyz), axis=1),
+                lambda k: "needs Hz, V and slope distance, or x, y, z, all finite",
+            ),
+            (
+                ~polar & (np.abs(obs.xyz).max(axis=1) > MAX_COORDINATE_M),
+                lambda k: f"a coordinate is beyond {MAX_COORDINATE_M:g} m",
+            ),
+        ]
+    first: tuple[int, str] | None = None
+    for mask, message in checks:
+        hits = np.flatnonzero(mask)
+        if hits.size and (first is None or hits[0] < first[0]):
+            k = int(hits[0])
+            first = (k, f"point {show(obs.point_ids[k])}: {message(k)}")
+    return first

@@ -44,12 +44,8 @@ from fabflow.positioning.icp import (
     weakest_direction,
 )
 from fabflow.positioning.integrity import Integrity
-from fabflow.positioning.pointcloud import (
-    as_points,
-    estimate_normals,
-    read_point_cloud,
-    voxel_downsample,
-)
+from fabflow.positioning.pointcloud import as_points, estimate_normals, voxel_downsample
+from fabflow.positioning.pointcloud_io import read_point_cloud
 from fabflow.positioning.result import BasePose
 from fabflow.transforms.se3 import apply_T, compose_covariance, inv_T
 

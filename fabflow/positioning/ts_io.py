@@ -20,140 +20,126 @@ prism positions by forward kinematics of the robot model and the tool::
 
     point_id,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg
     P1,10,-60,100,0,50,0
+
+Both are UTF-8 CSV files of at most
+:data:`~fabflow.positioning.polar.MAX_READINGS_BYTES` bytes and
+:data:`~fabflow.positioning.polar.MAX_READINGS` data rows; every value is
+checked here (finite, within the bounds of
+:func:`~fabflow.positioning.polar.reading_problem` and below) and every problem
+is an :class:`~fabflow.errors.InputError` naming the file and the line. How
+many readings are matched and adjusted is bounded where they meet the robot
+points (:data:`fabflow.positioning.total_station.MAX_PRISM_POINTS`).
 """
 
 from __future__ import annotations
 
-import csv
-import io
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from fabflow.errors import InputError
-from fabflow.positioning.gsi import parse_gsi
-from fabflow.positioning.polar import DEG, GON, Observations
+from fabflow.files import CsvTable, csv_table, show
+from fabflow.positioning.gsi import read_gsi
+from fabflow.positioning.polar import (
+    DEG,
+    GON,
+    MAX_READINGS,
+    MAX_READINGS_BYTES,
+    Observations,
+    reading_problem,
+)
+
+MAX_ROBOT_COORDINATE_M = 100.0
+"""Largest magnitude of a prism position in the robot base frame (metres)."""
+ID_COLUMNS = ("point_id", "id", "point")
 
 
-def _read_text(path: Path, what: str) -> str:
-    try:
-        return path.read_bytes().decode("utf-8-sig")
-    except FileNotFoundError:
-        raise InputError(f"{what} file does not exist", path) from None
-    except UnicodeDecodeError:
-        raise InputError(f"{what} file is not UTF-8 text", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read {what} file: {exc.strerror}", path) from None
+def _table(path: Path, what: str) -> CsvTable:
+    table = csv_table(path, what, MAX_READINGS_BYTES, MAX_READINGS, comment="#", lower=True)
+    if len(table) == 0:
+        raise InputError(f"no data rows after the header of the {what}", path)
+    return table
 
 
-def _rows(text: str, source: Path) -> tuple[list[str], list[tuple[int, list[str]]]]:
-    """Header (lower-case, stripped) and data rows with their 1-based line numbers."""
-    lines = [(i, line) for i, line in enumerate(text.splitlines(), start=1) if line.strip()]
-    lines = [(i, line) for i, line in lines if not line.lstrip().startswith("#")]
-    if not lines:
-        raise InputError("the file is empty (expected a header line and data rows)", source)
-    parsed = list(csv.reader(io.StringIO("\n".join(line for _, line in lines))))
-    header = [h.strip().lower() for h in parsed[0]]
-    rows = [(lines[k][0], [c.strip() for c in parsed[k]]) for k in range(1, len(parsed))]
-    return header, rows
-
-
-def _number(value: str, column: str, source: Path, line: int) -> float:
-    if value == "":
-        return math.nan
-    try:
-        x = float(value)
-    except ValueError:
+def _ids(table: CsvTable) -> tuple[str, ...]:
+    """The stripped point ids; an empty one names its line."""
+    name = next((c for c in ID_COLUMNS if c in table.columns), None)
+    if name is None:
         raise InputError(
-            f"column {column!r}: {value!r} is not a number", source, f"line {line}"
-        ) from None
-    if not math.isfinite(x):
-        raise InputError(f"column {column!r}: {value!r} is not finite", source, f"line {line}")
-    return x
-
-
-def _id_column(header: list[str], source: Path) -> int:
-    for name in ("point_id", "id", "point"):
-        if name in header:
-            return header.index(name)
-    raise InputError(
-        f"no point id column (expected 'point_id'); header is {', '.join(header)}",
-        source,
-        "line 1",
-    )
+            f"no point id column (expected 'point_id'); header is "
+            f"{show(', '.join(table.header), 80)}",
+            table.source,
+            f"line {table.header_line}",
+        )
+    ids = tuple(v.strip() for v in table.columns[name])
+    empty = next((k for k, v in enumerate(ids) if not v), None)
+    if empty is not None:
+        raise InputError("empty point id", table.source, table.at(empty))
+    return ids
 
 
 def read_observations_csv(path: str | Path) -> Observations:
-    """Read an observation CSV (see the module docstring)."""
+    """Read an observation CSV (see the module docstring).
+
+    Raises
+    ------
+    InputError
+        As :func:`~fabflow.files.csv_table`; no angle/distance or coordinate
+        columns; a row with neither complete; a value that is not a finite
+        number or lies beyond :func:`~fabflow.positioning.polar.reading_problem`'s
+        bounds; naming the file and the line.
+    """
     path = Path(path)
-    header, rows = _rows(_read_text(path, "observation"), path)
-    ic = _id_column(header, path)
-    if "hz_gon" in header and "v_gon" in header:
+    table = _table(path, "observation file")
+    cols = table.columns
+    ids = _ids(table)
+    if "hz_gon" in cols and "v_gon" in cols:
         unit, hz_col, v_col = GON, "hz_gon", "v_gon"
-    elif "hz_deg" in header and "v_deg" in header:
+    elif "hz_deg" in cols and "v_deg" in cols:
         unit, hz_col, v_col = DEG, "hz_deg", "v_deg"
     else:
         unit, hz_col, v_col = 1.0, None, None
-    sd_col = next((c for c in ("slope_distance_m", "sd_m") if c in header), None)
-    xyz_cols = ("x_m", "y_m", "z_m") if all(c in header for c in ("x_m", "y_m", "z_m")) else None
+    sd_col = next((c for c in ("slope_distance_m", "sd_m") if c in cols), None)
+    xyz_cols = ("x_m", "y_m", "z_m") if all(c in cols for c in ("x_m", "y_m", "z_m")) else None
     if (hz_col is None or sd_col is None) and xyz_cols is None:
         raise InputError(
             "expected columns hz_gon,v_gon,slope_distance_m (or hz_deg,v_deg,...) or "
-            f"x_m,y_m,z_m; header is {', '.join(header)}",
+            f"x_m,y_m,z_m; header is {show(', '.join(table.header), 80)}",
             path,
-            "line 1",
+            f"line {table.header_line}",
         )
-    ids: list[str] = []
-    lines: list[int] = []
-    data: list[list[float]] = []
-    for line, row in rows:
-        if len(row) != len(header):
-            raise InputError(
-                f"expected {len(header)} fields like the header, got {len(row)}",
-                path,
-                f"line {line}",
-            )
-        pid = row[ic]
-        if not pid:
-            raise InputError("empty point id", path, f"line {line}")
+    n = len(table)
 
-        def get(col: str | None, row: list[str] = row, line: int = line) -> float:
-            return math.nan if col is None else _number(row[header.index(col)], col, path, line)
+    def get(col: str | None) -> np.ndarray:
+        return np.full(n, np.nan) if col is None else table.numbers(col, allow_empty=True)
 
-        values = [get(hz_col) * unit, get(v_col) * unit, get(sd_col)]
-        values += [get(c) for c in xyz_cols] if xyz_cols else [math.nan] * 3
-        ph = get("prism_height_m") if "prism_height_m" in header else 0.0
-        values.append(0.0 if math.isnan(ph) else ph)
-        if not (
-            all(math.isfinite(v) for v in values[:3]) or all(math.isfinite(v) for v in values[3:6])
-        ):
-            raise InputError(
-                f"point {pid!r}: needs Hz, V and slope distance, or x, y, z", path, f"line {line}"
-            )
-        if math.isfinite(values[2]) and values[2] <= 0:
-            raise InputError(
-                f"point {pid!r}: slope distance must be positive, got {values[2]}",
-                path,
-                f"line {line}",
-            )
-        ids.append(pid)
-        lines.append(line)
-        data.append(values)
-    if not data:
-        raise InputError("no observation rows after the header", path)
-    a = np.asarray(data, dtype=float)
-    return Observations(
-        point_ids=tuple(ids),
-        hz=a[:, 0],
-        v=a[:, 1],
-        sd=a[:, 2],
-        xyz=a[:, 3:6],
-        prism_height=a[:, 6],
+    polar = np.column_stack([get(hz_col) * unit, get(v_col) * unit, get(sd_col)])
+    xyz = np.column_stack([get(c) for c in xyz_cols]) if xyz_cols else np.full((n, 3), np.nan)
+    ph = get("prism_height_m") if "prism_height_m" in cols else np.zeros(n)
+    ph = np.where(np.isnan(ph), 0.0, ph)
+    complete = np.isfinite(polar).all(axis=1) | np.isfinite(xyz).all(axis=1)
+    if not complete.all():
+        k = int(np.argmin(complete))
+        raise InputError(
+            f"point {show(ids[k])}: needs Hz, V and slope distance, or x, y, z",
+            path,
+            table.at(k),
+        )
+    obs = Observations(
+        point_ids=ids,
+        hz=polar[:, 0],
+        v=polar[:, 1],
+        sd=polar[:, 2],
+        xyz=xyz,
+        prism_height=ph,
         source=str(path),
-        lines=tuple(lines),
+        lines=tuple(table.lines.tolist()),
     )
+    problem = reading_problem(obs)
+    if problem is not None:
+        raise InputError(problem[1], path, table.at(problem[0]))
+    return obs
 
 
 def read_observations(path: str | Path) -> Observations:
@@ -161,7 +147,7 @@ def read_observations(path: str | Path) -> Observations:
     path = Path(path)
     if path.suffix.lower() == ".csv":
         return read_observations_csv(path)
-    return parse_gsi(_read_text(path, "GSI"), path)
+    return read_gsi(path)
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,6 +168,8 @@ class RobotPoints:
         The file.
     lines
         1-based line of each row.
+    header_line
+        1-based line of the header.
     """
 
     point_ids: tuple[str, ...]
@@ -189,64 +177,67 @@ class RobotPoints:
     joints: np.ndarray | None
     source: str
     lines: tuple[int, ...]
+    header_line: int = 1
 
 
 def read_robot_points(path: str | Path) -> RobotPoints:
-    """Read a robot point CSV: ``point_id,x_m,y_m,z_m`` or ``point_id,q1_deg,...,qN_deg``."""
+    """Read a robot point CSV: ``point_id,x_m,y_m,z_m`` or ``point_id,q1_deg,...,qN_deg``.
+
+    Positions lie within :data:`MAX_ROBOT_COORDINATE_M` of the base; joint
+    values are checked against the robot's limits when they are turned into
+    positions (:func:`fabflow.robots.prism.prism_points_from_joints`).
+
+    Raises
+    ------
+    InputError
+        As :func:`~fabflow.files.csv_table`; no coordinate or joint columns; a
+        duplicate point id; a value that is not a finite number or lies beyond
+        the bound; naming the file and the line.
+    """
     path = Path(path)
-    header, rows = _rows(_read_text(path, "robot point"), path)
-    ic = _id_column(header, path)
+    table = _table(path, "robot point file")
+    ids = _ids(table)
     cols: tuple[str, ...] | None = next(
-        (c for c in (("x_m", "y_m", "z_m"), ("x", "y", "z")) if all(k in header for k in c)),
+        (c for c in (("x_m", "y_m", "z_m"), ("x", "y", "z")) if all(k in table.columns for k in c)),
         None,
     )
     joints = cols is None
     if joints:
         k = 1
-        while f"q{k}_deg" in header:
+        while f"q{k}_deg" in table.columns:
             k += 1
         cols = tuple(f"q{j}_deg" for j in range(1, k))
     if not cols:
         raise InputError(
             "expected columns point_id,x_m,y_m,z_m (base frame) or point_id,q1_deg,...,qN_deg "
-            f"(joint values); header is {', '.join(header)}",
+            f"(joint values); header is {show(', '.join(table.header), 80)}",
             path,
-            "line 1",
+            f"line {table.header_line}",
         )
-    ids: list[str] = []
-    values: list[list[float]] = []
-    lines: list[int] = []
-    seen: dict[str, int] = {}
-    for line, row in rows:
-        if len(row) != len(header):
+    first: dict[str, int] = {}
+    for k, pid in enumerate(ids):
+        j = first.setdefault(pid, k)
+        if j != k:
             raise InputError(
-                f"expected {len(header)} fields like the header, got {len(row)}",
+                f"point id {show(pid)} appears twice (first on line {table.lines[j]})",
                 path,
-                f"line {line}",
+                table.at(k),
             )
-        pid = row[ic]
-        if pid in seen:
+    a = np.column_stack([table.numbers(c) for c in cols])
+    if not joints:
+        far = np.flatnonzero(np.abs(a).max(axis=1) > MAX_ROBOT_COORDINATE_M)
+        if far.size:
             raise InputError(
-                f"point id {pid!r} appears twice (first on line {seen[pid]})",
+                f"point {show(ids[far[0]])} lies more than {MAX_ROBOT_COORDINATE_M:g} m from "
+                "the robot base (are the coordinates in metres, in the base frame?)",
                 path,
-                f"line {line}",
+                table.at(int(far[0])),
             )
-        v = [_number(row[header.index(c)], c, path, line) for c in cols]
-        if not all(math.isfinite(x) for x in v):
-            raise InputError(
-                f"point {pid!r}: every one of {', '.join(cols)} is required", path, f"line {line}"
-            )
-        seen[pid] = line
-        ids.append(pid)
-        values.append(v)
-        lines.append(line)
-    if not values:
-        raise InputError("no robot points after the header", path)
-    a = np.asarray(values, dtype=float)
     return RobotPoints(
-        point_ids=tuple(ids),
+        point_ids=ids,
         xyz=None if joints else a,
         joints=np.radians(a) if joints else None,
         source=str(path),
-        lines=tuple(lines),
+        lines=tuple(table.lines.tolist()),
+        header_line=table.header_line,
     )

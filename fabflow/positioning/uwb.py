@@ -123,16 +123,28 @@ def _check_inputs(anchors: Any, ranges: Any) -> tuple[np.ndarray, np.ndarray, bo
         raise InputError(
             f"ranges must be (N, {A.shape[0]}) for {A.shape[0]} anchors, got {np.shape(ranges)}"
         )
-    spread = A - A.mean(axis=0)
-    sv = np.linalg.svd(spread, compute_uv=False)
-    if sv[dim - 1] < 1e-6 * max(sv[0], 1e-12):
-        shape = "collinear" if dim == 2 else "coplanar (or collinear)"
-        raise LocalizationError(
-            f"degenerate anchor geometry: the {A.shape[0]} anchors are {shape}, so the "
-            f"{dim}D position is not determined"
-            + ("; use 2D positioning with a known height" if dim == 3 else "")
-        )
+    problem = anchor_geometry_problem(A)
+    if problem is not None:
+        raise LocalizationError(problem)
     return A, r, single
+
+
+def anchor_geometry_problem(anchors: np.ndarray) -> str | None:
+    """Why anchors ``(n, 2)`` or ``(n, 3)`` (metres) cannot fix a position, or ``None``.
+
+    In 3D they must not be coplanar (nor collinear), in 2D not collinear.
+    """
+    A = np.asarray(anchors, dtype=float)
+    dim = A.shape[1]
+    sv = np.linalg.svd(A - A.mean(axis=0), compute_uv=False)
+    if sv[dim - 1] >= 1e-6 * max(sv[0], 1e-12):
+        return None
+    shape = "collinear" if dim == 2 else "coplanar (or collinear)"
+    return (
+        f"degenerate anchor geometry: the {A.shape[0]} anchors are {shape}, so the "
+        f"{dim}D position is not determined"
+        + ("; use 2D positioning with a known height" if dim == 3 else "")
+    )
 
 
 def _inv_batched(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

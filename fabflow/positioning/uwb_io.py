@@ -29,15 +29,13 @@ Both are UTF-8 text (a byte order mark is allowed); every problem is an
 from __future__ import annotations
 
 import csv
-import math
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from fabflow.errors import InputError
-from fabflow.files import csv_rows, read_text
+from fabflow.files import CsvTable, csv_table
 from fabflow.files import show as _show
 from fabflow.positioning.eskf_input import imu_problem
 
@@ -70,110 +68,118 @@ class RangeLog:
         return out
 
 
-def _read_csv(
-    path: Path, required: tuple[str, ...]
-) -> tuple[list[str], Iterator[tuple[int, list[str]]]]:
-    """The stripped header and an iterator over ``(line number, fields)`` of the data rows."""
-    rows = csv_rows(read_text(path), path)
-    first = next(rows, None)
-    if first is None:
-        raise InputError("the file is empty; expected a header line", path, "line 1")
-    header = [h.strip() for h in first[1]]
-    missing = [c for c in required if c not in header]
+MAX_RANGES_BYTES = 64 * 2**20
+"""Largest RANGES.csv read (bytes)."""
+MAX_RANGES = 1_000_000
+"""Most ranges in a RANGES.csv: over an hour at 60 Hz from four anchors (the ESKF
+applies each one in turn, about 25 us apiece)."""
+MAX_IMU_BYTES = 64 * 2**20
+"""Largest IMU.csv read (bytes)."""
+MAX_IMU_SAMPLES = 1_000_000
+"""Most samples in an IMU.csv: close to three hours at 100 Hz."""
+MAX_RANGE_M = 1000.0
+"""Longest range accepted (metres): UWB ranges reach a few hundred metres at most."""
+
+
+def _table(
+    path: Path, required: tuple[str, ...], what: str, max_bytes: int, max_rows: int
+) -> CsvTable:
+    """The CSV file as columns, with the ``required`` columns present."""
+    table = csv_table(path, what, max_bytes, max_rows)
+    missing = [c for c in required if c not in table.columns]
     if missing:
         raise InputError(
             f"missing column(s) {', '.join(missing)}; expected a header with "
-            f"{', '.join(required)} (got {_show(', '.join(header), 200)})",
+            f"{', '.join(required)} (got {_show(', '.join(table.header), 80)})",
             path,
-            f"line {first[0]}",
+            f"line {table.header_line}",
         )
-    return header, rows
+    return table
 
 
-def _float(value: str, path: Path, line: int, column: str) -> float:
-    try:
-        x = float(value)
-    except ValueError:
-        raise InputError(
-            f"column '{column}': {_show(value)} is not a number", path, f"line {line}"
-        ) from None
-    if not math.isfinite(x):
-        raise InputError(f"column '{column}': {_show(value)} is not finite", path, f"line {line}")
-    return x
+def _first(mask: np.ndarray) -> int | None:
+    """Index of the first True in ``mask``, or ``None``."""
+    hits = np.flatnonzero(mask)
+    return int(hits[0]) if hits.size else None
 
 
 def read_ranges_csv(path: str | Path, anchor_ids: list[str], n_tags: int) -> RangeLog:
     """Read and check a RANGES.csv file (see the module docstring).
+
+    The file holds at most :data:`MAX_RANGES_BYTES` bytes and :data:`MAX_RANGES`
+    ranges, each between 0 and :data:`MAX_RANGE_M` metres.
 
     Raises
     ------
     InputError
         A file that is not UTF-8 text or not CSV, missing columns, malformed
         numbers, unsorted or duplicate timestamps, unknown anchor ids or tag
-        indices, negative ranges; the message names the file and the line.
+        indices, negative or impossibly long ranges, too many rows; the message
+        names the file and the line.
     """
     path = Path(path)
-    index = {a: i for i, a in enumerate(anchor_ids)}
-    header, rows = _read_csv(path, RANGE_COLUMNS)
-    col = {h: i for i, h in enumerate(header)}
-    has_tag = "tag" in col
-    ts, tags, anchors, ranges = [], [], [], []
-    seen: set[tuple[int, int]] = set()
-    t_prev = -math.inf
-    for line, row in rows:
-        if len(row) != len(header):
-            raise InputError(f"expected {len(header)} values, got {len(row)}", path, f"line {line}")
-        t = _float(row[col["t"]], path, line, "t")
-        a_id = row[col["anchor"]].strip()
-        if a_id not in index:
-            raise InputError(
-                f"unknown anchor id {_show(a_id)}; the anchors file has {', '.join(anchor_ids)}",
-                path,
-                f"line {line}",
-            )
-        r = _float(row[col["range"]], path, line, "range")
-        if r < 0:
-            raise InputError(f"range {r} is negative", path, f"line {line}")
-        tag = 0
-        if has_tag:
-            raw = row[col["tag"]].strip()
-            ok = raw.isascii() and raw.isdigit() and len(raw) < 10
-            if not ok or int(raw) >= n_tags:
-                raise InputError(
-                    f"tag {_show(raw)} is not an index into the {n_tags} tag(s) of the anchors "
-                    f"file (0..{n_tags - 1})",
-                    path,
-                    f"line {line}",
-                )
-            tag = int(raw)
-        if t < t_prev:
-            raise InputError(
-                f"timestamps are not sorted: t = {t} after t = {t_prev}", path, f"line {line}"
-            )
-        if t > t_prev:
-            seen.clear()
-        key = (tag, index[a_id])
-        if key in seen:
-            raise InputError(
-                f"duplicate timestamp t = {t} for tag {tag}, anchor {a_id}",
-                path,
-                f"line {line}",
-            )
-        seen.add(key)
-        t_prev = t
-        ts.append(t)
-        tags.append(tag)
-        anchors.append(index[a_id])
-        ranges.append(r)
-    if not ts:
+    table = _table(path, RANGE_COLUMNS, "ranges file", MAX_RANGES_BYTES, MAX_RANGES)
+    if len(table) == 0:
         raise InputError("no ranges in the file", path)
-    return RangeLog(
-        t=np.array(ts), tag=np.array(tags), anchor=np.array(anchors), range=np.array(ranges)
-    )
+    t = table.numbers("t")
+    anchor = _lookup(table, "anchor", {a: i for i, a in enumerate(anchor_ids)}, anchor_ids)
+    r = table.numbers("range")
+    if (k := _first(r < 0)) is not None:
+        raise InputError(f"range {r[k]} is negative", path, table.at(k))
+    if (k := _first(r > MAX_RANGE_M)) is not None:
+        raise InputError(
+            f"range {r[k]:.6g} m is longer than UWB ranges reach ({MAX_RANGE_M:g} m)",
+            path,
+            table.at(k),
+        )
+    tag = np.zeros(len(table), dtype=np.int64)
+    if "tag" in table.columns:
+        valid = {str(j): j for j in range(n_tags)}
+        tag = _lookup(table, "tag", valid, None, n_tags)
+    if (k := _first(np.diff(t) < 0)) is not None:
+        raise InputError(
+            f"timestamps are not sorted: t = {t[k + 1]} after t = {t[k]}", path, table.at(k + 1)
+        )
+    order = np.lexsort((np.arange(len(t)), anchor, tag, t))
+    same = (np.diff(t[order]) == 0) & (np.diff(tag[order]) == 0) & (np.diff(anchor[order]) == 0)
+    if same.any():
+        k = int(order[1:][same].min())
+        raise InputError(
+            f"duplicate timestamp t = {t[k]} for tag {tag[k]}, anchor {anchor_ids[anchor[k]]}",
+            path,
+            table.at(k),
+        )
+    return RangeLog(t=t, tag=tag, anchor=anchor, range=r)
+
+
+def _lookup(
+    table: CsvTable,
+    column: str,
+    index: dict[str, int],
+    names: list[str] | None,
+    n_tags: int = 0,
+) -> np.ndarray:
+    """The column's stripped fields as indices into ``index``; an unknown one names its line."""
+    values, inverse = np.unique(np.asarray(table.columns[column], dtype=str), return_inverse=True)
+    codes = np.array([index.get(v.strip(), -1) for v in values.tolist()], dtype=np.int64)
+    out = codes[inverse.reshape(-1)]
+    if (k := _first(out < 0)) is not None:
+        raw = table.columns[column][k].strip()
+        if names is not None:
+            message = f"unknown anchor id {_show(raw)}; the anchors file has {', '.join(names)}"
+        else:
+            message = (
+                f"tag {_show(raw)} is not an index into the {n_tags} tag(s) of the anchors "
+                f"file (0..{n_tags - 1})"
+            )
+        raise InputError(message, table.source, table.at(k))
+    return out
 
 
 def read_imu_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read an IMU.csv file: (t (M,), accel (M, 3), gyro (M, 3)).
+
+    The file holds at most :data:`MAX_IMU_BYTES` bytes and :data:`MAX_IMU_SAMPLES` samples.
 
     Raises
     ------
@@ -181,35 +187,21 @@ def read_imu_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         A file that is not UTF-8 text or not CSV, missing columns, malformed or
         non-finite numbers, timestamps not strictly increasing, gaps, values
         beyond what an IMU measures (:func:`~fabflow.positioning.eskf_input.imu_problem`),
-        fewer than two samples; the message names the file and the line.
+        fewer than two samples, too many rows; the message names the file and the line.
     """
     path = Path(path)
-    header, records = _read_csv(path, IMU_COLUMNS)
-    col = [header.index(c) for c in IMU_COLUMNS]
-    rows, lines = [], []
-    t_prev = -math.inf
-    for line, row in records:
-        if len(row) != len(header):
-            raise InputError(f"expected {len(header)} values, got {len(row)}", path, f"line {line}")
-        vals = [_float(row[i], path, line, c) for i, c in zip(col, IMU_COLUMNS, strict=True)]
-        if vals[0] < t_prev:
-            raise InputError(
-                f"timestamps are not sorted: t = {vals[0]} after t = {t_prev}",
-                path,
-                f"line {line}",
-            )
-        if vals[0] == t_prev:
-            raise InputError(f"duplicate timestamp t = {vals[0]}", path, f"line {line}")
-        t_prev = vals[0]
-        rows.append(vals)
-        lines.append(line)
-    if len(rows) < 2:
+    table = _table(path, IMU_COLUMNS, "IMU file", MAX_IMU_BYTES, MAX_IMU_SAMPLES)
+    data = np.column_stack([table.numbers(c) for c in IMU_COLUMNS]) if len(table) else None
+    if data is None or len(data) < 2:
         raise InputError("an IMU file needs at least two samples", path)
-    data = np.array(rows)
     t, accel, gyro = data[:, 0], data[:, 1:4], data[:, 4:7]
+    dt = np.diff(t)
+    if (k := _first(dt <= 0)) is not None:
+        what = "duplicate timestamp" if dt[k] == 0 else "timestamps are not sorted:"
+        raise InputError(f"{what} t = {t[k + 1]} after t = {t[k]}", path, table.at(k + 1))
     problem = imu_problem(t, accel, gyro)
     if problem is not None:
-        raise InputError(problem[1], path, f"line {lines[problem[0]]}")
+        raise InputError(problem[1], path, table.at(problem[0]))
     return t, accel, gyro
 
 

@@ -18,7 +18,7 @@ from fabflow.errors import InputError, LocalizationError
 from fabflow.localize.icp import localize_station
 from fabflow.localize.methods import localizer_arguments
 from fabflow.localize.plan import parked_pose
-from fabflow.positioning.pointcloud import write_point_cloud
+from fabflow.positioning.pointcloud_io import write_point_cloud
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.scan_matching import (
     ScanMap,

@@ -1,8 +1,6 @@
-"""Point cloud I/O and filters."""
+"""Point cloud filters (the files: test_pointcloud_io.py)."""
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,85 +12,14 @@ from fabflow.positioning.pointcloud import (
     crop_box,
     crop_radius,
     estimate_normals,
-    read_point_cloud,
     remove_statistical_outliers,
     voxel_downsample,
-    write_point_cloud,
 )
 
 
 @pytest.fixture
 def cloud() -> np.ndarray:
     return np.random.default_rng(1).uniform(-2, 2, (500, 3))
-
-
-@pytest.mark.parametrize(
-    "name,binary", [("c.ply", True), ("c.ply", False), ("c.xyz", True), ("c.csv", True)]
-)
-def test_write_read_round_trip(tmp_path: Path, cloud: np.ndarray, name: str, binary: bool) -> None:
-    normals = np.tile([0.0, 0.0, 1.0], (len(cloud), 1))
-    write_point_cloud(tmp_path / name, cloud, normals if name.endswith("ply") else None, binary)
-    back = read_point_cloud(tmp_path / name)
-    np.testing.assert_allclose(back.points, cloud, atol=1e-7)
-    if name.endswith("ply"):
-        assert back.normals is not None
-        np.testing.assert_allclose(back.normals, normals)
-
-
-def test_read_binary_big_endian_float_ply_with_extra_properties_and_faces(tmp_path: Path) -> None:
-    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=">f4")
-    inten = np.array([5, 6, 7, 8], dtype=">u2")
-    rec = np.empty(4, dtype=[("x", ">f4"), ("y", ">f4"), ("z", ">f4"), ("intensity", ">u2")])
-    rec["x"], rec["y"], rec["z"], rec["intensity"] = pts[:, 0], pts[:, 1], pts[:, 2], inten
-    header = (
-        b"ply\nformat binary_big_endian 1.0\nelement vertex 4\nproperty float x\n"
-        b"property float y\nproperty float z\nproperty ushort intensity\n"
-        b"element face 1\nproperty list uchar int vertex_indices\nend_header\n"
-    )
-    face = np.array([3], dtype="u1").tobytes() + np.array([0, 1, 2], dtype=">i4").tobytes()
-    (tmp_path / "s.ply").write_bytes(header + rec.tobytes() + face)
-    back = read_point_cloud(tmp_path / "s.ply")
-    np.testing.assert_allclose(back.points, pts.astype(float))
-    assert back.normals is None
-
-
-def test_text_with_header_and_extra_columns(tmp_path: Path) -> None:
-    (tmp_path / "a.csv").write_text("x,y,z,intensity\n1,2,3,9\n4,5,6,9\n")
-    np.testing.assert_allclose(read_point_cloud(tmp_path / "a.csv").points, [[1, 2, 3], [4, 5, 6]])
-
-
-@pytest.mark.parametrize(
-    "name,content,needle",
-    [
-        ("bad.xyz", "1 2 3\n4 five 6\n", "line 2"),
-        ("short.xyz", "1 2 3\n4 5\n", "line 2"),
-        ("empty.xyz", "# nothing\n", "no points"),
-        ("bad.ply", "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n", "end_header"),
-        (
-            "trunc.ply",
-            "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
-            "property float z\nend_header\n1 2 3\n",
-            "declares 3",
-        ),
-        ("nan.xyz", "1 2 3\nnan 1 1\n", "non-finite"),
-        ("c.las", "x", "unknown point cloud format"),
-    ],
-)
-def test_bad_files_name_the_problem(tmp_path: Path, name: str, content: str, needle: str) -> None:
-    path = tmp_path / name
-    path.write_text(content)
-    with pytest.raises(InputError) as exc:
-        read_point_cloud(path)
-    assert needle in str(exc.value)
-    assert name in str(exc.value)
-
-
-def test_truncated_binary_ply(tmp_path: Path, cloud: np.ndarray) -> None:
-    write_point_cloud(tmp_path / "c.ply", cloud)
-    raw = (tmp_path / "c.ply").read_bytes()
-    (tmp_path / "t.ply").write_bytes(raw[:-100])
-    with pytest.raises(InputError, match="truncated"):
-        read_point_cloud(tmp_path / "t.ply")
 
 
 def test_voxel_downsample_centroids() -> None:

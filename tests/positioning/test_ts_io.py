@@ -1,7 +1,9 @@
-"""Total station files: GSI-8/GSI-16 and CSV readers, robot points, the CLI command."""
+"""Total station files: GSI-8/GSI-16 and CSV readers, robot points, their bounds and messages."""
 
 from __future__ import annotations
 
+import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +14,7 @@ from hypothesis import strategies as st
 
 from fabflow.errors import InputError, LocalizationError, UnsupportedError
 from fabflow.positioning.gsi import parse_gsi, read_gsi
-from fabflow.positioning.polar import DEG, GON, INSTRUMENTS
+from fabflow.positioning.polar import DEG, GON, INSTRUMENTS, MAX_READINGS
 from fabflow.positioning.total_station import localize_observations
 from fabflow.positioning.ts_io import read_observations, read_robot_points
 from fabflow.transforms.se3 import make_T, pose_error
@@ -111,10 +113,10 @@ def test_samples_localize_the_known_pose(name: str) -> None:
 def test_csv_errors(tmp_path: Path) -> None:
     cases = {
         "point_id,hz_gon,v_gon\nP1,1,2\n": "expected columns",
-        "point_id,hz_gon,v_gon,slope_distance_m\nP1,1,2\n": "line 2: expected 4 fields",
+        "point_id,hz_gon,v_gon,slope_distance_m\nP1,1,2\n": "line 2: expected 4 values",
         "point_id,hz_gon,v_gon,slope_distance_m\nP1,1,abc,3\n": "line 2: column 'v_gon'",
-        "point_id,hz_gon,v_gon,slope_distance_m\nP1,1,2,-3\n": "must be positive",
-        "point_id,hz_gon,v_gon,slope_distance_m\n": "no observation rows",
+        "point_id,hz_gon,v_gon,slope_distance_m\nP1,1,2,-3\n": "line 2: .*not between 0.2",
+        "point_id,hz_gon,v_gon,slope_distance_m\n": "no data rows",
         "": "empty",
     }
     for k, (text, message) in enumerate(cases.items()):
@@ -165,3 +167,111 @@ def test_gsi_round_trip(hz: float, v: float, sd: float, gsi16: bool, pid: str) -
     assert obs.hz[0] == pytest.approx(hz_i * 1e-5 * GON, abs=1e-12)
     assert obs.v[0] == pytest.approx(v_i * 1e-5 * GON, abs=1e-12)
     assert obs.sd[0] == pytest.approx(sd_i * (1e-5 if gsi16 else 1e-3), rel=1e-12)
+
+
+HEADER = "point_id,hz_gon,v_gon,slope_distance_m\n"
+
+
+@pytest.mark.parametrize("reader", [read_observations, read_robot_points])
+def test_encoding_and_long_fields_name_the_line(tmp_path: Path, reader) -> None:
+    head = HEADER if reader is read_observations else "point_id,x_m,y_m,z_m\n"
+    f = tmp_path / "f.csv"
+    f.write_bytes(b"# comment\n" + head.encode() + b"P1,1,2,3\nP2,1,\xff,3\n")
+    with pytest.raises(InputError, match="not UTF-8") as exc:
+        reader(f)
+    assert exc.value.location == "line 4" and exc.value.source == str(f)
+    f.write_bytes(head.encode() + b"P1,1,2,3\nP2,1," + b"9" * 200_000 + b",3\n")
+    with pytest.raises(InputError, match="longer than 131072") as exc:
+        reader(f)
+    assert exc.value.location == "line 3" and "9" * 50 not in str(exc.value)
+
+
+@pytest.mark.parametrize("name", ["obs.csv", "obs.gsi"])
+def test_devices_pipes_and_big_files_are_refused_at_once(tmp_path: Path, name: str) -> None:
+    with pytest.raises(InputError, match="not a regular file"):
+        read_observations(Path("/dev/zero").with_name("zero"))  # /dev/zero as it is
+    fifo = tmp_path / name
+    os.mkfifo(fifo)
+    with pytest.raises(InputError, match="not a regular file"):
+        read_observations(fifo)  # would block if opened
+    big = tmp_path / f"big_{name}"
+    big.write_bytes(HEADER.encode() + b"P1,52.33412,96.12005,6.2341\n" * 1_100_000)  # 30 MB
+    start = time.perf_counter()
+    with pytest.raises(InputError, match=r"MiB, more than the 2\.0 MiB"):
+        read_observations(big)
+    assert time.perf_counter() - start < 1.0
+
+
+def test_rows_are_bounded_and_read_linearly(tmp_path: Path) -> None:
+    rows = "".join(f"P{k},{k % 400}.5,97.5,{5 + k % 7}\n" for k in range(MAX_READINGS + 1))
+    f = tmp_path / "obs.csv"
+    f.write_text(HEADER + rows)
+    with pytest.raises(InputError, match=f"more than {MAX_READINGS} data rows") as exc:
+        read_observations(f)
+    assert exc.value.location == f"line {MAX_READINGS + 2}"
+    f.write_text(HEADER + rows[: rows.rindex("P")])
+    start = time.perf_counter()
+    assert len(read_observations(f)) == MAX_READINGS
+    assert time.perf_counter() - start < 2.0
+    gsi = tmp_path / "obs.gsi"
+    gsi.write_text(
+        "".join(
+            f"11{k:04d}+{k:08d} 21.102+05938845 22.102+08954901 31..00+00008566\n"
+            for k in range(MAX_READINGS + 1)
+        )
+    )
+    with pytest.raises(InputError, match=f"more than {MAX_READINGS} observations") as exc:
+        read_observations(gsi)
+    assert exc.value.location == f"line {MAX_READINGS + 1}"
+
+
+@pytest.mark.parametrize(
+    ("row", "what"),
+    [
+        ("P2,100,0,5", "points straight up or down"),
+        ("P2,100,200.05,5", "points straight up or down"),
+        ("P2,100,95,0.1", "not between 0.2 and 10000 m"),
+        ("P2,100,95,20000", "not between 0.2 and 10000 m"),
+        ("P2,1e9,95,5", "beyond a full turn"),
+        ("P2,100,95,5,250", "prism height 250 m"),
+    ],
+)
+def test_readings_beyond_an_instrument_name_the_line(tmp_path: Path, row: str, what: str) -> None:
+    f = tmp_path / "obs.csv"
+    header = HEADER if row.count(",") == 3 else HEADER.strip() + ",prism_height_m\n"
+    f.write_text(header + "P1,52.3,96.1,6.2" + ("" if row.count(",") == 3 else ",0") + "\n" + row)
+    with pytest.raises(InputError, match=what) as exc:
+        read_observations(f)
+    assert exc.value.location == "line 3" and "point 'P2'" in str(exc.value)
+
+
+def test_coordinate_rows_and_robot_points_are_bounded(tmp_path: Path) -> None:
+    f = tmp_path / "obs.csv"
+    f.write_text("point_id,x_m,y_m,z_m\nP1,1,2,3\nP2,1e9,2,3\n")
+    with pytest.raises(InputError, match="beyond 1e\\+08 m") as exc:
+        read_observations(f)
+    assert exc.value.location == "line 3"
+    f.write_text("point_id,x_m,y_m,z_m\nP1,1,2,3\nP2,1,2,300\n")
+    with pytest.raises(InputError, match="more than 100 m from the robot base") as exc:
+        read_robot_points(f)
+    assert exc.value.location == "line 3"
+    f.write_text("point_id,q1_deg,q2_deg\nP1,1,nan\n")
+    with pytest.raises(InputError, match="'q2_deg': 'nan' is not finite"):
+        read_robot_points(f)
+
+
+@pytest.mark.parametrize(
+    ("text", "what"),
+    [
+        ("*110001+000000000000STN1 84..10+9999999999999999\n", "station coordinate"),
+        ("*110001+000000000000STN1 88..10+0000000001000000\n", "instrument height"),
+        ("110001+0000000A 21.102+\xb2\xb3345678 22.102+10000000 31..00+00001000\n", "number"),
+        ("110001+0000000A 21.102+" + "1" * 500 + "\n", "characters, expected 15"),
+    ],
+)
+def test_gsi_bounds_and_short_quotes(tmp_path: Path, text: str, what: str) -> None:
+    f = tmp_path / "x.gsi"
+    f.write_bytes(text.encode("latin-1"))
+    with pytest.raises(InputError, match=what) as exc:
+        read_observations(f)
+    assert exc.value.location == "line 1" and "1" * 100 not in str(exc.value)
