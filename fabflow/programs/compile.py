@@ -19,6 +19,7 @@ from fabflow.errors import LocalizationError
 from fabflow.positioning.result import BasePose
 from fabflow.programs.feasibility import TOOL_ROTATION_SPEED, move_lengths, solve_moves
 from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
+from fabflow.programs.motion_checks import program_checks
 from fabflow.programs.motions import OUTPUTS, Action, Step, Waypoint, work_package_motion
 from fabflow.programs.writers import writer_for
 from fabflow.project import Project
@@ -31,13 +32,21 @@ from fabflow.version import __version__
 def _drop_unreachable_optional(
     steps: Sequence[Step], robot: RobotModel, T_base_world: np.ndarray, T_flange_tool: np.ndarray
 ) -> list[Step]:
-    """The steps without the optional via points the arm cannot reach."""
-    optional = [s for s in steps if isinstance(s, Waypoint) and s.optional]
-    if not optional:
+    """The steps without the optional via points the arm cannot reach in a
+    configuration that also reaches every other target of their element (a via
+    point is not worth a configuration change)."""
+    waypoints = [s for s in steps if isinstance(s, Waypoint)]
+    if not any(w.optional for w in waypoints):
         return list(steps)
-    T = T_base_world @ np.stack([w.T_world_tool for w in optional]) @ np.linalg.inv(T_flange_tool)
+    T = T_base_world @ np.stack([w.T_world_tool for w in waypoints]) @ np.linalg.inv(T_flange_tool)
     _, valid = robot.ik_batch(T)
-    dropped = {id(w) for w, ok in zip(optional, valid.any(axis=1), strict=True) if not ok}
+    optional = np.array([w.optional for w in waypoints])
+    _, owner = np.unique([w.element for w in waypoints], return_inverse=True)
+    owner = owner.ravel()
+    required = np.ones((owner.max() + 1, valid.shape[1]), dtype=bool)
+    np.logical_and.at(required, owner[~optional], valid[~optional])
+    keep = (valid & required[owner]).any(axis=1) | ~optional
+    dropped = {id(w) for w, k in zip(waypoints, keep, strict=True) if not k}
     return [s for s in steps if id(s) not in dropped]
 
 
@@ -109,6 +118,14 @@ def compile_program(
             )
         )
         k += 1
+    checks = program_checks(robot, [w.kind for w in waypoints], q, via_q) if waypoints else {}
+    if checks.get("changes_inside_lin") or checks.get("needless_swings"):
+        header = {
+            **header,
+            "configuration": f"{checks['configuration_changes']} changes between targets, "
+            f"{checks['changes_inside_lin']} inside linear moves (A5 through 0), "
+            f"{checks['needless_swings']} PTP moves swinging A1-A3 widely",
+        }
     slowed = slowdown > 1.0
     if slowed.any():
         header = {
@@ -125,6 +142,7 @@ def compile_program(
         outputs=dict(OUTPUTS),
         header=header,
         tool_name=project.robot.tool.name,
+        checks=checks,
     )
 
 

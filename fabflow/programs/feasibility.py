@@ -16,6 +16,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from fabflow.errors import InfeasibleError
+from fabflow.programs.motion_checks import configuration_of, wrist_flips
 from fabflow.programs.motions import Waypoint
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
@@ -33,6 +34,12 @@ MAX_JOINT_STEP = np.pi / 2
 configuration change, whatever the time allowed."""
 TOOL_ROTATION_SPEED = 1.0
 """Tool rotation speed assumed for timing linear moves (rad/s)."""
+AXIS_WEIGHTS = np.array([1.0, 1.0, 1.0, 0.25, 0.25, 0.25])
+"""Weight of each axis' travel in the cost of a PTP move (per radian): the main
+axes move the arm's mass through the work area, the wrist axes only the tool."""
+CONFIGURATION_CHANGE_COST = 2.0 * np.pi
+"""Cost added to a PTP option on another configuration than the current one: a
+configuration is kept while any option on it can follow the motion."""
 
 
 def move_lengths(T_world_tool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -145,6 +152,7 @@ def solve_moves(
     q_prev = (
         robot.joint_limits.mean(axis=1) if q_start is None else np.asarray(q_start, dtype=float)
     )
+    current = int(configuration_of(robot, q_prev[None])[0])
     multi_turn = np.diff(robot.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
     # Time per sample of each linear move at its programmed speed: the joint
     # speeds the line demands must stay within the robot's limits.
@@ -177,14 +185,34 @@ def solve_moves(
             dt=dt[i],
         )
 
+    # Branches on which an element's whole motion (every target and every sample
+    # of its linear moves) has a solution: a configuration change, where one is
+    # needed, then happens once, at the element's first target.
+    element_of = np.array([w.element for w in waypoints])
+    _, owner = np.unique(element_of, return_inverse=True)
+    sample_owner = np.repeat(owner.ravel(), np.diff(np.r_[0, stops]))
+    whole = np.ones((owner.max() + 1, valid.shape[1]), dtype=bool)
+    np.logical_and.at(whole, sample_owner, valid)
+    ptp_index = np.flatnonzero([w.kind == "ptp" for w in waypoints])
+
     # A PTP target and the linear moves after it form a chain: the PTP takes the
-    # fastest configuration from which the whole chain can be followed.
+    # cheapest configuration from which the whole chain can be followed.
     i = 0
     while i < n:
         end = i + 1
         while end < n and waypoints[end].kind == "lin":
             end += 1
-        options = _ptp_options(robot, q_all[stops[i] - 1], valid[stops[i] - 1], q_prev)
+        later = ptp_index[ptp_index > i]
+        nxt = stops[later[0]] - 1 if len(later) else None
+        options = _ptp_options(
+            robot,
+            q_all[stops[i] - 1],
+            valid[stops[i] - 1],
+            q_prev,
+            current,
+            whole[owner.ravel()[i]],
+            None if nxt is None else (q_all[nxt], valid[nxt]),
+        )
         if not options:
             raise _fail(
                 waypoints[i],
@@ -192,21 +220,34 @@ def solve_moves(
                 T_base_tool[stops[i] - 1],
             )
         first_error: InfeasibleError | None = None
+        flipping: tuple[np.ndarray, int, list[tuple[np.ndarray, float]]] | None = None
+        chosen = None
         for q_i, branch in options:
+            start_branch = branch
             try:
                 chain = []
                 q_chain = q_i
+                flips = False
                 for k in range(i + 1, end):
                     path, branch, slow = follow(k, q_chain, branch)
+                    flips = flips or wrist_flips(np.vstack([q_chain, path]))
                     chain.append((path, slow))
                     q_chain = path[-1]
             except InfeasibleError as error:
                 first_error = first_error or error
                 continue
-            break
-        else:
-            assert first_error is not None
-            raise first_error
+            if not flips:
+                chosen = (q_i, start_branch, chain)
+                break
+            flipping = flipping or (q_i, start_branch, chain)
+        if chosen is None:
+            # Every way through takes the wrist through A5 = 0 inside a linear
+            # move: kept, and counted by the program's checks for the report.
+            if flipping is None:
+                assert first_error is not None
+                raise first_error
+            chosen = flipping
+        q_i, current, chain = chosen
         q_out[i] = q_prev = q_i
         for k, (path, slow) in zip(range(i + 1, end), chain, strict=True):
             q_out[k] = q_prev = path[-1]
@@ -219,19 +260,53 @@ def solve_moves(
 
 
 def _ptp_options(
-    robot: RobotModel, q_branches: np.ndarray, ok: np.ndarray, q_prev: np.ndarray
+    robot: RobotModel,
+    q_branches: np.ndarray,
+    ok: np.ndarray,
+    q_prev: np.ndarray,
+    current: int,
+    whole_element: np.ndarray,
+    next_ptp: tuple[np.ndarray, np.ndarray] | None,
 ) -> list[tuple[np.ndarray, int]]:
-    """Valid configurations of a PTP target with their IK branch, fastest first.
+    """Valid configurations of a PTP target with their IK branch, cheapest first.
 
-    A PTP's duration is its largest joint travel over that joint's speed limit.
+    The cost of an option is the joint travel from ``q_prev`` and on to the
+    next PTP target on the same branch, weighted per axis
+    (:data:`AXIS_WEIGHTS`), plus :data:`CONFIGURATION_CHANGE_COST` for a branch
+    other than ``current``, one on which the element's whole motion has no
+    solution (``whole_element``, per branch), and one the next PTP target does
+    not have. Looking one target ahead settles A1 at the back of its range
+    (where both turns are within the limits) on the side the arm goes next.
+    Other multi-turn joints take the turn nearest ``q_prev``.
     """
     candidates = np.flatnonzero(ok)
     if len(candidates) == 0:
         return []
     turned = _nearest_turn(robot, q_branches[candidates], q_prev)
-    duration = (np.abs(turned - q_prev) / robot.velocity_limits).max(axis=1)
-    order = np.argsort(duration, kind="stable")
+    turned, candidates = _a1_turns(robot, turned, candidates)
+    weights = AXIS_WEIGHTS[: robot.dof] if robot.dof <= len(AXIS_WEIGHTS) else 1.0
+    cost = (np.abs(turned - q_prev) * weights).sum(axis=1)
+    penalty = (candidates != current).astype(float) + ~whole_element[candidates]
+    if next_ptp is not None:
+        q_next, ok_next = next_ptp
+        ahead = _nearest_turn(robot, q_next[candidates], turned)
+        reachable = ok_next[candidates]
+        cost += np.where(reachable, (np.abs(ahead - turned) * weights).sum(axis=1), 0.0)
+        penalty += ~reachable
+    cost += CONFIGURATION_CHANGE_COST * penalty
+    order = np.argsort(cost, kind="stable")
     return [(turned[k], int(candidates[k])) for k in order]
+
+
+def _a1_turns(
+    robot: RobotModel, q: np.ndarray, branch: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The options ``q`` plus, where A1 may also stand one turn away, that turn too."""
+    lo, hi = robot.joint_limits[0]
+    other = q.copy()
+    other[:, 0] -= 2.0 * np.pi * np.sign(q[:, 0])
+    inside = (other[:, 0] >= lo - 1e-9) & (other[:, 0] <= hi + 1e-9) & (other[:, 0] != q[:, 0])
+    return np.vstack([q, other[inside]]), np.r_[branch, branch[inside]]
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:
@@ -242,16 +317,18 @@ def _wrap(angle: np.ndarray) -> np.ndarray:
 def _nearest_turn(robot: RobotModel, q: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
     """Candidates (k, dof) with multi-turn joints put at the turn nearest ``q_ref``.
 
+    ``q_ref`` is one configuration ``(dof,)`` or one per candidate ``(k, dof)``.
     The shortest-angle turn is tried first; candidates it puts outside the
     limits are left to the robot model's general rule.
     """
     lo, hi = robot.joint_limits[:, 0], robot.joint_limits[:, 1]
     multi_turn = hi - lo > 2.0 * np.pi
+    ref = np.broadcast_to(q_ref, q.shape)
     turned = q.copy()
-    turned[:, multi_turn] = q_ref[multi_turn] + _wrap(q[:, multi_turn] - q_ref[multi_turn])
+    turned[:, multi_turn] = ref[:, multi_turn] + _wrap(q[:, multi_turn] - ref[:, multi_turn])
     outside = ((turned < lo - 1e-9) | (turned > hi + 1e-9)).any(axis=1)
     if outside.any():
-        turned[outside] = robot.nearest_turn(q[outside], q_ref)
+        turned[outside] = robot.nearest_turn(q[outside], ref[outside])
     return turned
 
 

@@ -115,6 +115,10 @@ class Program:
         element range, localization method and residuals, fabflow version).
     tool_name
         Name of the tool.
+    checks
+        The configuration figures of the moves
+        (:func:`fabflow.programs.motion_checks.program_checks`): needless swings,
+        configuration changes between targets and inside linear moves.
     """
 
     name: str
@@ -125,6 +129,7 @@ class Program:
     outputs: dict[str, int] = field(default_factory=dict)
     header: dict[str, Any] = field(default_factory=dict)
     tool_name: str = "tool"
+    checks: dict[str, Any] = field(default_factory=dict)
 
     @property
     def moves(self) -> list[Move]:
