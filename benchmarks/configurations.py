@@ -8,7 +8,7 @@ configuration changes between targets and inside linear moves, and how many
 PTP targets that repeat an earlier pose of the same program got another
 configuration or joint values (identical targets must get the same).
 
-    python benchmarks/configurations.py [--project cabin] [--quiet]
+    python benchmarks/configurations.py [--project cabin] [--quiet] [--quick]
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--project", default="cabin", help="example project folder name")
     parser.add_argument("--quiet", action="store_true", help="totals only")
+    parser.add_argument("--quick", action="store_true", help="the same (one project, fast)")
     args = parser.parse_args()
     project = load_project(ROOT / "projects" / args.project)
     project = project.model_copy(

@@ -273,11 +273,11 @@ def _ptp_options(
     The cost of an option is the joint travel from ``q_prev`` and on to the
     next PTP target on the same branch, weighted per axis
     (:data:`AXIS_WEIGHTS`), plus :data:`CONFIGURATION_CHANGE_COST` for a branch
-    other than ``current``, one on which the element's whole motion has no
-    solution (``whole_element``, per branch), and one the next PTP target does
-    not have. Looking one target ahead settles A1 at the back of its range
-    (where both turns are within the limits) on the side the arm goes next.
-    Other multi-turn joints take the turn nearest ``q_prev``.
+    other than ``current``, twice that for one on which the element's whole
+    motion has no solution (``whole_element``, per branch), and once more for
+    one the next PTP target does not have. Looking one target ahead settles A1
+    at the back of its range (where both turns are within the limits) on the
+    side the arm goes next. Other multi-turn joints take the turn nearest ``q_prev``.
     """
     candidates = np.flatnonzero(ok)
     if len(candidates) == 0:
@@ -286,7 +286,9 @@ def _ptp_options(
     turned, candidates = _a1_turns(robot, turned, candidates)
     weights = AXIS_WEIGHTS[: robot.dof] if robot.dof <= len(AXIS_WEIGHTS) else 1.0
     cost = (np.abs(turned - q_prev) * weights).sum(axis=1)
-    penalty = (candidates != current).astype(float) + ~whole_element[candidates]
+    # a branch the element's motion cannot keep forces a change inside the
+    # element later: worse than changing now, at its first target
+    penalty = (candidates != current) + 2.0 * ~whole_element[candidates]
     if next_ptp is not None:
         q_next, ok_next = next_ptp
         ahead = _nearest_turn(robot, q_next[candidates], turned)
