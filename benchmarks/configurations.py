@@ -6,7 +6,7 @@ program the moves, PTP moves, needless swings (A2 or A3 turning more than
 90 deg, or A1 turning 30 deg more than the wrist centre's azimuth), the
 configuration changes between targets and inside linear moves, and how many
 PTP targets that repeat an earlier pose of the same program got another
-configuration or joint values (identical targets must get the same).
+configuration, or other joint values (identical targets should get the same).
 
     python benchmarks/configurations.py [--project cabin] [--quiet] [--quick]
 """
@@ -21,7 +21,7 @@ import numpy as np
 from fabflow.design.generate import generate_elements
 from fabflow.localize.plan import localize_plan
 from fabflow.programs.compile import write_programs
-from fabflow.programs.motion_checks import program_checks
+from fabflow.programs.motion_checks import configuration_of, program_checks
 from fabflow.project import load_project
 from fabflow.robots.catalog import get_robot
 from fabflow.tasks.planner import make_plan
@@ -30,14 +30,20 @@ from fabflow.tasks.split import with_pieces
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def repeated_target_mismatches(poses: np.ndarray, q: np.ndarray) -> tuple[int, int]:
-    """PTP targets repeating an earlier pose (to 0.1 mm, 1e-6), and how many differ in ``q``."""
+def repeated_target_mismatches(
+    poses: np.ndarray, q: np.ndarray, config: np.ndarray
+) -> tuple[int, int, int]:
+    """PTP targets repeating an earlier pose (to 0.1 mm, 1e-4), how many of them got
+    another configuration (branch), and how many other joint values (a turn of A1
+    or the wrist, a different Turn T on a KUKA)."""
     key = np.round(poses.reshape(len(poses), -1), 4)
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.ravel()
     repeats = np.flatnonzero(first[inverse] != np.arange(len(poses)))
-    differ = np.abs(q[repeats] - q[first[inverse[repeats]]]).max(axis=1) > 1e-6
-    return len(repeats), int(differ.sum())
+    origin = first[inverse[repeats]]
+    other_config = config[repeats] != config[origin]
+    differ = np.abs(q[repeats] - q[origin]).max(axis=1) > 1e-6
+    return len(repeats), int(other_config.sum()), int(differ.sum())
 
 
 def main() -> None:
@@ -59,11 +65,11 @@ def main() -> None:
     robot = get_robot(project.robot.model)
     header = (
         f"{'program':<14} {'moves':>6} {'ptp':>5} {'swings':>7} {'changes':>8} "
-        f"{'in lin':>7} {'repeats':>8} {'differ':>7}"
+        f"{'in lin':>7} {'repeats':>8} {'other S':>8} {'other q':>8}"
     )
     if not args.quiet:
         print(header)
-    total = np.zeros(7, dtype=int)
+    total = np.zeros(8, dtype=int)
     worst_changes = 0
     for program in programs:
         moves = program.moves
@@ -72,7 +78,8 @@ def main() -> None:
         checks = program_checks(robot, kinds, q, [m.via_q for m in moves])
         ptp = np.array([k == "ptp" for k in kinds])
         T = np.stack([m.T_world_tool for m in moves])[ptp]
-        repeats, differ = repeated_target_mismatches(T, q[ptp])
+        config = configuration_of(robot, q[ptp])
+        repeats, other_config, differ = repeated_target_mismatches(T, q[ptp], config)
         row = [
             checks["moves"],
             checks["ptp_moves"],
@@ -80,19 +87,20 @@ def main() -> None:
             checks["configuration_changes"],
             checks["changes_inside_lin"],
             repeats,
+            other_config,
             differ,
         ]
         total += row
         worst_changes = max(worst_changes, checks["configuration_changes"])
         if not args.quiet:
-            widths = (6, 5, 7, 8, 7, 8, 7)
+            widths = (6, 5, 7, 8, 7, 8, 8, 8)
             cells = " ".join(f"{v:>{w}}" for v, w in zip(row, widths, strict=True))
             print(f"{program.name:<14} {cells}")
     print(
         f"{args.project}: {len(programs)} programs, {total[0]} moves, {total[1]} PTP, "
         f"{total[2]} needless swings, {total[3]} configuration changes (at most {worst_changes} "
-        f"in one program), {total[4]} inside linear moves, {total[6]} of {total[5]} repeated "
-        "PTP targets with other joint values"
+        f"in one program), {total[4]} inside linear moves; of {total[5]} repeated PTP targets "
+        f"{total[6]} in another configuration, {total[7]} with other joint values"
     )
 
 
