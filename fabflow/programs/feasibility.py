@@ -273,7 +273,7 @@ def _ptp_options(
     The cost of an option is the joint travel from ``q_prev`` and on to the
     next PTP target on the same branch, weighted per axis
     (:data:`AXIS_WEIGHTS`), plus :data:`CONFIGURATION_CHANGE_COST` for a branch
-    other than ``current``, twice that for one on which the element's whole
+    other than ``current``, once more for one on which the element's whole
     motion has no solution (``whole_element``, per branch), and once more for
     one the next PTP target does not have. Looking one target ahead settles A1
     at the back of its range (where both turns are within the limits) on the
@@ -287,8 +287,8 @@ def _ptp_options(
     weights = AXIS_WEIGHTS[: robot.dof] if robot.dof <= len(AXIS_WEIGHTS) else 1.0
     cost = (np.abs(turned - q_prev) * weights).sum(axis=1)
     # a branch the element's motion cannot keep forces a change inside the
-    # element later: worse than changing now, at its first target
-    penalty = (candidates != current) + 2.0 * ~whole_element[candidates]
+    # element later: as costly as changing now, at its first target
+    penalty = (candidates != current).astype(float) + ~whole_element[candidates]
     if next_ptp is not None:
         q_next, ok_next = next_ptp
         ahead = _nearest_turn(robot, q_next[candidates], turned)
