@@ -21,7 +21,7 @@ import numpy as np
 from fabflow.design.generate import generate_elements
 from fabflow.localize.plan import localize_plan
 from fabflow.programs.compile import write_programs
-from fabflow.programs.motion_checks import configuration_of, program_checks
+from fabflow.programs.motion_checks import configuration_of
 from fabflow.project import load_project
 from fabflow.robots.catalog import get_robot
 from fabflow.tasks.planner import make_plan
@@ -71,11 +71,12 @@ def main() -> None:
         print(header)
     total = np.zeros(8, dtype=int)
     worst_changes = 0
+    avoidable = 0
     for program in programs:
         moves = program.moves
         q = np.stack([m.q for m in moves])
         kinds = [m.kind for m in moves]
-        checks = program_checks(robot, kinds, q, [m.via_q for m in moves])
+        checks = program.checks
         ptp = np.array([k == "ptp" for k in kinds])
         T = np.stack([m.T_world_tool for m in moves])[ptp]
         config = configuration_of(robot, q[ptp])
@@ -92,14 +93,16 @@ def main() -> None:
         ]
         total += row
         worst_changes = max(worst_changes, checks["configuration_changes"])
+        avoidable += checks["avoidable_swings"]
         if not args.quiet:
             widths = (6, 5, 7, 8, 7, 8, 8, 8)
             cells = " ".join(f"{v:>{w}}" for v, w in zip(row, widths, strict=True))
             print(f"{program.name:<14} {cells}")
     print(
         f"{args.project}: {len(programs)} programs, {total[0]} moves, {total[1]} PTP, "
-        f"{total[2]} needless swings, {total[3]} configuration changes (at most {worst_changes} "
-        f"in one program), {total[4]} inside linear moves; of {total[5]} repeated PTP targets "
+        f"{total[2]} wide swings ({avoidable} avoidable), {total[3]} configuration changes "
+        f"(at most {worst_changes} in one program), {total[4]} inside linear moves; "
+        f"of {total[5]} repeated PTP targets "
         f"{total[6]} in another configuration, {total[7]} with other joint values"
     )
 

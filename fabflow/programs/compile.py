@@ -118,13 +118,18 @@ def compile_program(
             )
         )
         k += 1
-    checks = program_checks(robot, [w.kind for w in waypoints], q, via_q) if waypoints else {}
+    checks = {}
+    if waypoints:
+        T_flange = T_base_world @ np.stack([w.T_world_tool for w in waypoints])
+        T_flange = T_flange @ np.linalg.inv(T_flange_tool)
+        checks = program_checks(robot, [w.kind for w in waypoints], q, via_q, T_flange)
     if checks.get("changes_inside_lin") or checks.get("needless_swings"):
         header = {
             **header,
             "configuration": f"{checks['configuration_changes']} changes between targets, "
             f"{checks['changes_inside_lin']} inside linear moves (A5 through 0), "
-            f"{checks['needless_swings']} PTP moves swinging A1-A3 widely",
+            f"{checks['needless_swings']} PTP moves swinging A1-A3 widely "
+            f"({checks['avoidable_swings']} avoidable by another configuration)",
         }
     slowed = slowdown > 1.0
     if slowed.any():

@@ -100,6 +100,43 @@ def needless_swings(robot: RobotModel, q_from: np.ndarray, q_to: np.ndarray) -> 
     return main | around
 
 
+def avoidable_swings(
+    robot: RobotModel, q_from: np.ndarray, T_base_flange_to: np.ndarray
+) -> np.ndarray:
+    """Which moves have a target configuration that is not a swing from ``q_from``.
+
+    Parameters
+    ----------
+    robot
+        A robot with closed-form inverse kinematics.
+    q_from
+        ``(n, dof)`` joint values at the start of each move (radians).
+    T_base_flange_to
+        ``(n, 4, 4)`` the flange pose each move goes to (base frame, metres).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n,)`` bool: some valid configuration of the target (any branch, A1
+        at either end of its range where both are within the limits) is reached
+        without a swing (:func:`needless_swings`).
+    """
+    q_from = np.atleast_2d(q_from)
+    n = len(q_from)
+    if n == 0:
+        return np.zeros(0, dtype=bool)
+    q_all, valid = robot.ik_batch(T_base_flange_to, q_ref=q_from)
+    k = q_all.shape[1]
+    other = q_all.copy()
+    other[..., 0] -= 2.0 * np.pi * np.sign(other[..., 0])
+    lo, hi = robot.joint_limits[0]
+    other_ok = valid & (other[..., 0] >= lo) & (other[..., 0] <= hi)
+    options = np.concatenate([q_all, other], axis=1).reshape(-1, robot.dof)
+    ok = np.concatenate([valid, other_ok], axis=1)
+    swing = needless_swings(robot, np.repeat(q_from, 2 * k, axis=0), options)
+    return (ok & ~swing.reshape(n, 2 * k)).any(axis=1)
+
+
 def wrist_flips(q_path: np.ndarray) -> bool:
     """Whether A5 changes sign along a joint path ``(k, dof)`` (the wrist configuration flips)."""
     a5 = np.sign(np.round(q_path[:, 4], 9))
@@ -112,6 +149,7 @@ def program_checks(
     kinds: Sequence[str],
     q: np.ndarray,
     via_q: Sequence[np.ndarray | None],
+    T_base_flange: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The configuration figures of one program's moves.
 
@@ -125,12 +163,17 @@ def program_checks(
         ``(n, dof)`` joint values at each move's target (radians).
     via_q
         Per move, the joint samples inside a linear move (or None).
+    T_base_flange
+        ``(n, 4, 4)`` flange pose of each move's target (base frame, metres);
+        with it, the swings another configuration of the target would have
+        avoided are counted (``avoidable_swings``).
 
     Returns
     -------
     dict
         ``moves``, ``ptp_moves``, ``needless_swings`` (count) and
-        ``swing_moves`` (their indices), ``configuration_changes`` between
+        ``swing_moves`` (their indices), ``avoidable_swings`` (or None),
+        ``configuration_changes`` between
         consecutive targets, ``configurations`` (the distinct branches used),
         and ``changes_inside_lin`` (linear moves whose configuration changes).
     """
@@ -140,6 +183,10 @@ def program_checks(
     swing = np.zeros(n, dtype=bool)
     if n > 1:
         swing[1:] = needless_swings(robot, q[:-1], q[1:]) & ptp[1:]
+    avoidable = None
+    if T_base_flange is not None:
+        moves = np.flatnonzero(swing)
+        avoidable = int(avoidable_swings(robot, q[moves - 1], T_base_flange[moves]).sum())
     config = configuration_of(robot, q)
     changes = int((config[1:] != config[:-1]).sum()) if n > 1 else 0
     inside = 0
@@ -151,6 +198,7 @@ def program_checks(
         "ptp_moves": int(ptp.sum()),
         "needless_swings": int(swing.sum()),
         "swing_moves": np.flatnonzero(swing).tolist(),
+        "avoidable_swings": avoidable,
         "configuration_changes": changes,
         "configurations": sorted({int(c) for c in config}),
         "changes_inside_lin": int(inside),

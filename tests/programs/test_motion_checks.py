@@ -11,6 +11,7 @@ from program_cases import PROJECT, T_WORLD_BASE, make_pose
 from fabflow.design.elements import Element
 from fabflow.programs.compile import compile_program
 from fabflow.programs.motion_checks import (
+    avoidable_swings,
     configuration_of,
     needless_swings,
     program_checks,
@@ -51,6 +52,20 @@ def test_needless_swings_flags_an_elbow_flip_and_a_turn_around() -> None:
         robot, np.stack([q0, q0, q0, q0_back]), np.stack([small, elbow, around, long_way])
     )
     assert flags.tolist() == [False, True, False, True]
+
+
+def test_a_swing_into_another_elbow_is_avoidable() -> None:
+    robot = get_robot("kuka_kr60_3")
+    q0 = np.radians([10.0, -60.0, 80.0, 0.0, 40.0, 0.0])
+    q_all, ok = robot.ik_batch(robot.fk(q0[None]), q_ref=q0)
+    elbow = q_all[0, np.flatnonzero(ok[0] & (np.abs(q_all[0, :, 2] - q0[2]) > np.pi / 2))[0]]
+    assert needless_swings(robot, q0[None], elbow[None])[0]
+    # the same pose as the start: its own configuration is no swing at all
+    assert avoidable_swings(robot, q0[None], robot.fk(elbow[None]))[0]
+    # a target out of the reach is no option at all
+    out = robot.fk(q0[None])
+    out[0, :3, 3] *= 10.0
+    assert not avoidable_swings(robot, q0[None], out)[0]
 
 
 def test_wrist_flips_is_a_sign_change_of_a5() -> None:
@@ -99,5 +114,7 @@ def test_a_package_keeps_one_configuration_and_repeats_its_pick_exactly() -> Non
     assert np.allclose(np.abs(picks[:, 0]), np.pi)
     assert program.checks["configuration_changes"] == 0
     assert program.checks["changes_inside_lin"] == 0
-    again = program_checks(robot, [m.kind for m in moves], q, [m.via_q for m in moves])
+    T_flange = program.T_base_world @ np.stack([m.T_world_tool for m in moves])
+    T_flange = T_flange @ np.linalg.inv(program.T_flange_tool)
+    again = program_checks(robot, [m.kind for m in moves], q, [m.via_q for m in moves], T_flange)
     assert again == program.checks
