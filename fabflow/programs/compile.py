@@ -77,7 +77,9 @@ def compile_program(
     T_flange_tool = project.robot.tool.T_flange_tool.matrix()
     steps = _drop_unreachable_optional(steps, robot, T_base_world, T_flange_tool)
     waypoints = [s for s in steps if isinstance(s, Waypoint)]
-    q, via_q, via_T, slowdown = solve_moves(waypoints, robot.name, T_base_world, T_flange_tool)
+    q, via_q, via_T, slowdown, wrist = solve_moves(
+        waypoints, robot.name, T_base_world, T_flange_tool
+    )
     if waypoints:
         dist, angle = move_lengths(np.stack([w.T_world_tool for w in waypoints]))
     instructions: list[Instruction] = []
@@ -115,6 +117,7 @@ def compile_program(
                 time=round(float(t), 6),
                 via_q=via_q[k],
                 via_T_world_tool=via_T[k],
+                wrist_interpolated=bool(wrist[k]),
             )
         )
         k += 1
@@ -123,6 +126,7 @@ def compile_program(
         T_flange = T_base_world @ np.stack([w.T_world_tool for w in waypoints])
         T_flange = T_flange @ np.linalg.inv(T_flange_tool)
         checks = program_checks(robot, [w.kind for w in waypoints], q, via_q, T_flange)
+        checks["wrist_interpolated"] = int(wrist.sum())
     if checks.get("changes_inside_lin") or checks.get("needless_swings"):
         header = {
             **header,

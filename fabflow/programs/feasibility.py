@@ -18,6 +18,11 @@ import numpy as np
 from fabflow.errors import InfeasibleError
 from fabflow.programs.motion_checks import configuration_of, wrist_flips
 from fabflow.programs.motions import Waypoint
+from fabflow.programs.wrist_lin import (
+    MAX_DEVIATION_DEG,
+    same_status_ends,
+    wrist_interpolated_path,
+)
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
 from fabflow.transforms.so3 import exp_so3, log_so3
@@ -106,7 +111,7 @@ def solve_moves(
     T_base_world: np.ndarray,
     T_flange_tool: np.ndarray,
     q_start: np.ndarray | None = None,
-) -> tuple[np.ndarray, list[np.ndarray | None], list[np.ndarray | None], np.ndarray]:
+) -> tuple[np.ndarray, list[np.ndarray | None], list[np.ndarray | None], np.ndarray, np.ndarray]:
     """Joint configurations for every waypoint, with linear moves checked along the line.
 
     Parameters
@@ -131,6 +136,9 @@ def solve_moves(
     slowdown
         (n,) factor (>= 1) each linear move's speed must be divided by so that
         its joints stay within their speed limits (near a singularity).
+    wrist
+        (n,) bool: linear moves that pass the wrist singularity with the wrist
+        axes interpolated (:mod:`fabflow.programs.wrist_lin`), their status kept.
 
     Raises
     ------
@@ -141,7 +149,7 @@ def solve_moves(
     robot = get_robot(robot_name)
     n = len(waypoints)
     if n == 0:
-        return np.zeros((0, robot.dof)), [], [], np.ones(0)
+        return np.zeros((0, robot.dof)), [], [], np.ones(0), np.zeros(0, dtype=bool)
     T_tool_flange = np.linalg.inv(np.asarray(T_flange_tool, dtype=float))
     T_world_tool = np.stack([w.T_world_tool for w in waypoints])
     flat, stops = sample_linear_moves(T_world_tool, np.array([w.kind == "lin" for w in waypoints]))
@@ -164,6 +172,7 @@ def solve_moves(
     slowdown = np.ones(n)
     via_q: list[np.ndarray | None] = [None] * n
     via_T: list[np.ndarray | None] = [None] * n
+    wrist = np.zeros(n, dtype=bool)
     starts = np.r_[0, stops[:-1]]
 
     def follow(i: int, q_prev: np.ndarray, branch: int) -> tuple[np.ndarray, int, float]:
@@ -184,6 +193,48 @@ def solve_moves(
             T_base_tool[rows],
             dt=dt[i],
         )
+
+    def follow_chain(
+        i: int, end: int, q_i: np.ndarray, branch: int, wrist_ok: bool
+    ) -> tuple[list[tuple[np.ndarray, float, bool]], bool]:
+        """The linear moves after PTP ``i`` from ``q_i``; whether one takes A5 through 0."""
+        chain = []
+        q_chain = q_i
+        flips = False
+        for k in range(i + 1, end):
+            path, branch, slow = follow(k, q_chain, branch)
+            interpolated = False
+            if wrist_flips(np.vstack([q_chain, path])):
+                kept = _keep_status(k, q_chain) if wrist_ok else None
+                if kept is None:
+                    flips = True
+                else:
+                    path, branch, slow = kept
+                    interpolated = True
+            chain.append((path, slow, interpolated))
+            q_chain = path[-1]
+        return chain, flips
+
+    def _keep_status(k: int, q_from: np.ndarray) -> tuple[np.ndarray, int, float] | None:
+        """Linear move ``k`` with the wrist axes interpolated to an end of the same status."""
+        end_row = stops[k] - 1
+        found = [
+            wrist_interpolated_path(
+                robot, q_from, q_end, T_base_tool[starts[k] : stops[k]], T_flange_tool
+            )
+            for q_end in same_status_ends(robot, q_from, q_all[end_row], valid[end_row])
+        ]
+        paths = [f for f in found if f is not None and f[1] <= np.radians(MAX_DEVIATION_DEG)]
+        if not paths:
+            return None
+        path = min(paths, key=lambda f: f[1])[0]
+        q_end = path[-1]
+        steps = np.abs(np.diff(np.vstack([q_from, path]), axis=0))
+        slow = max(1.0, float((steps / (robot.velocity_limits * dt[k])).max()))
+        if steps.max() > MAX_JOINT_STEP or slow > 1.0 / MIN_SPEED_FRACTION:
+            return None
+        same = np.abs(_wrap(q_all[end_row] - q_end)).max(axis=1) < 1e-6
+        return path, int(np.argmax(same & valid[end_row])), slow
 
     # Branches on which an element's whole motion (every target and every sample
     # of its linear moves) has a solution: a configuration change, where one is
@@ -220,43 +271,40 @@ def solve_moves(
                 T_base_tool[stops[i] - 1],
             )
         first_error: InfeasibleError | None = None
-        flipping: tuple[np.ndarray, int, list[tuple[np.ndarray, float]]] | None = None
-        chosen = None
-        for q_i, branch in options:
-            start_branch = branch
-            try:
-                chain = []
-                q_chain = q_i
-                flips = False
-                for k in range(i + 1, end):
-                    path, branch, slow = follow(k, q_chain, branch)
-                    flips = flips or wrist_flips(np.vstack([q_chain, path]))
-                    chain.append((path, slow))
-                    q_chain = path[-1]
-            except InfeasibleError as error:
-                first_error = first_error or error
-                continue
-            if not flips:
-                chosen = (q_i, start_branch, chain)
+        chosen = flipping = None
+        # First a chain on which no linear move takes A5 through 0; failing that,
+        # one whose flipping moves can keep their status with the wrist axes
+        # interpolated (:mod:`fabflow.programs.wrist_lin`); failing that too, the
+        # cheapest chain, its flips counted by the program's checks.
+        for wrist_ok in (False, True):
+            for q_i, branch in options:
+                try:
+                    chain, flips = follow_chain(i, end, q_i, branch, wrist_ok)
+                except InfeasibleError as error:
+                    first_error = first_error or error
+                    continue
+                if not flips:
+                    chosen = (q_i, branch, chain)
+                    break
+                flipping = flipping or (q_i, branch, chain)
+            if chosen is not None or robot.dof != 6:
                 break
-            flipping = flipping or (q_i, start_branch, chain)
         if chosen is None:
-            # Every way through takes the wrist through A5 = 0 inside a linear
-            # move: kept, and counted by the program's checks for the report.
             if flipping is None:
                 assert first_error is not None
                 raise first_error
             chosen = flipping
         q_i, current, chain = chosen
         q_out[i] = q_prev = q_i
-        for k, (path, slow) in zip(range(i + 1, end), chain, strict=True):
+        for k, (path, slow, interpolated) in zip(range(i + 1, end), chain, strict=True):
             q_out[k] = q_prev = path[-1]
             slowdown[k] = slow
+            wrist[k] = interpolated
             if len(path) > 1:
                 via_q[k] = path[:-1]
                 via_T[k] = flat[starts[k] : stops[k] - 1]
         i = end
-    return q_out, via_q, via_T, slowdown
+    return q_out, via_q, via_T, slowdown, wrist
 
 
 def _ptp_options(

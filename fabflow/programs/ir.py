@@ -47,6 +47,11 @@ class Move:
         at most one controller step apart (from the inverse kinematics check).
     via_T_world_tool
         (k, 4, 4) tool poses matching ``via_q``.
+    wrist_interpolated
+        A linear move past the wrist singularity: the tool centre point follows
+        the line, the orientation follows the wrist axes interpolated between
+        the two ends, both of the same status (KRL ``$ORI_TYPE = #JOINT``,
+        RAPID ``SingArea \\Wrist``); ``via_q`` holds that joint path.
     """
 
     kind: MoveKind
@@ -59,6 +64,7 @@ class Move:
     time: float = 0.0
     via_q: np.ndarray | None = None
     via_T_world_tool: np.ndarray | None = None
+    wrist_interpolated: bool = False
 
 
 @dataclass(frozen=True)
