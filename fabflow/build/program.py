@@ -47,6 +47,11 @@ def stage_program(ctx: BuildContext) -> None:
                 else ""
             ),
         )
+        ctx.add(
+            "program",
+            "linear moves with the wrist interpolated",
+            sum(c.get("wrist_interpolated", 0) for c in checks),
+        )
     skipped = sorted(failed(localized))
     if skipped:
         visits = ", ".join(str(i + 1) for i in skipped)

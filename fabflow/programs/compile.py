@@ -21,6 +21,7 @@ from fabflow.programs.feasibility import TOOL_ROTATION_SPEED, move_lengths, solv
 from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
 from fabflow.programs.motion_checks import program_checks
 from fabflow.programs.motions import OUTPUTS, Action, Step, Waypoint, work_package_motion
+from fabflow.programs.wrist_lin import MAX_DEVIATION_DEG
 from fabflow.programs.writers import writer_for
 from fabflow.project import Project
 from fabflow.robots.catalog import get_robot
@@ -134,6 +135,13 @@ def compile_program(
             f"{checks['changes_inside_lin']} inside linear moves (A5 through 0), "
             f"{checks['needless_swings']} PTP moves swinging A1-A3 widely "
             f"({checks['avoidable_swings']} avoidable by another configuration)",
+        }
+    if checks.get("wrist_interpolated"):
+        header = {
+            **header,
+            "wrist interpolated": f"{checks['wrist_interpolated']} linear moves pass the wrist "
+            "singularity with the wrist axes interpolated (orientation within "
+            f"{MAX_DEVIATION_DEG:g} deg, the ends exact)",
         }
     slowed = slowdown > 1.0
     if slowed.any():

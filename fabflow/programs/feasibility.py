@@ -39,6 +39,9 @@ MAX_JOINT_STEP = np.pi / 2
 configuration change, whatever the time allowed."""
 TOOL_ROTATION_SPEED = 1.0
 """Tool rotation speed assumed for timing linear moves (rad/s)."""
+WRIST_SAMPLES = 36
+"""Samples of a wrist-interpolated linear move at least: A4 and A6 turn half a
+turn on it, so that no sample is more than about 5 deg from the next."""
 AXIS_WEIGHTS = np.array([1.0, 1.0, 1.0, 0.25, 0.25, 0.25])
 """Weight of each axis' travel in the cost of a PTP move (per radian): the main
 axes move the arm's mass through the work area, the wrist axes only the tool."""
@@ -196,32 +199,39 @@ def solve_moves(
 
     def follow_chain(
         i: int, end: int, q_i: np.ndarray, branch: int, wrist_ok: bool
-    ) -> tuple[list[tuple[np.ndarray, float, bool]], bool]:
-        """The linear moves after PTP ``i`` from ``q_i``; whether one takes A5 through 0."""
+    ) -> tuple[list[tuple[np.ndarray, float, np.ndarray | None]], bool]:
+        """The linear moves after PTP ``i`` from ``q_i``; whether one takes A5 through 0.
+
+        Each move is ``(joint path, slowdown, samples)``: ``samples`` are the tool
+        poses (world) of a wrist-interpolated move's path, None for the others.
+        """
         chain = []
         q_chain = q_i
         flips = False
         for k in range(i + 1, end):
             path, branch, slow = follow(k, q_chain, branch)
-            interpolated = False
+            samples = None
             if wrist_flips(np.vstack([q_chain, path])):
                 kept = _keep_status(k, q_chain) if wrist_ok else None
                 if kept is None:
                     flips = True
                 else:
-                    path, branch, slow = kept
-                    interpolated = True
-            chain.append((path, slow, interpolated))
+                    path, branch, slow, samples = kept
+            chain.append((path, slow, samples))
             q_chain = path[-1]
         return chain, flips
 
-    def _keep_status(k: int, q_from: np.ndarray) -> tuple[np.ndarray, int, float] | None:
-        """Linear move ``k`` with the wrist axes interpolated to an end of the same status."""
+    def _keep_status(
+        k: int, q_from: np.ndarray
+    ) -> tuple[np.ndarray, int, float, np.ndarray] | None:
+        """Linear move ``k`` with the wrist axes interpolated to an end of the same status,
+        sampled finely enough (:data:`WRIST_SAMPLES`) for the wrist's half turn."""
         end_row = stops[k] - 1
+        count = max(int(stops[k] - starts[k]), WRIST_SAMPLES)
+        samples = _line_samples(flat[starts[k] - 1], flat[end_row], count)
+        T_samples = T_base_world @ samples
         found = [
-            wrist_interpolated_path(
-                robot, q_from, q_end, T_base_tool[starts[k] : stops[k]], T_flange_tool
-            )
+            wrist_interpolated_path(robot, q_from, q_end, T_samples, T_flange_tool)
             for q_end in same_status_ends(robot, q_from, q_all[end_row], valid[end_row])
         ]
         paths = [f for f in found if f is not None and f[1] <= np.radians(MAX_DEVIATION_DEG)]
@@ -230,11 +240,12 @@ def solve_moves(
         path = min(paths, key=lambda f: f[1])[0]
         q_end = path[-1]
         steps = np.abs(np.diff(np.vstack([q_from, path]), axis=0))
-        slow = max(1.0, float((steps / (robot.velocity_limits * dt[k])).max()))
+        dt_sample = dt[k] * (stops[k] - starts[k]) / count
+        slow = max(1.0, float((steps / (robot.velocity_limits * dt_sample)).max()))
         if steps.max() > MAX_JOINT_STEP or slow > 1.0 / MIN_SPEED_FRACTION:
             return None
         same = np.abs(_wrap(q_all[end_row] - q_end)).max(axis=1) < 1e-6
-        return path, int(np.argmax(same & valid[end_row])), slow
+        return path, int(np.argmax(same & valid[end_row])), slow, samples
 
     # Branches on which an element's whole motion (every target and every sample
     # of its linear moves) has a solution: a configuration change, where one is
@@ -296,15 +307,27 @@ def solve_moves(
             chosen = flipping
         q_i, current, chain = chosen
         q_out[i] = q_prev = q_i
-        for k, (path, slow, interpolated) in zip(range(i + 1, end), chain, strict=True):
+        for k, (path, slow, samples) in zip(range(i + 1, end), chain, strict=True):
             q_out[k] = q_prev = path[-1]
             slowdown[k] = slow
-            wrist[k] = interpolated
+            wrist[k] = samples is not None
             if len(path) > 1:
                 via_q[k] = path[:-1]
-                via_T[k] = flat[starts[k] : stops[k] - 1]
+                via_T[k] = flat[starts[k] : stops[k] - 1] if samples is None else samples[:-1]
         i = end
     return q_out, via_q, via_T, slowdown, wrist
+
+
+def _line_samples(T_from: np.ndarray, T_to: np.ndarray, count: int) -> np.ndarray:
+    """``count`` poses from ``T_from`` (excluded) to ``T_to`` (included): positions on the
+    line, rotations on the geodesic, uniformly spaced."""
+    s = np.arange(1, count + 1) / count
+    w = log_so3((T_from[:3, :3].T @ T_to[:3, :3])[None])[0]
+    out = np.repeat(np.eye(4)[None], count, axis=0)
+    out[:, :3, :3] = T_from[:3, :3] @ exp_so3(s[:, None] * w)
+    out[:, :3, 3] = T_from[:3, 3] + s[:, None] * (T_to[:3, 3] - T_from[:3, 3])
+    out[-1] = T_to
+    return out
 
 
 def _ptp_options(
