@@ -17,6 +17,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import (
     Field,
+    Strict,
     ValidationError,
     model_validator,
 )
@@ -24,7 +25,15 @@ from pydantic import (
 from fabflow.design.generate import element_count_bound
 from fabflow.design.specs import ElementSource
 from fabflow.errors import InputError
-from fabflow.robots.catalog import PROGRAM_FORMATS, ROBOT_NAMES, format_mismatch, formats_of
+from fabflow.robots.catalog import (
+    CONTROLLERS,
+    PROGRAM_FORMATS,
+    ROBOT_NAMES,
+    format_mismatch,
+    formats_of,
+    get_robot,
+    vendor_of,
+)
 from fabflow.schema import (
     Count,
     ExistingPath,
@@ -51,6 +60,8 @@ LOCALIZATION_METHODS: tuple[str, ...] = ("uwb", "total_station", "icp")
 maps each to its ``localize_station``."""
 
 RobotName = Literal[ROBOT_NAMES]  # type: ignore[valid-type]
+ControllerName = Literal[tuple(CONTROLLERS)]  # type: ignore[valid-type]
+ExternalAxis = Literal["E1", "E2", "E3", "E4", "E5", "E6"]
 ProgramFormat = Literal[PROGRAM_FORMATS]  # type: ignore[valid-type]
 LocalizationMethod = Literal[LOCALIZATION_METHODS]  # type: ignore[valid-type]
 
@@ -119,10 +130,21 @@ class Site(StrictModel):
 
 
 class Tool(StrictModel):
-    """The end effector: its name and the tool centre point in the flange frame."""
+    """The end effector: its name, the tool centre point and its load in the flange frame."""
 
     name: str = "gripper"
     T_flange_tool: PoseSpec = PoseSpec(xyz=(0.0, 0.0, 0.20))
+    mass: PositiveFloat = 20.0
+    """Mass of the tool in kg, written as the controller's load data (KRL ``$LOAD``,
+    RAPID ``tooldata``, URScript ``set_payload``); at most the robot's rated payload."""
+    cog: Vec3 = (0.0, 0.0, 0.1)
+    """Centre of gravity of the tool in the flange frame (metres), at most 2 m away."""
+
+    @model_validator(mode="after")
+    def _cog_near(self) -> Tool:
+        if math.hypot(*self.cog) > 2.0:
+            raise ValueError("'cog' lies more than 2 m from the flange")
+        return self
 
 
 class Platform(StrictModel):
@@ -140,6 +162,11 @@ class Platform(StrictModel):
     safety_margin: NonNegativeFloat = 0.3
     T_platform_pick: PoseSpec = PoseSpec(xyz=(-0.9, 0.0, 0.7))
     """Where the robot picks blocks from (a magazine on the platform)."""
+    lift_axis: ExternalAxis | None = None
+    """The controller's external axis that drives the lift (``E1`` ... ``E6``; its
+    value the lift height above the lowest position in mm): the programs carry the
+    height in every target. Without one the operator sets the lift: each program
+    stops before its first motion, names the height and waits for confirmation."""
 
     @model_validator(mode="after")
     def _lift(self) -> Platform:
@@ -154,6 +181,36 @@ class Robot(StrictModel):
     model: RobotName = "kuka_kr60_3"
     tool: Tool = Tool()
     platform: Platform = Platform()
+    home_deg: tuple[Real, ...] | None = None
+    """The HOME joint configuration every program starts and ends at (degrees, the
+    controller's joint values); default: the catalogue robot's home."""
+
+    @model_validator(mode="after")
+    def _home_and_load_fit_the_arm(self) -> Robot:
+        arm = get_robot(self.model)
+        if self.home_deg is not None:
+            if len(self.home_deg) != arm.dof:
+                raise located(
+                    ("robot", "home_deg"),
+                    f"{self.model} has {arm.dof} axes, got {len(self.home_deg)}",
+                )
+            lo, hi = ([math.degrees(v) for v in limit] for limit in arm.joint_limits.T)
+            outside = [
+                f"axis {i + 1}: {v:g} not in [{lo[i]:g}, {hi[i]:g}]"
+                for i, v in enumerate(self.home_deg)
+                if not lo[i] <= v <= hi[i]
+            ]
+            if outside:
+                raise located(
+                    ("robot", "home_deg"), "outside the joint limits: " + "; ".join(outside)
+                )
+        if self.tool.mass > arm.payload:
+            raise located(
+                ("robot", "tool", "mass"),
+                f"{self.tool.mass:g} kg exceeds the {self.model}'s rated payload "
+                f"of {arm.payload:g} kg",
+            )
+        return self
 
 
 # ------------------------------------------------------------------- localization
@@ -342,6 +399,11 @@ class ProgramSettings(StrictModel):
     """Approach and retract distance above a target (metres)."""
     blend: NonNegativeFloat = 0.01
     """Blending (approximation) distance (metres)."""
+    controller: ControllerName | None = None
+    """The controller profile (``krc4``, ``krc5``, ``irc5``, ``omnicore``, ...): how
+    many motions one program module may hold. Default: the robot vendor's first."""
+    module_motions: Annotated[int, Strict(), Field(ge=20, le=100_000)] | None = None
+    """Most motions per program module, overriding the controller profile's."""
 
 
 class Simulation(StrictModel):
@@ -403,6 +465,13 @@ class Project(StrictModel):
         why = format_mismatch(self.program.format, self.robot.model)
         if why is not None:
             raise located(("program", "format"), why)
+        controller = self.program.controller
+        if controller is not None and CONTROLLERS[controller].vendor != vendor_of(self.robot.model):
+            raise located(
+                ("program", "controller"),
+                f"'{controller}' ({CONTROLLERS[controller].name}) does not drive the robot "
+                f"'{self.robot.model}'",
+            )
         return self
 
     @model_validator(mode="after")

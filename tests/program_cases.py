@@ -64,7 +64,7 @@ def sample_program(robot: str = "kuka_kr60_3") -> Program:
     T_world_base = BASE_OF_ROBOT.get(robot, T_WORLD_BASE)
     steps = work_package_motion(sample_elements(), project, T_world_base)
     header = {"project": project.name, "station": "S1", "generator": "fabflow test"}
-    return compile_program("writer test S1", steps, project, T_world_base, header)
+    return compile_program("writer test S1", steps, project, T_world_base, header, lift=0.35)
 
 
 CASES = [

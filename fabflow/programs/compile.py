@@ -18,11 +18,18 @@ from fabflow.design.elements import Element
 from fabflow.errors import LocalizationError
 from fabflow.positioning.result import BasePose
 from fabflow.programs.feasibility import TOOL_ROTATION_SPEED, move_lengths, solve_moves
-from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
-from fabflow.programs.motions import OUTPUTS, Action, Step, Waypoint, work_package_motion
+from fabflow.programs.ir import Comment, Instruction, Lift, Load, Move, Program, SetOutput, Wait
+from fabflow.programs.motions import (
+    OUTPUTS,
+    PTP_SPEED,
+    Action,
+    Step,
+    Waypoint,
+    work_package_motion,
+)
 from fabflow.programs.writers import writer_for
 from fabflow.project import Project
-from fabflow.robots.catalog import get_robot
+from fabflow.robots.catalog import controller_profile, get_robot
 from fabflow.robots.chain import RobotModel
 from fabflow.tasks.plan import Plan, WorkPackage
 from fabflow.version import __version__
@@ -41,14 +48,39 @@ def _drop_unreachable_optional(
     return [s for s in steps if id(s) not in dropped]
 
 
+def home_configuration(project: Project) -> np.ndarray:
+    """The HOME joint configuration (radians): ``robot.home_deg`` or the catalogue's."""
+    robot = get_robot(project.robot.model)
+    if project.robot.home_deg is not None:
+        return np.radians(np.asarray(project.robot.home_deg, dtype=float))
+    return np.asarray(robot.q_home, dtype=float)
+
+
+def _home_move(
+    q_home: np.ndarray, q_from: np.ndarray, t: float, robot: RobotModel, T_world_flange: np.ndarray
+) -> Move:
+    """The exact PTP to HOME from ``q_from``, reached at ``t`` plus its joint travel time."""
+    duration = float(np.max(np.abs(q_home - q_from) / (robot.velocity_limits * PTP_SPEED)))
+    return Move(
+        kind="ptp",
+        T_world_tool=T_world_flange,
+        q=q_home,
+        speed=PTP_SPEED,
+        label="home",
+        time=round(t + duration, 6),
+        joint=True,
+    )
+
+
 def compile_program(
     name: str,
     steps: Sequence[Step],
     project: Project,
     T_world_base: np.ndarray,
     header: dict[str, object],
+    lift: float | None = None,
 ) -> Program:
-    """Turn motion steps into a checked, timed :class:`Program`.
+    """Turn motion steps into a checked, timed :class:`Program` from HOME back to HOME.
 
     Parameters
     ----------
@@ -62,16 +94,20 @@ def compile_program(
         The station's localized robot base pose.
     header
         Header comments for the program.
+    lift
+        The station's lift height above its lowest position (metres), if any.
     """
     robot = get_robot(project.robot.model)
     T_base_world = np.linalg.inv(T_world_base)
     T_flange_tool = project.robot.tool.T_flange_tool.matrix()
+    q_home = home_configuration(project)
+    T_world_home = T_world_base @ robot.fk(q_home) @ T_flange_tool
     steps = _drop_unreachable_optional(steps, robot, T_base_world, T_flange_tool)
     waypoints = [s for s in steps if isinstance(s, Waypoint)]
     q, via_q, via_T, slowdown = solve_moves(waypoints, robot.name, T_base_world, T_flange_tool)
     if waypoints:
         dist, angle = move_lengths(np.stack([w.T_world_tool for w in waypoints]))
-    instructions: list[Instruction] = []
+    instructions: list[Instruction] = [_home_move(q_home, q_home, 0.0, robot, T_world_home)]
     t = 0.0
     k = 0
     previous_element: str | None = None
@@ -86,10 +122,9 @@ def compile_program(
                 instructions.append(Wait(step.dwell, step.element, t))
             continue
         speed = step.speed / slowdown[k]
-        if k == 0:
-            duration = 0.0
-        elif step.kind == "ptp":
-            duration = float(np.max(np.abs(q[k] - q[k - 1]) / (robot.velocity_limits * speed)))
+        if k == 0 or step.kind == "ptp":
+            q_from = q[k - 1] if k else q_home
+            duration = float(np.max(np.abs(q[k] - q_from) / (robot.velocity_limits * speed)))
         else:
             duration = max(dist[k - 1] / step.speed, angle[k - 1] / TOOL_ROTATION_SPEED)
             duration *= slowdown[k]
@@ -109,6 +144,8 @@ def compile_program(
             )
         )
         k += 1
+    q_last = q[k - 1] if k else q_home
+    instructions.append(_home_move(q_home, q_last, t, robot, T_world_home))
     slowed = slowdown > 1.0
     if slowed.any():
         header = {
@@ -125,6 +162,10 @@ def compile_program(
         outputs=dict(OUTPUTS),
         header=header,
         tool_name=project.robot.tool.name,
+        load=Load(project.robot.tool.mass, np.asarray(project.robot.tool.cog, dtype=float)),
+        lift=None if lift is None else Lift(lift, project.robot.platform.lift_axis),
+        module_motions=project.program.module_motions
+        or controller_profile(project.robot.model, project.program.controller).module_motions,
     )
 
 
@@ -151,9 +192,12 @@ def work_package_program(
         if wp.elements
         else "none",
         "localization": f"{base_pose.method}, rmse {base_pose.rmse * 1000:.2f} mm",
+        "lift": f"{wp.station.lift * 1000:.0f} mm above its lowest position",
         "generator": f"fabflow {__version__}",
     }
-    return compile_program(program_name(wp), steps, project, T_world_base, header)
+    return compile_program(
+        program_name(wp), steps, project, T_world_base, header, lift=wp.station.lift
+    )
 
 
 def write_programs(

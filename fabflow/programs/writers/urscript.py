@@ -5,6 +5,10 @@ pose in the robot base frame (from the localization) is the variable
 ``world_in_base``; linear targets are written in design coordinates and mapped
 with ``pose_trans(world_in_base, p[...])``. Joint moves carry the joint
 configuration inverse kinematics chose, so the robot takes that configuration.
+Every program starts and ends with an exact ``movej`` to the HOME joint
+configuration; ``set_payload`` gives the tool's mass and centre of gravity (flange
+frame, metres). The UR has no external axis for the lift: a program with a lift
+height opens a blocking ``popup`` naming it before its first motion.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ import numpy as np
 
 from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
-from fabflow.programs.writers.base import Writer, fixed
+from fabflow.programs.writers.base import Writer, fixed, lift_message
 from fabflow.robots.catalog import get_robot
 from fabflow.transforms.vendors import to_ur_pose
 
@@ -50,7 +54,14 @@ def write_urscript(program: Program) -> dict[str, str]:
     lines += [
         f"  set_tcp({_p(program.T_flange_tool)})",
         f"  world_in_base = {_p(program.T_base_world)}",
+        f"  set_payload({fixed(program.load.mass, 3)}, "
+        f"[{', '.join(fixed(v, 4) for v in program.load.cog)}])",
     ]
+    if program.lift is not None:
+        lines.append(
+            f'  popup("fabflow: {lift_message(program.lift)}, then Continue", '
+            'title="lift", blocking=True)'
+        )
     for ins in program.instructions:
         if isinstance(ins, Comment):
             lines.append(f"  # {ins.text}")
@@ -61,7 +72,8 @@ def write_urscript(program: Program) -> dict[str, str]:
             lines.append(f"  sleep({fixed(ins.seconds, 3)})")
         else:
             assert isinstance(ins, Move)
-            comment = f"  # {ins.element} {ins.label}".rstrip() if ins.element else ""
+            text = " ".join(x for x in (ins.element, ins.label) if x)
+            comment = f"  # {text}" if text else ""
             r = fixed(ins.blend, 4)
             if ins.kind == "ptp":
                 q = "[" + ", ".join(fixed(v, 7) for v in ins.q) + "]"

@@ -2,8 +2,9 @@ MODULE writer_test_S1
   ! project: writer test
   ! station: S1
   ! generator: fabflow test
-  PERS tooldata t_gripper := [TRUE,[[0.000,0.000,250.000],[1.000000000,0.000000000,0.000000000,0.000000000]],[20,[0,0,100],[1,0,0,0],0,0,0]];
+  PERS tooldata t_gripper := [TRUE,[[0.000,0.000,250.000],[1.000000000,0.000000000,0.000000000,0.000000000]],[8.500,[0.000,10.000,120.000],[1,0,0,0],0,0,0]];
   PERS wobjdata wobj_world := [FALSE,TRUE,"",[[-2089.842,-795.337,-600.000],[0.998750260,0.000000000,0.000000000,-0.049979169]],[[0,0,0],[1,0,0,0]]];
+  CONST jointtarget jhome := [[0.0000,0.0000,0.0000,0.0000,30.0000,0.0000],[9E9,9E9,9E9,9E9,9E9,9E9]];
   CONST robtarget p1 := [[1104.496,910.150,800.000],[0.000000000,0.998750260,0.049979169,0.000000000],[2,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
   CONST robtarget p2 := [[1104.496,910.150,700.000],[0.000000000,0.998750260,0.049979169,0.000000000],[2,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
   CONST robtarget p3 := [[1104.496,910.150,800.000],[0.000000000,0.998750260,0.049979169,0.000000000],[2,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
@@ -27,8 +28,12 @@ MODULE writer_test_S1
   CONST robtarget p21 := [[3000.000,500.000,300.000],[0.000000000,1.000000000,0.000000000,0.000000000],[-1,0,-3,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
   CONST robtarget p22 := [[3000.000,500.000,400.000],[0.000000000,1.000000000,0.000000000,0.000000000],[-1,0,-3,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
   PROC main()
+    VAR num answer;
     ConfJ \On;
     ConfL \On;
+    TPWrite "fabflow: set the lift to 350 mm above its lowest position";
+    TPReadFK answer, "Lift at 350 mm?", "OK", stEmpty, stEmpty, stEmpty, stEmpty;
+    MoveAbsJ jhome\NoEOffs, v1000, fine, t_gripper\WObj:=wobj_world; ! home
     ! element B1
     MoveJ p1, v1000, z10, t_gripper\WObj:=wobj_world; ! B1 pick approach
     MoveL p2, v200, fine, t_gripper\WObj:=wobj_world; ! B1 pick
@@ -68,5 +73,6 @@ MODULE writer_test_S1
     WaitTime 1.000;
     SetDO do_drill, 0;
     MoveL p22, v200, z10, t_gripper\WObj:=wobj_world; ! T1 retract
+    MoveAbsJ jhome\NoEOffs, v1000, fine, t_gripper\WObj:=wobj_world; ! home
   ENDPROC
 ENDMODULE
