@@ -29,10 +29,10 @@ from fabflow.robots.catalog import (
     CONTROLLERS,
     PROGRAM_FORMATS,
     ROBOT_NAMES,
+    controller_mismatch,
     format_mismatch,
     formats_of,
-    get_robot,
-    vendor_of,
+    robot_setup_problems,
 )
 from fabflow.schema import (
     Count,
@@ -138,13 +138,7 @@ class Tool(StrictModel):
     """Mass of the tool in kg, written as the controller's load data (KRL ``$LOAD``,
     RAPID ``tooldata``, URScript ``set_payload``); at most the robot's rated payload."""
     cog: Vec3 = (0.0, 0.0, 0.1)
-    """Centre of gravity of the tool in the flange frame (metres), at most 2 m away."""
-
-    @model_validator(mode="after")
-    def _cog_near(self) -> Tool:
-        if math.hypot(*self.cog) > 2.0:
-            raise ValueError("'cog' lies more than 2 m from the flange")
-        return self
+    """Centre of gravity of the tool in the flange frame (metres)."""
 
 
 class Platform(StrictModel):
@@ -187,29 +181,10 @@ class Robot(StrictModel):
 
     @model_validator(mode="after")
     def _home_and_load_fit_the_arm(self) -> Robot:
-        arm = get_robot(self.model)
-        if self.home_deg is not None:
-            if len(self.home_deg) != arm.dof:
-                raise located(
-                    ("robot", "home_deg"),
-                    f"{self.model} has {arm.dof} axes, got {len(self.home_deg)}",
-                )
-            lo, hi = ([math.degrees(v) for v in limit] for limit in arm.joint_limits.T)
-            outside = [
-                f"axis {i + 1}: {v:g} not in [{lo[i]:g}, {hi[i]:g}]"
-                for i, v in enumerate(self.home_deg)
-                if not lo[i] <= v <= hi[i]
-            ]
-            if outside:
-                raise located(
-                    ("robot", "home_deg"), "outside the joint limits: " + "; ".join(outside)
-                )
-        if self.tool.mass > arm.payload:
-            raise located(
-                ("robot", "tool", "mass"),
-                f"{self.tool.mass:g} kg exceeds the {self.model}'s rated payload "
-                f"of {arm.payload:g} kg",
-            )
+        problems = robot_setup_problems(self.model, self.home_deg, self.tool.mass)
+        if problems:
+            field_path, why = problems[0]
+            raise located(("robot", *field_path), why)
         return self
 
 
@@ -465,13 +440,9 @@ class Project(StrictModel):
         why = format_mismatch(self.program.format, self.robot.model)
         if why is not None:
             raise located(("program", "format"), why)
-        controller = self.program.controller
-        if controller is not None and CONTROLLERS[controller].vendor != vendor_of(self.robot.model):
-            raise located(
-                ("program", "controller"),
-                f"'{controller}' ({CONTROLLERS[controller].name}) does not drive the robot "
-                f"'{self.robot.model}'",
-            )
+        why = controller_mismatch(self.program.controller, self.robot.model)
+        if why is not None:
+            raise located(("program", "controller"), why)
         return self
 
     @model_validator(mode="after")

@@ -253,6 +253,21 @@ CONTROLLERS: dict[str, ControllerProfile] = {
 """Controller profiles by key; every vendor's first is its default."""
 
 
+def controller_mismatch(key: str | None, robot: str) -> str | None:
+    """Why the controller profile ``key`` does not drive ``robot``; ``None`` when it does."""
+    if key is None:
+        return None
+    if key not in CONTROLLERS:
+        return f"unknown controller {key!r}; known: {', '.join(CONTROLLERS)}"
+    profile, vendor = CONTROLLERS[key], vendor_of(robot)
+    if profile.vendor == vendor:
+        return None
+    return (
+        f"'{key}' ({profile.name}) is not a controller of the robot '{robot}' "
+        f"({VENDORS[vendor].name})"
+    )
+
+
 def controller_profile(robot: str, key: str | None = None) -> ControllerProfile:
     """The controller profile ``key``, or the default of ``robot``'s vendor.
 
@@ -261,18 +276,50 @@ def controller_profile(robot: str, key: str | None = None) -> ControllerProfile:
     UnsupportedError
         For an unknown key, or a controller of another vendor than the robot's.
     """
-    vendor = vendor_of(robot)
+    why = controller_mismatch(key, robot)
+    if why is not None:
+        raise UnsupportedError(why)
     if key is None:
-        return next(p for p in CONTROLLERS.values() if p.vendor == vendor)
-    if key not in CONTROLLERS:
-        raise UnsupportedError(f"unknown controller {key!r}; known: {', '.join(CONTROLLERS)}")
-    profile = CONTROLLERS[key]
-    if profile.vendor != vendor:
-        raise UnsupportedError(
-            f"controller {key!r} ({profile.name}) is not a controller of the robot '{robot}' "
-            f"({VENDORS[vendor].name})"
-        )
-    return profile
+        return next(p for p in CONTROLLERS.values() if p.vendor == vendor_of(robot))
+    return CONTROLLERS[key]
+
+
+def robot_setup_problems(
+    name: str, home_deg: tuple[float, ...] | None, tool_mass: float
+) -> list[tuple[tuple[str, ...], str]]:
+    """What a project's HOME and tool mass get wrong for robot ``name``.
+
+    Parameters
+    ----------
+    name
+        Catalogue robot.
+    home_deg
+        The HOME joint values in degrees, or ``None`` (the catalogue's).
+    tool_mass
+        The tool's mass (kg).
+
+    Returns
+    -------
+    list
+        (field path under ``robot``, message) per problem; empty when none.
+    """
+    arm = get_robot(name)
+    problems: list[tuple[tuple[str, ...], str]] = []
+    if home_deg is not None and len(home_deg) != arm.dof:
+        problems.append((("home_deg",), f"{name} has {arm.dof} axes, got {len(home_deg)}"))
+    elif home_deg is not None:
+        lo, hi = np.degrees(arm.joint_limits).T
+        outside = [
+            f"axis {i + 1}: {v:g} not in [{lo[i]:g}, {hi[i]:g}]"
+            for i, v in enumerate(home_deg)
+            if not lo[i] <= v <= hi[i]
+        ]
+        if outside:
+            problems.append((("home_deg",), "outside the joint limits: " + "; ".join(outside)))
+    if tool_mass > arm.payload:
+        why = f"{tool_mass:g} kg exceeds the {name}'s rated payload of {arm.payload:g} kg"
+        problems.append((("tool", "mass"), why))
+    return problems
 
 
 NEUTRAL_FORMATS: tuple[str, ...] = ("json",)
