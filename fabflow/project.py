@@ -134,9 +134,10 @@ class Tool(StrictModel):
 
     name: str = "gripper"
     T_flange_tool: PoseSpec = PoseSpec(xyz=(0.0, 0.0, 0.20))
-    mass: PositiveFloat = 20.0
+    mass: PositiveFloat = 10.0
     """Mass of the tool in kg, written as the controller's load data (KRL ``$LOAD``,
-    RAPID ``tooldata``, URScript ``set_payload``); at most the robot's rated payload."""
+    RAPID ``tooldata``, URScript ``set_payload``); at most the robot's rated payload.
+    Set it for the real tool: the default is a stand-in the program header names."""
     cog: Vec3 = (0.0, 0.0, 0.1)
     """Centre of gravity of the tool in the flange frame (metres)."""
 

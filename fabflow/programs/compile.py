@@ -174,6 +174,16 @@ def program_name(wp: WorkPackage) -> str:
     return f"fab_v{wp.index + 1:02d}_{wp.station.id}"
 
 
+def _load_note(project: Project) -> str:
+    """The tool load for the header, flagged when the project left it at the default."""
+    tool = project.robot.tool
+    cog = ", ".join(f"{v * 1000:.0f}" for v in tool.cog)
+    note = f"{tool.mass:g} kg, centre of gravity ({cog}) mm in the flange frame"
+    if "mass" not in tool.model_fields_set:
+        note += " (the default: set robot.tool.mass and cog for the real tool)"
+    return note
+
+
 def work_package_program(
     wp: WorkPackage,
     elements_by_id: dict[str, Element],
@@ -193,6 +203,7 @@ def work_package_program(
         else "none",
         "localization": f"{base_pose.method}, rmse {base_pose.rmse * 1000:.2f} mm",
         "lift": f"{wp.station.lift * 1000:.0f} mm above its lowest position",
+        "tool load": _load_note(project),
         "generator": f"fabflow {__version__}",
     }
     return compile_program(
