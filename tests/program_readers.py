@@ -56,6 +56,9 @@ class ReadProgram:
     """(number of motions before the stop, the message the operator reads)."""
     modules: dict[str, int] = field(default_factory=dict)
     """Motions per module."""
+    load_changes: list[tuple[int, float, np.ndarray]] = field(default_factory=list)
+    """(number of motions before, mass, centre of gravity) of every later load
+    statement: KRL ``$LOAD`` (flange frame), RAPID ``GripLoad`` (tool frame)."""
 
     @property
     def moves(self) -> list[tuple[str, np.ndarray | None, tuple, str]]:
@@ -173,8 +176,12 @@ def read_krl(files: dict[str, str]) -> ReadProgram:
                 line,
             )
             if load:
-                program.load_mass = float(load.group(1))
-                program.load_cog = np.array([float(g) for g in load.groups()[1:]]) / 1000.0
+                mass = float(load.group(1))
+                cog = np.array([float(g) for g in load.groups()[1:]]) / 1000.0
+                if np.isnan(program.load_mass):
+                    program.load_mass, program.load_cog = mass, cog
+                else:
+                    program.load_changes.append((len(program.motions), mass, cog))
                 continue
             call = re.fullmatch(r"(\w+)\( \)", line)
             if call:
@@ -227,7 +234,7 @@ RAPID_STATEMENTS = (
 )
 
 
-DECLARATION = r"(?:CONST|PERS) (robtarget|jointtarget|tooldata|wobjdata) (\w+) := (.*);"
+DECLARATION = r"(?:CONST|PERS) (robtarget|jointtarget|tooldata|wobjdata|loaddata) (\w+) := (.*);"
 CONFIRM = r'TPReadFK answer, "[^"]*", "OK", stEmpty, stEmpty, stEmpty, stEmpty;'
 MOVE = (
     r"(MoveJ|MoveL|MoveAbsJ) (\w+)(?:\\NoEOffs)?, v\d+, (fine|z\d+), \w+\\WObj:=wobj_world;"
@@ -245,6 +252,7 @@ def read_rapid(files: dict[str, str] | str) -> ReadProgram:
     procs: dict[str, tuple[str, list[str]]] = {}
     targets: dict[str, tuple[str, list[float]]] = {}
     data: dict[str, str] = {}
+    loads: dict[str, list[float]] = {"load0": [0.0, 0.0, 0.0, 0.0]}
     for text in files.values():
         lines = text.splitlines()
         module = re.fullmatch(r"MODULE (\w+)", lines[0]).group(1)
@@ -267,13 +275,13 @@ def read_rapid(files: dict[str, str] | str) -> ReadProgram:
             if proc is not None:
                 procs[proc][1].append(s)
                 continue
-            m = re.fullmatch(
-                r"(?:CONST|PERS) (robtarget|jointtarget|tooldata|wobjdata) (\w+) := (.*);", s
-            )
+            m = re.fullmatch(DECLARATION, s)
             assert m, f"unknown declaration {s!r}"
             assert m.group(2) not in targets and m.group(2) not in data, f"{m.group(2)} twice"
             if m.group(1) in ("robtarget", "jointtarget"):
                 targets[m.group(2)] = (m.group(1), _numbers(m.group(3)))
+            elif m.group(1) == "loaddata":
+                loads[m.group(2)] = _numbers(m.group(3))
             else:
                 data[m.group(1)] = m.group(3)
     tool = _numbers(data["tooldata"].replace("TRUE", ""))
@@ -297,10 +305,13 @@ def read_rapid(files: dict[str, str] | str) -> ReadProgram:
             if m:
                 message = m.group(1)
                 continue
-            if re.fullmatch(
-                r'TPReadFK answer, "[^"]*", "OK", stEmpty, stEmpty, stEmpty, stEmpty;', s
-            ):
+            if re.fullmatch(CONFIRM, s):
                 program.operator_steps.append((len(program.motions), message))
+                continue
+            m = re.fullmatch(r"GripLoad (\w+);", s)
+            if m:
+                mass, *cog = loads[m.group(1)][:4]
+                program.load_changes.append((len(program.motions), mass, np.array(cog) / 1000.0))
                 continue
             m = re.fullmatch(r"(\w+);", s)
             if m and m.group(1) in procs:

@@ -18,7 +18,17 @@ from fabflow.design.elements import Element
 from fabflow.errors import LocalizationError
 from fabflow.positioning.result import BasePose
 from fabflow.programs.feasibility import TOOL_ROTATION_SPEED, move_lengths, solve_moves
-from fabflow.programs.ir import Comment, Instruction, Lift, Load, Move, Program, SetOutput, Wait
+from fabflow.programs.ir import (
+    Comment,
+    Instruction,
+    Lift,
+    Load,
+    Move,
+    Program,
+    SetOutput,
+    SetPayload,
+    Wait,
+)
 from fabflow.programs.motions import (
     OUTPUTS,
     PTP_SPEED,
@@ -32,6 +42,7 @@ from fabflow.project import Project
 from fabflow.robots.catalog import controller_profile, get_robot
 from fabflow.robots.chain import RobotModel
 from fabflow.tasks.plan import Plan, WorkPackage
+from fabflow.tasks.targets import element_tool_frames
 from fabflow.version import __version__
 
 
@@ -79,6 +90,7 @@ def compile_program(
     T_world_base: np.ndarray,
     header: dict[str, object],
     lift: float | None = None,
+    payloads: dict[str, Load] | None = None,
 ) -> Program:
     """Turn motion steps into a checked, timed :class:`Program` from HOME back to HOME.
 
@@ -96,6 +108,9 @@ def compile_program(
         Header comments for the program.
     lift
         The station's lift height above its lowest position (metres), if any.
+    payloads
+        Element id to its load (centre of gravity in the tool frame), switched
+        in when the gripper closes on it and out when it opens.
     """
     robot = get_robot(project.robot.model)
     T_base_world = np.linalg.inv(T_world_base)
@@ -120,6 +135,9 @@ def compile_program(
             if step.dwell > 0:
                 t += step.dwell
                 instructions.append(Wait(step.dwell, step.element, t))
+            if step.output == "gripper" and step.element in (payloads or {}):
+                held = payloads[step.element] if step.value else None  # type: ignore[index]
+                instructions.append(SetPayload(held, step.element, t))
             continue
         speed = step.speed / slowdown[k]
         if k == 0 or step.kind == "ptp":
@@ -174,6 +192,21 @@ def program_name(wp: WorkPackage) -> str:
     return f"fab_v{wp.index + 1:02d}_{wp.station.id}"
 
 
+def element_payloads(elements: Sequence[Element]) -> dict[str, Load]:
+    """The load of every gripped element with a ``mass`` attribute (kg).
+
+    Its centre of gravity is the element's centre in the tool frame at its place
+    pose (the tool holds it the same way from pick to place).
+    """
+    held = [e for e in elements if e.type == "block" and "mass" in e.attributes]
+    loads = {}
+    for e in held:
+        T_world_tool = element_tool_frames(e)[0]
+        cog = np.linalg.solve(T_world_tool, np.append(e.T_world_element[:3, 3], 1.0))[:3]
+        loads[e.id] = Load(float(e.attributes["mass"]), cog)
+    return loads
+
+
 def _load_note(project: Project) -> str:
     """The tool load for the header, flagged when the project left it at the default."""
     tool = project.robot.tool
@@ -207,7 +240,13 @@ def work_package_program(
         "generator": f"fabflow {__version__}",
     }
     return compile_program(
-        program_name(wp), steps, project, T_world_base, header, lift=wp.station.lift
+        program_name(wp),
+        steps,
+        project,
+        T_world_base,
+        header,
+        lift=wp.station.lift,
+        payloads=element_payloads(elements),
     )
 
 

@@ -96,23 +96,34 @@ class Comment:
     time: float = 0.0
 
 
-Instruction = Move | SetOutput | Wait | Comment
-
-
 @dataclass(frozen=True, eq=False)
 class Load:
-    """The load at the flange: the tool (and what it holds) as a point mass.
+    """A load as a point mass: the tool at the flange, or the element it holds.
 
     Attributes
     ----------
     mass
         Mass in kg (> 0).
     cog
-        (3,) centre of gravity in the flange frame, metres.
+        (3,) centre of gravity, metres: in the flange frame for the tool's load
+        (``Program.load``), in the tool frame for a held element's
+        (``SetPayload.payload``).
     """
 
     mass: float
     cog: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class SetPayload:
+    """From here on the tool holds ``payload`` (an element's load), or nothing (``None``)."""
+
+    payload: Load | None
+    element: str | None = None
+    time: float = 0.0
+
+
+Instruction = Move | SetOutput | Wait | Comment | SetPayload
 
 
 @dataclass(frozen=True)

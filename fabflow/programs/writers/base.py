@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fabflow.errors import InputError, UnsupportedError
-from fabflow.programs.ir import Instruction, Lift, Move, Program
+from fabflow.programs.ir import Instruction, Lift, Load, Move, Program, SetPayload
 from fabflow.robots.catalog import format_mismatch, format_vendor
 
 
@@ -73,6 +73,9 @@ class Writer:
         values += [m.T_world_tool for m in moves] + [m.q for m in moves]
         values.append(np.array([[m.speed, m.blend] for m in moves], dtype=float))
         values += [np.array([program.load.mass]), program.load.cog]
+        for ins in program.instructions:
+            if isinstance(ins, SetPayload) and ins.payload is not None:
+                values += [np.array([ins.payload.mass]), ins.payload.cog]
         if program.lift is not None:
             values.append(np.array([program.lift.height]))
         bad = next((k for k, v in enumerate(values) if not np.all(np.isfinite(v))), None)
@@ -86,6 +89,15 @@ class Writer:
         """The files of ``program``: ``{file name: text}`` (validated first)."""
         self.validate(program)
         return self.render(program)
+
+
+def flange_load(program: Program, payload: Load | None) -> Load:
+    """The whole load at the flange: the tool's plus a held payload (tool frame), as one point."""
+    if payload is None:
+        return program.load
+    cog = program.T_flange_tool[:3, :3] @ payload.cog + program.T_flange_tool[:3, 3]
+    mass = program.load.mass + payload.mass
+    return Load(mass, (program.load.mass * program.load.cog + payload.mass * cog) / mass)
 
 
 def lift_message(lift: Lift) -> str:

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from fabflow.output import json_text
-from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
+from fabflow.programs.ir import Comment, Move, Program, SetOutput, SetPayload, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.programs.writers.base import Writer, lift_message
 from fabflow.transforms.so3 import quat_from_matrix
@@ -76,6 +76,17 @@ def write_json_stream(program: Program) -> dict[str, str]:
             commands.append({"t": round(ins.time, 6), "type": "wait", "seconds": ins.seconds})
         elif isinstance(ins, Comment):
             commands.append({"t": round(ins.time, 6), "type": "comment", "text": ins.text})
+        elif isinstance(ins, SetPayload):
+            held = ins.payload
+            commands.append(
+                {
+                    "t": round(ins.time, 6),
+                    "type": "payload",
+                    "element": ins.element,
+                    "mass": 0.0 if held is None else held.mass,
+                    "cog": [0.0, 0.0, 0.0] if held is None else _r(held.cog),
+                }
+            )
     if setpoints:
         T_base_tool = T_base_world @ np.stack([sp[3] for sp in setpoints])
         q = _r(np.stack([sp[2] for sp in setpoints]))

@@ -5,7 +5,8 @@ Units at this edge: millimetres and degrees; ``A B C`` with R = Rz(A) Ry(B) Rx(C
 ``$TOOL`` the tool centre point in the flange frame; both are declared as FRAMEs
 in the ``.dat``. ``$LOAD`` is the tool's mass and centre of gravity in the flange
 frame (a point mass: inertia 0; ``$LOAD_A3``, a load on axis 3, is left as the
-controller has it). Every program starts and ends with an exact ``PTP`` to the
+controller has it); while the gripper holds an element with a mass, ``$LOAD`` is
+the tool and the element together. Every program starts and ends with an exact ``PTP`` to the
 HOME joint target ``XFABHOME`` (E6AXIS). PTP targets are E6POS with status and
 turn bits from the joint configuration inverse kinematics chose, so the
 controller takes the same configuration. PTP moves are approximated with
@@ -28,11 +29,21 @@ from __future__ import annotations
 
 import numpy as np
 
-from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
+from fabflow.programs.ir import (
+    Comment,
+    Instruction,
+    Load,
+    Move,
+    Program,
+    SetOutput,
+    SetPayload,
+    Wait,
+)
 from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.programs.writers.base import (
     Writer,
     fixed,
+    flange_load,
     lift_axis_value,
     lift_message,
     split_modules,
@@ -56,10 +67,10 @@ def _frame(values: np.ndarray) -> str:
     return f"{xyz},A {fixed(a, 4)},B {fixed(b, 4)},C {fixed(c, 4)}"
 
 
-def _load(program: Program) -> str:
-    cx, cy, cz = program.load.cog * 1000.0
+def _load(load: Load) -> str:
+    cx, cy, cz = load.cog * 1000.0
     cog = f"X {fixed(cx, 3)},Y {fixed(cy, 3)},Z {fixed(cz, 3)},A 0.0,B 0.0,C 0.0"
-    return f"$LOAD = {{M {fixed(program.load.mass, 3)},CM {{{cog}}},J {{X 0.0,Y 0.0,Z 0.0}}}}"
+    return f"$LOAD = {{M {fixed(load.mass, 3)},CM {{{cog}}},J {{X 0.0,Y 0.0,Z 0.0}}}}"
 
 
 def _axes(q: np.ndarray, extra: str) -> str:
@@ -82,7 +93,7 @@ def _module_text(
     lift = lift_axis_value(program.lift)
     extra = "" if lift is None else f",{program.lift.axis} {fixed(lift, 3)}"  # type: ignore[union-attr]
     if is_main:
-        src.append(_load(program))
+        src.append(_load(program.load))
         if program.lift is not None and lift is None:
             src += [f"; OPERATOR: {lift_message(program.lift)}, then press Start", "HALT"]
     moves = [i for i in body if isinstance(i, Move)]
@@ -105,6 +116,8 @@ def _module_text(
             src.append(f"$OUT[{number}] = {'TRUE' if ins.value else 'FALSE'}")
         elif isinstance(ins, Wait):
             src.append(f"WAIT SEC {fixed(ins.seconds, 3)}")
+        elif isinstance(ins, SetPayload):
+            src.append(_load(flange_load(program, ins.payload)))
         else:
             assert isinstance(ins, Move)
             blend = 0.0 if ins is last_move else ins.blend

@@ -4,7 +4,9 @@ Units at this edge: millimetres, degrees and unit quaternions (q1 = w first,
 q1 >= 0). The work object's user frame is the design world in the robot base
 frame (from the localization), so robtargets carry design coordinates;
 ``tooldata`` holds the tool centre point and the tool's load (mass, centre of
-gravity in the flange frame, as a point mass). Each robtarget carries
+gravity in the flange frame, as a point mass); while the gripper holds an
+element with a mass, ``GripLoad`` adds it (``loaddata``, centre of gravity in
+the tool frame) and ``GripLoad load0`` takes it off. Each robtarget carries
 ``confdata`` derived from the joint configuration inverse kinematics chose.
 Every program starts and ends with an exact ``MoveAbsJ`` to the HOME
 ``jointtarget``; the last motion of every procedure is ``fine``.
@@ -23,7 +25,16 @@ from __future__ import annotations
 import numpy as np
 
 from fabflow.errors import UnsupportedError
-from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
+from fabflow.programs.ir import (
+    Comment,
+    Instruction,
+    Load,
+    Move,
+    Program,
+    SetOutput,
+    SetPayload,
+    Wait,
+)
 from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.programs.writers.base import (
     Writer,
@@ -134,6 +145,12 @@ def _zone(blend: float) -> str:
     return "z" + str(min(ZONES_MM[1:], key=lambda v: abs(v - blend * 1000.0)))
 
 
+def _loaddata(load: Load) -> str:
+    """``loaddata``: mass (kg), centre of gravity (mm), a point mass."""
+    cog = ",".join(fixed(v, 3) for v in load.cog * 1000.0)
+    return f"[{fixed(load.mass, 3)},[{cog}],[1,0,0,0],0,0,0]"
+
+
 def _extax(program: Program) -> str:
     lift = lift_axis_value(program.lift)
     values = ["9E9"] * 6
@@ -167,10 +184,17 @@ def _body(
             f"  CONST robtarget p{n} := [{_pose(ins.T_world_tool)[1:-1]},"
             f"[{','.join(str(c) for c in conf)}],{extax}];"
         )
+    for ins in body:
+        if isinstance(ins, SetPayload) and ins.payload is not None:
+            name = _sanitize(f"load_{ins.element}", MAX_NAME)
+            decl.append(f"  PERS loaddata {name} := {_loaddata(ins.payload)};")
     n = first_point
     for ins in body:
         if isinstance(ins, str):
             lines.append(f"    {ins};")
+        elif isinstance(ins, SetPayload):
+            held = "load0" if ins.payload is None else _sanitize(f"load_{ins.element}", MAX_NAME)
+            lines.append(f"    GripLoad {held};")
         elif isinstance(ins, Comment):
             lines.append(f"    ! {ins.text}")
         elif isinstance(ins, SetOutput):
@@ -239,8 +263,7 @@ def write_rapid(program: Program, max_moves: int | None = None) -> dict[str, str
             procs.append(proc)
         main = [*instructions[: first + 1], *procs, *instructions[last:]]
     decl, lines = _body(program, main, tool, 0, extax)
-    cog = ",".join(fixed(v, 3) for v in program.load.cog * 1000.0)
-    load = f"[{fixed(program.load.mass, 3)},[{cog}],[1,0,0,0],0,0,0]"
+    load = _loaddata(program.load)
     head = [f"MODULE {name}", *(f"  ! {k}: {v}" for k, v in program.header.items())]
     head += [
         f"  PERS tooldata {tool} := [TRUE,{_pose(program.T_flange_tool)},{load}];",

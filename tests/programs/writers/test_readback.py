@@ -21,7 +21,8 @@ from program_cases import sample_program
 from program_readers import ReadProgram, program_files, read_krl, read_rapid
 
 from fabflow.build.context import BuildContext
-from fabflow.programs.ir import Lift, Program
+from fabflow.programs.ir import Lift, Move, Program, SetPayload
+from fabflow.programs.writers.base import flange_load
 from fabflow.programs.writers.krl import write_krl
 from fabflow.programs.writers.rapid import confdata, write_rapid
 from fabflow.robots import get_robot, kuka_status_turn
@@ -63,6 +64,20 @@ def check_read_back(read: ReadProgram, program: Program, vendor: str) -> None:
     # the tool load
     assert read.load_mass == pytest.approx(program.load.mass, abs=1e-3)
     np.testing.assert_allclose(read.load_cog, program.load.cog, atol=1e-6)
+    # a held element's load switched in after the grip and out after the release
+    changes = []
+    for ins in program.instructions:
+        if isinstance(ins, SetPayload):
+            before = sum(
+                isinstance(i, Move) for i in program.instructions[: program.instructions.index(ins)]
+            )
+            load = flange_load(program, ins.payload) if vendor == "kuka" else ins.payload
+            mass, cog = (0.0, np.zeros(3)) if load is None else (load.mass, load.cog)
+            changes.append((before, mass, cog))
+    assert len(read.load_changes) == len(changes)
+    for (n, mass, cog), (n_ref, mass_ref, cog_ref) in zip(read.load_changes, changes, strict=True):
+        assert n == n_ref and mass == pytest.approx(mass_ref, abs=1e-3)
+        np.testing.assert_allclose(cog, cog_ref, atol=1e-6)
     # the lift: an external axis in every target, or an operator stop before any motion
     lift = program.lift
     if lift is not None and lift.axis is not None:

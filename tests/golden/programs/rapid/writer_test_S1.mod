@@ -27,6 +27,7 @@ MODULE writer_test_S1
   CONST robtarget p20 := [[3000.000,500.000,400.000],[0.000000000,1.000000000,0.000000000,0.000000000],[-1,0,-3,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
   CONST robtarget p21 := [[3000.000,500.000,300.000],[0.000000000,1.000000000,0.000000000,0.000000000],[-1,0,-3,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
   CONST robtarget p22 := [[3000.000,500.000,400.000],[0.000000000,1.000000000,0.000000000,0.000000000],[-1,0,-3,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
+  PERS loaddata load_B1 := [2.980,[0.000,0.000,52.500],[1,0,0,0],0,0,0];
   PROC main()
     VAR num answer;
     ConfJ \On;
@@ -39,12 +40,14 @@ MODULE writer_test_S1
     MoveL p2, v200, fine, t_gripper\WObj:=wobj_world; ! B1 pick
     SetDO do_gripper, 1;
     WaitTime 0.300;
+    GripLoad load_B1;
     MoveL p3, v200, z10, t_gripper\WObj:=wobj_world; ! B1 pick retract
     MoveJ p4, v1000, z10, t_gripper\WObj:=wobj_world; ! B1 travel
     MoveJ p5, v1000, z10, t_gripper\WObj:=wobj_world; ! B1 place approach
     MoveL p6, v200, fine, t_gripper\WObj:=wobj_world; ! B1 place
     SetDO do_gripper, 0;
     WaitTime 0.300;
+    GripLoad load0;
     MoveL p7, v200, z10, t_gripper\WObj:=wobj_world; ! B1 place retract
     ! element B2
     MoveJ p8, v1000, z10, t_gripper\WObj:=wobj_world; ! B2 pick approach
