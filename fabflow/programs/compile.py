@@ -68,13 +68,13 @@ def home_configuration(project: Project) -> np.ndarray:
 
 
 def _home_move(
-    q_home: np.ndarray, q_from: np.ndarray, t: float, robot: RobotModel, T_world_flange: np.ndarray
+    q_home: np.ndarray, q_from: np.ndarray, t: float, robot: RobotModel, T_world_tool: np.ndarray
 ) -> Move:
-    """The exact PTP to HOME from ``q_from``, reached at ``t`` plus its joint travel time."""
+    """The exact PTP from ``q_from`` to HOME (tool at ``T_world_tool``), started at ``t``."""
     duration = float(np.max(np.abs(q_home - q_from) / (robot.velocity_limits * PTP_SPEED)))
     return Move(
         kind="ptp",
-        T_world_tool=T_world_flange,
+        T_world_tool=T_world_tool,
         q=q_home,
         speed=PTP_SPEED,
         label="home",
