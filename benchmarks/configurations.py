@@ -75,9 +75,8 @@ def main() -> None:
     for program in programs:
         moves = program.moves
         q = np.stack([m.q for m in moves])
-        kinds = [m.kind for m in moves]
         checks = program.checks
-        ptp = np.array([k == "ptp" for k in kinds])
+        ptp = np.array([m.kind == "ptp" and not m.joint for m in moves])
         T = np.stack([m.T_world_tool for m in moves])[ptp]
         config = configuration_of(robot, q[ptp])
         repeats, other_config, differ = repeated_target_mismatches(T, q[ptp], config)

@@ -150,6 +150,7 @@ def program_checks(
     q: np.ndarray,
     via_q: Sequence[np.ndarray | None],
     T_base_flange: np.ndarray | None = None,
+    joint: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The configuration figures of one program's moves.
 
@@ -167,6 +168,9 @@ def program_checks(
         ``(n, 4, 4)`` flange pose of each move's target (base frame, metres);
         with it, the swings another configuration of the target would have
         avoided are counted (``avoidable_swings``).
+    joint
+        ``(n,)`` bool: joint moves (HOME on the way between two configurations).
+        They count for swings, not as targets whose configuration changes.
 
     Returns
     -------
@@ -187,8 +191,10 @@ def program_checks(
     if T_base_flange is not None:
         moves = np.flatnonzero(swing)
         avoidable = int(avoidable_swings(robot, q[moves - 1], T_base_flange[moves]).sum())
+    cartesian = np.ones(n, dtype=bool) if joint is None else ~np.asarray(joint, dtype=bool)
     config = configuration_of(robot, q)
-    changes = int((config[1:] != config[:-1]).sum()) if n > 1 else 0
+    targets = config[cartesian]
+    changes = int((targets[1:] != targets[:-1]).sum()) if len(targets) > 1 else 0
     inside = 0
     for k in np.flatnonzero(~ptp[1:]) + 1:
         path = q[k - 1 : k + 1] if via_q[k] is None else np.vstack([q[k - 1], via_q[k], q[k]])
@@ -200,6 +206,6 @@ def program_checks(
         "swing_moves": np.flatnonzero(swing).tolist(),
         "avoidable_swings": avoidable,
         "configuration_changes": changes,
-        "configurations": sorted({int(c) for c in config}),
+        "configurations": sorted({int(c) for c in targets}),
         "changes_inside_lin": int(inside),
     }
