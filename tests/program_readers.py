@@ -28,7 +28,9 @@ class Motion:
     holds KRL's (S, T) or RAPID's confdata; ``external`` the external axis values
     (mm) by name (``E1``); ``exact`` whether the motion stops at its point.
     ``module`` names the module it was read from, ``first`` whether it is the
-    module's first motion.
+    module's first motion; ``wrist`` marks a linear move with the wrist axes
+    interpolated (KRL ``$ORI_TYPE = #JOINT``, RAPID ``SingArea \\Wrist``), which the
+    reader requires to be switched back right after it.
     """
 
     kind: str
@@ -41,6 +43,7 @@ class Motion:
     module: str
     first: bool = False
     last: bool = False
+    wrist: bool = False
 
 
 @dataclass
@@ -161,8 +164,17 @@ def read_krl(files: dict[str, str]) -> ReadProgram:
         count = 0
         pending_message = ""
         start = len(program.motions)
+        wrist = restore = False
         for line in src.splitlines():
             if line.startswith(("&", "DEF ")) or line == "END":
+                continue
+            assert not restore or line == "$ORI_TYPE = #VAR", f"{module}: #JOINT left on"
+            if line == "$ORI_TYPE = #VAR":
+                assert restore, f"{module}: a stray $ORI_TYPE = #VAR"
+                restore = False
+                continue
+            if re.fullmatch(r"\$ORI_TYPE = #JOINT(?: ; .*)?", line):
+                wrist = True
                 continue
             if line.startswith(";"):
                 pending_message = line[1:].strip()
@@ -192,9 +204,10 @@ def read_krl(files: dict[str, str]) -> ReadProgram:
             if motion:
                 kind, point, approx, comment = motion.groups()
                 assert point in points, f"{module}: {point} is not declared"
-                program.motions.append(
-                    _krl_motion(kind.lower(), points[point], not approx, comment or "", module)
-                )
+                read = _krl_motion(kind.lower(), points[point], not approx, comment or "", module)
+                assert not wrist or kind == "LIN", f"{module}: #JOINT before a PTP"
+                read.wrist, restore, wrist = wrist, wrist, False
+                program.motions.append(read)
                 count += 1
                 continue
             assert any(re.fullmatch(p, line) for p in KRL_STATEMENTS), f"unknown line {line!r}"
@@ -298,8 +311,17 @@ def read_rapid(files: dict[str, str] | str) -> ReadProgram:
         start = len(program.motions)
         count = 0
         message = ""
+        wrist = restore = False
         for s in statements:
             if s.startswith("!"):
+                continue
+            assert not restore or s == "SingArea \\Off;", f"{module}: SingArea \\Wrist left on"
+            if s == "SingArea \\Off;":
+                assert restore, f"{module}: a stray SingArea \\Off"
+                restore = False
+                continue
+            if re.fullmatch(r"SingArea \\Wrist;(?: ! .*)?", s):
+                wrist = True
                 continue
             m = re.fullmatch(r'TPWrite "(.*)";', s)
             if m:
@@ -345,6 +367,8 @@ def read_rapid(files: dict[str, str] | str) -> ReadProgram:
                         comment or "",
                         module,
                     )
+                assert not wrist or instr == "MoveL", f"{module}: SingArea \\Wrist before {instr}"
+                motion.wrist, restore, wrist = wrist, wrist, False
                 program.motions.append(motion)
                 count += 1
                 continue

@@ -103,6 +103,7 @@ def write_json_stream(program: Program) -> dict[str, str]:
                 "element": move.element,
                 "label": move.label,
                 **({"joint": True} if move.joint else {}),
+                **({"wrist_interpolated": True} if move.wrist_interpolated else {}),
             }
     doc = {
         "format": FORMAT,

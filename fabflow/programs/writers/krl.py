@@ -150,10 +150,14 @@ def _module_text(
                 src.append(f"PTP {point}{approx}")
             else:
                 dat.append(f"DECL E6POS {point}={{{_frame(values[n])}{extra}}}")
+                if ins.wrist_interpolated:
+                    src.append("$ORI_TYPE = #JOINT ; past the wrist singularity")
                 src.append(f"LIN {point}{approx}")
             n += 1
             if ins.element:
                 src[-1] += f" ; {ins.element} {ins.label}".rstrip()
+            if ins.wrist_interpolated:
+                src.append("$ORI_TYPE = #VAR")
     src.append("END")
     dat.append("ENDDAT")
     return "\n".join(src) + "\n", "\n".join(dat) + "\n"

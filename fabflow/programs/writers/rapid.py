@@ -223,7 +223,11 @@ def _body(
             n += 1
             instr = "MoveJ" if ins.kind == "ptp" else "MoveL"
             comment = f" ! {ins.element} {ins.label}".rstrip() if ins.element else ""
+            if ins.wrist_interpolated:
+                lines.append("    SingArea \\Wrist; ! past the wrist singularity")
             lines.append(f"    {instr} p{n}, {speed}, {zone}, {tool}\\WObj:=wobj_world;" + comment)
+            if ins.wrist_interpolated:
+                lines.append("    SingArea \\Off;")
     return decl, lines
 
 

@@ -66,6 +66,8 @@ def write_urscript(program: Program) -> dict[str, str]:
             f'  popup("fabflow: {lift_message(program.lift)}, then Continue", '
             'title="lift", blocking=True)'
         )
+    previous: Move | None = None
+    current: Move | None = None
     for ins in program.instructions:
         if isinstance(ins, Comment):
             lines.append(f"  # {ins.text}")
@@ -78,12 +80,25 @@ def write_urscript(program: Program) -> dict[str, str]:
             lines.append(_payload(flange_load(program, ins.payload)))
         else:
             assert isinstance(ins, Move)
+            previous, current = current, ins
             text = " ".join(x for x in (ins.element, ins.label) if x)
             comment = f"  # {text}" if text else ""
             r = fixed(ins.blend, 4)
             if ins.kind == "ptp":
                 q = "[" + ", ".join(fixed(v, 7) for v in ins.q) + "]"
                 v = fixed(ins.speed * max_joint_speed, 4)
+                lines.append(f"  movej({q}, a={JOINT_ACCELERATION}, v={v}, r={r}){comment}")
+            elif ins.wrist_interpolated and ins.via_q is not None and previous is not None:
+                # past the wrist singularity: the joint path fabflow solved (the
+                # tool centre point on the line at every sample), blended, at the
+                # joint speed that keeps the move's planned time
+                path = np.vstack([previous.q, ins.via_q, ins.q])
+                step_time = max(ins.time - previous.time, 1e-3) / (len(path) - 1)
+                v = fixed(float(np.abs(np.diff(path, axis=0)).max()) / step_time, 4)
+                for q_via in ins.via_q:
+                    q = "[" + ", ".join(fixed(x, 7) for x in q_via) + "]"
+                    lines.append(f"  movej({q}, a={JOINT_ACCELERATION}, v={v}, r=0.001)")
+                q = "[" + ", ".join(fixed(x, 7) for x in ins.q) + "]"
                 lines.append(f"  movej({q}, a={JOINT_ACCELERATION}, v={v}, r={r}){comment}")
             else:
                 target = f"pose_trans(world_in_base, {_p(ins.T_world_tool)})"

@@ -39,6 +39,7 @@ def check_read_back(read: ReadProgram, program: Program, vendor: str) -> None:
     planned = program.moves
     motions = read.motions
     assert [m.kind for m in motions] == [m.kind for m in planned]
+    assert [m.wrist for m in motions] == [m.wrist_interpolated for m in planned]
     # HOME first and last, as joint targets, stopping exactly
     home = np.degrees(planned[0].q)
     for motion in (motions[0], motions[-1]):
