@@ -38,7 +38,7 @@ def stage_program(ctx: BuildContext) -> None:
         inside = [p.name for p in programs if p.checks.get("changes_inside_lin")]
         ctx.add(
             "program",
-            "linear moves through A5 = 0",
+            "configuration changes inside linear moves",
             f"{sum(p.checks['changes_inside_lin'] for p in programs if p.checks)}"
             + (
                 f" (in {', '.join(inside[:6])}{', ...' if len(inside) > 6 else ''}: "

@@ -194,7 +194,7 @@ def compile_program(
     q_last = q[k - 1] if k else q_home
     instructions.append(_home_move(q_home, q_last, t, robot, T_world_home))
     checks = {}
-    executed = [i for i in instructions if isinstance(i, Move)][1:-1]  # HOME to HOME
+    executed = [i for i in instructions if isinstance(i, Move)]  # HOME to HOME
     if executed:
         T_flange = T_base_world @ np.stack([m.T_world_tool for m in executed])
         T_flange = T_flange @ np.linalg.inv(T_flange_tool)
@@ -208,7 +208,9 @@ def compile_program(
         )
         checks["wrist_interpolated"] = int(wrist.sum())
         checks["changes_through_home"] = int(via_home.sum())
-    if checks.get("changes_inside_lin") or checks.get("needless_swings"):
+    if any(
+        checks.get(k) for k in ("changes_inside_lin", "needless_swings", "configuration_changes")
+    ):
         header = {
             **header,
             "configuration": f"{checks['configuration_changes']} changes between targets, "

@@ -238,6 +238,9 @@ def solve_moves(
         if not paths:
             return None
         path = min(paths, key=lambda f: f[1])[0]
+        # the poses the joints really take (the orientation off the straight move)
+        samples = np.linalg.inv(T_base_world) @ robot.fk(path) @ T_flange_tool
+        samples[-1] = flat[end_row]  # the target as given
         q_end = path[-1]
         steps = np.abs(np.diff(np.vstack([q_from, path]), axis=0))
         dt_sample = dt[k] * (stops[k] - starts[k]) / count
@@ -306,6 +309,8 @@ def solve_moves(
                 raise first_error
             chosen = flipping
         q_i, current, chain = chosen
+        if chain:  # the configuration the chain ends in, which the next one keeps
+            current = int(configuration_of(robot, chain[-1][0][-1:])[0])
         q_out[i] = q_prev = q_i
         for k, (path, slow, samples) in zip(range(i + 1, end), chain, strict=True):
             q_out[k] = q_prev = path[-1]

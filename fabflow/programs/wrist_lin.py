@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fabflow.programs.motion_checks import configuration_of
 from fabflow.robots.chain import RobotModel
 from fabflow.transforms.so3 import log_so3
 
@@ -66,6 +67,8 @@ def same_status_ends(
     """
     side = np.sign(q_start[4]) or 1.0
     ends = robot.nearest_turn(q_branches[valid & (np.sign(q_branches[:, 4]) == side)], q_start)
+    # the start's whole configuration (shoulder and elbow too), not only A5's side
+    ends = ends[configuration_of(robot, ends) == configuration_of(robot, q_start[None])[0]]
     turns = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], dtype=float)
     out = np.repeat(ends, len(turns), axis=0)
     out[:, [3, 5]] += 2.0 * np.pi * np.tile(turns, (len(ends), 1))
@@ -107,20 +110,20 @@ def wrist_interpolated_path(
     q = q_start + s[:, None] * (q_end - q_start)
     t_tool = T_flange_tool[:3, 3]
     target = T_base_tool[:, :3, 3]
-    for _ in range(_NEWTON_STEPS):
+    for step in range(_NEWTON_STEPS + 1):
         T = robot.fk(q)
         lever = T[:, :3, :3] @ t_tool
         residual = T[:, :3, 3] + lever - target
         if np.abs(residual).max() < _POSITION_TOL:
             break
+        if step == _NEWTON_STEPS:
+            return None
         J = robot.jacobian(q)
         J_arm = J[:, :3, :3] - _skew(lever) @ J[:, 3:, :3]
         try:
             q[:, :3] -= np.linalg.solve(J_arm, residual[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
             return None
-    else:
-        return None
     if not robot.within_limits(q).all() or np.abs(q[-1] - q_end).max() > 1e-6:
         return None
     R = (robot.fk(q) @ T_flange_tool)[:, :3, :3]

@@ -68,6 +68,7 @@ def write_urscript(program: Program) -> dict[str, str]:
         )
     previous: Move | None = None
     current: Move | None = None
+    waited = since = 0.0  # seconds of dwell before the current move, since the last
     for ins in program.instructions:
         if isinstance(ins, Comment):
             lines.append(f"  # {ins.text}")
@@ -76,11 +77,13 @@ def write_urscript(program: Program) -> dict[str, str]:
             lines.append(f"  set_standard_digital_out({number}, {ins.value})")
         elif isinstance(ins, Wait):
             lines.append(f"  sleep({fixed(ins.seconds, 3)})")
+            since += ins.seconds
         elif isinstance(ins, SetPayload):
             lines.append(_payload(flange_load(program, ins.payload)))
         else:
             assert isinstance(ins, Move)
             previous, current = current, ins
+            waited, since = since, 0.0
             text = " ".join(x for x in (ins.element, ins.label) if x)
             comment = f"  # {text}" if text else ""
             r = fixed(ins.blend, 4)
@@ -93,7 +96,8 @@ def write_urscript(program: Program) -> dict[str, str]:
                 # tool centre point on the line at every sample), blended, at the
                 # joint speed that keeps the move's planned time
                 path = np.vstack([previous.q, ins.via_q, ins.q])
-                step_time = max(ins.time - previous.time, 1e-3) / (len(path) - 1)
+                moving = ins.time - previous.time - waited
+                step_time = max(moving, 1e-3) / (len(path) - 1)
                 v = fixed(float(np.abs(np.diff(path, axis=0)).max()) / step_time, 4)
                 for q_via in ins.via_q:
                     q = "[" + ", ".join(fixed(x, 7) for x in q_via) + "]"
