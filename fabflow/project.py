@@ -344,6 +344,8 @@ class ProgramSettings(StrictModel):
     clearance: NonNegativeFloat = 0.01
     """Smallest distance of the arm, tool and held block from the structure as built,
     the platform, the magazine and site obstacles along every motion (metres)."""
+    check_collisions: bool = True
+    """Check every program for collisions (re-plan, else an error naming the move)."""
     blend: NonNegativeFloat = 0.01
     """Blending (approximation) distance (metres)."""
 

@@ -16,7 +16,8 @@ Every obstacle is a box (centre frame and full side lengths, metres):
 * **magazine**: the stack under the block waiting at the pick pose
   (``robot.platform.T_platform_pick``), from the deck up to the waiting block's
   bottom, the block's footprint plus :data:`MAGAZINE_MARGIN` on each side. The
-  waiting block itself is the block the gripper takes.
+  waiting block itself is the block the gripper takes. The footprint is the
+  package's shortest block (longer blocks overhang the magazine).
 * **site**: ``site.obstacles``; a polygon obstacle is checked as its bounding box.
 
 ``since`` orders obstacles in time: an obstacle is present for the motions of
@@ -283,6 +284,8 @@ def environment(
         The program's elements in build order (element ``j`` has ``since = j``).
     """
     blocks = [e.extents for e in package if e.type == "block" and e.extents is not None]
+    # the magazine holds the shortest block; longer ones overhang it
+    blocks = sorted(blocks, key=lambda x: float(x[0]))
     return Obstacles.join(
         [
             structure_boxes(built, [-1] * len(built)),
@@ -291,3 +294,46 @@ def environment(
             site_boxes(project),
         ]
     )
+
+
+SAFE_MARGIN = 0.02
+"""Added to the safe travel height above the structure (metres)."""
+
+
+def safe_heights(
+    obstacles: Obstacles,
+    package: Sequence[Element],
+    T_world_pick: np.ndarray,
+    clearance: float,
+    width: float,
+) -> dict[str, float]:
+    """Per block of the package, a tool height (world z) above the structure it crosses.
+
+    The highest structure box standing when the block is built whose plan
+    outline comes within ``width`` (metres) of the straight line from the
+    magazine to the block's place, plus the block's height (it hangs below the
+    tool), twice the clearance and :data:`SAFE_MARGIN`.
+    """
+    structure = obstacles.kinds == "structure"
+    lo, hi = _box_aabb_world(obstacles.T, obstacles.extents)
+    centre = 0.5 * (lo[:, :2] + hi[:, :2])
+    half = 0.5 * np.linalg.norm(hi[:, :2] - lo[:, :2], axis=1)
+    a = np.asarray(T_world_pick, dtype=float)[:2, 3]
+    out = {}
+    for j, e in enumerate(package):
+        if e.type != "block" or e.extents is None:
+            continue
+        b = np.asarray(e.T_world_element, dtype=float)[:2, 3]
+        ab = b - a
+        t = np.clip((centre - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        gap = np.linalg.norm(a + t[:, None] * ab - centre, axis=1) - half
+        crossed = structure & (obstacles.since < j) & (gap < width)
+        if crossed.any():
+            top = float(hi[crossed, 2].max())
+            out[e.id] = top + float(e.extents[2]) + 2.0 * clearance + SAFE_MARGIN
+    return out
+
+
+def _box_aabb_world(T: np.ndarray, extents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    half = 0.5 * np.einsum("kij,kj->ki", np.abs(T[:, :3, :3]), extents)
+    return T[:, :3, 3] - half, T[:, :3, 3] + half

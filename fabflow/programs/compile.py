@@ -15,17 +15,30 @@ from collections.abc import Sequence
 import numpy as np
 
 from fabflow.design.elements import Element
-from fabflow.errors import LocalizationError
+from fabflow.errors import InfeasibleError, LocalizationError
 from fabflow.positioning.result import BasePose
+from fabflow.programs.collision import Contact, check_package
+from fabflow.programs.collision_model import environment, safe_heights
 from fabflow.programs.feasibility import TOOL_ROTATION_SPEED, move_lengths, solve_moves
 from fabflow.programs.ir import Comment, Instruction, Move, Program, SetOutput, Wait
-from fabflow.programs.motions import OUTPUTS, Action, Step, Waypoint, work_package_motion
+from fabflow.programs.motions import (
+    OUTPUTS,
+    Action,
+    Step,
+    T_base_pick_tool,
+    Waypoint,
+    work_package_motion,
+)
 from fabflow.programs.writers import writer_for
 from fabflow.project import Project
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
 from fabflow.tasks.plan import Plan, WorkPackage
 from fabflow.version import __version__
+
+SAFE_WIDTH = 0.5
+"""Plan distance from the line magazine - place within which the structure sets the
+safe height of a re-planned block (metres): the arm's forearm and wrist pass there."""
 
 
 def _drop_unreachable_optional(
@@ -138,11 +151,17 @@ def work_package_program(
     elements_by_id: dict[str, Element],
     project: Project,
     base_pose: BasePose,
+    built: Sequence[Element] = (),
 ) -> Program:
-    """The checked program of one work package, in the station's localized base frame."""
+    """The checked program of one work package, in the station's localized base frame.
+
+    ``built`` are the elements standing when it starts (pre-built ones and those
+    of earlier work packages): the collision check (:func:`checked_program`)
+    keeps the arm clear of them.
+    """
     elements = [elements_by_id[e] for e in wp.elements]
     T_world_base = np.asarray(base_pose.T_world_base, dtype=float)
-    steps = work_package_motion(elements, project, T_world_base)
+    name = program_name(wp)
     header: dict[str, object] = {
         "project": project.name,
         "station": wp.station.id,
@@ -153,7 +172,65 @@ def work_package_program(
         "localization": f"{base_pose.method}, rmse {base_pose.rmse * 1000:.2f} mm",
         "generator": f"fabflow {__version__}",
     }
-    return compile_program(program_name(wp), steps, project, T_world_base, header)
+    if not project.program.check_collisions:
+        steps = work_package_motion(elements, project, T_world_base)
+        return compile_program(name, steps, project, T_world_base, header)
+    return checked_program(name, elements, built, project, T_world_base, header)
+
+
+def checked_program(
+    name: str,
+    elements: Sequence[Element],
+    built: Sequence[Element],
+    project: Project,
+    T_world_base: np.ndarray,
+    header: dict[str, object],
+) -> Program:
+    """Compile a work package and check it for collisions; re-plan what collides.
+
+    The elements whose moves come closer than ``program.clearance`` to an
+    obstacle (:mod:`fabflow.programs.collision`), and the element before each
+    (whose retract the next pick approach starts from), are re-planned over the
+    structure (:func:`fabflow.programs.motions.element_motion` with a safe
+    height); a collision that remains is an :class:`InfeasibleError` naming the
+    element, the move, the body and the penetration.
+    """
+    program, contacts = replanned_program(name, elements, built, project, T_world_base, header)
+    if contacts:
+        worst = min(contacts, key=lambda c: c.distance)
+        raise InfeasibleError(
+            f"program {name}: {len(contacts)} collision(s) at "
+            f"{project.program.clearance * 1000:g} mm clearance; the worst: {worst.describe()}"
+        )
+    return program
+
+
+def replanned_program(
+    name: str,
+    elements: Sequence[Element],
+    built: Sequence[Element],
+    project: Project,
+    T_world_base: np.ndarray,
+    header: dict[str, object],
+) -> tuple[Program, list[Contact]]:
+    """:func:`checked_program` without the error: the program and its remaining contacts."""
+    steps = work_package_motion(elements, project, T_world_base)
+    program = compile_program(name, steps, project, T_world_base, header)
+    obstacles = environment(project, T_world_base, built, elements)
+    contacts = check_package(program, project, obstacles, elements)
+    if contacts:
+        index = {e.id: j for j, e in enumerate(elements)}
+        hit = {index[c.element] for c in contacts if c.element in index}
+        hit |= {j - 1 for j in hit if j > 0}
+        T_world_pick = T_world_base @ T_base_pick_tool(project)
+        heights = safe_heights(
+            obstacles, elements, T_world_pick, project.program.clearance, SAFE_WIDTH
+        )
+        safe = {elements[j].id: heights[elements[j].id] for j in hit if elements[j].id in heights}
+        steps = work_package_motion(elements, project, T_world_base, safe)
+        program = compile_program(name, steps, project, T_world_base, header)
+        contacts = check_package(program, project, obstacles, elements)
+    return program, contacts
 
 
 def write_programs(
@@ -195,8 +272,10 @@ def write_programs(
     by_id = {e.id: e for e in elements}
     programs: list[Program] = []
     files: dict[str, str] = {}
+    built = [e for e in elements if not e.robot_built]
     for wp in plan.work_packages:
         if not wp.elements or wp.index not in base_poses:
+            built += [by_id[e] for e in wp.elements]
             continue
         pose = base_poses[wp.index]
         if pose.integrity is None or pose.integrity.failed:
@@ -205,7 +284,8 @@ def write_programs(
                 f"work package {wp.index + 1} (station {wp.station.id}): no program from a "
                 f"base pose that failed its integrity tests: {why}"
             )
-        program = work_package_program(wp, by_id, project, pose)
+        program = work_package_program(wp, by_id, project, pose, built)
+        built += [by_id[e] for e in wp.elements]
         programs.append(program)
         files.update(writer.write(program))
     return programs, files

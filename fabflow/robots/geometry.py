@@ -124,8 +124,8 @@ def link_segments(
     pa = np.array([c.p_a for c in caps])
     pb = np.array([c.p_b for c in caps])
     Fa, Fb = frames[:, ia], frames[:, ib]
-    a = np.einsum("nlij,lj->nli", Fa[..., :3, :3], pa) + Fa[..., :3, 3]
-    b = np.einsum("nlij,lj->nli", Fb[..., :3, :3], pb) + Fb[..., :3, 3]
+    a = (Fa[..., :3, :3] @ pa[:, :, None])[..., 0] + Fa[..., :3, 3]
+    b = (Fb[..., :3, :3] @ pb[:, :, None])[..., 0] + Fb[..., :3, 3]
     segments = [np.stack([a, b], axis=2)]
     radii = [c.radius for c in caps]
     names = [c.name for c in caps]
@@ -140,3 +140,21 @@ def link_segments(
         radii.append(TOOL_RADIUS)
         names.append("tool")
     return np.concatenate(segments, axis=1), np.array(radii), names
+
+
+def shoulder_radius(robot: RobotModel) -> float:
+    """Plan radius about axis 1 swept by the links that only axis 1 moves (metres).
+
+    The base, the carousel and the axis-2 housing (capsules fixed in frames 0 and 1)
+    turn with axis 1 alone: whatever stands within this distance of the axis, at
+    their height, is hit when axis 1 turns towards it.
+    """
+    frames = robot.frames(np.zeros(robot.dof))
+    reach = 0.0
+    for c in link_capsules(robot):
+        if max(c.frame_a, c.frame_b) > 1:
+            continue
+        for f, p in ((c.frame_a, c.p_a), (c.frame_b, c.p_b)):
+            point = frames[f, :3, :3] @ np.asarray(p) + frames[f, :3, 3]
+            reach = max(reach, float(np.hypot(point[0], point[1])) + c.radius)
+    return reach
