@@ -188,7 +188,12 @@ def replay(
             if not gripping and rows:
                 done.append((len(rows), rows[-1][2]))
         elif c["type"] == "setpoint":
-            if rows and c["element"] != rows[-1][2] and by_id[rows[-1][2]].type != "block":
+            previous = rows[-1][2] if rows else None
+            if (
+                previous is not None
+                and c["element"] != previous
+                and by_id[previous].type != "block"
+            ):
                 done.append((len(rows), rows[-1][2]))
             rows.append((np.array(c["q"], float), c["kind"], c["element"], c["label"], gripping))
     # runs of setpoints of one move label
