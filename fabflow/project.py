@@ -17,6 +17,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import (
     Field,
+    Strict,
     ValidationError,
     model_validator,
 )
@@ -24,7 +25,15 @@ from pydantic import (
 from fabflow.design.generate import element_count_bound
 from fabflow.design.specs import ElementSource
 from fabflow.errors import InputError
-from fabflow.robots.catalog import PROGRAM_FORMATS, ROBOT_NAMES, format_mismatch, formats_of
+from fabflow.robots.catalog import (
+    CONTROLLERS,
+    PROGRAM_FORMATS,
+    ROBOT_NAMES,
+    controller_mismatch,
+    format_mismatch,
+    formats_of,
+    robot_setup_problems,
+)
 from fabflow.schema import (
     Count,
     ExistingPath,
@@ -51,6 +60,8 @@ LOCALIZATION_METHODS: tuple[str, ...] = ("uwb", "total_station", "icp")
 maps each to its ``localize_station``."""
 
 RobotName = Literal[ROBOT_NAMES]  # type: ignore[valid-type]
+ControllerName = Literal[tuple(CONTROLLERS)]  # type: ignore[valid-type]
+ExternalAxis = Literal["E1", "E2", "E3", "E4", "E5", "E6"]
 ProgramFormat = Literal[PROGRAM_FORMATS]  # type: ignore[valid-type]
 LocalizationMethod = Literal[LOCALIZATION_METHODS]  # type: ignore[valid-type]
 
@@ -119,10 +130,16 @@ class Site(StrictModel):
 
 
 class Tool(StrictModel):
-    """The end effector: its name and the tool centre point in the flange frame."""
+    """The end effector: its name, the tool centre point and its load in the flange frame."""
 
     name: str = "gripper"
     T_flange_tool: PoseSpec = PoseSpec(xyz=(0.0, 0.0, 0.20))
+    mass: PositiveFloat = 10.0
+    """Mass of the tool in kg, written as the controller's load data (KRL ``$LOAD``,
+    RAPID ``tooldata``, URScript ``set_payload``); at most the robot's rated payload.
+    Set it for the real tool: the default is a stand-in the program header names."""
+    cog: Vec3 = (0.0, 0.0, 0.1)
+    """Centre of gravity of the tool in the flange frame (metres)."""
 
 
 class Platform(StrictModel):
@@ -140,6 +157,11 @@ class Platform(StrictModel):
     safety_margin: NonNegativeFloat = 0.3
     T_platform_pick: PoseSpec = PoseSpec(xyz=(-0.9, 0.0, 0.7))
     """Where the robot picks blocks from (a magazine on the platform)."""
+    lift_axis: ExternalAxis | None = None
+    """The controller's external axis that drives the lift (``E1`` ... ``E6``; its
+    value the lift height above the lowest position in mm): the programs carry the
+    height in every target. Without one the operator sets the lift: each program
+    stops before its first motion, names the height and waits for confirmation."""
 
     @model_validator(mode="after")
     def _lift(self) -> Platform:
@@ -154,6 +176,17 @@ class Robot(StrictModel):
     model: RobotName = "kuka_kr60_3"
     tool: Tool = Tool()
     platform: Platform = Platform()
+    home_deg: tuple[Real, ...] | None = None
+    """The HOME joint configuration every program starts and ends at (degrees, the
+    controller's joint values); default: the catalogue robot's home."""
+
+    @model_validator(mode="after")
+    def _home_and_load_fit_the_arm(self) -> Robot:
+        problems = robot_setup_problems(self.model, self.home_deg, self.tool.mass)
+        if problems:
+            field_path, why = problems[0]
+            raise located(("robot", *field_path), why)
+        return self
 
 
 # ------------------------------------------------------------------- localization
@@ -348,6 +381,11 @@ class ProgramSettings(StrictModel):
     """Check every program for collisions (re-plan, else an error naming the move)."""
     blend: NonNegativeFloat = 0.01
     """Blending (approximation) distance (metres)."""
+    controller: ControllerName | None = None
+    """The controller profile (``krc4``, ``krc5``, ``irc5``, ``omnicore``, ...): how
+    many motions one program module may hold. Default: the robot vendor's first."""
+    module_motions: Annotated[int, Strict(), Field(ge=20, le=100_000)] | None = None
+    """Most motions per program module, overriding the controller profile's."""
 
 
 class Simulation(StrictModel):
@@ -409,6 +447,9 @@ class Project(StrictModel):
         why = format_mismatch(self.program.format, self.robot.model)
         if why is not None:
             raise located(("program", "format"), why)
+        why = controller_mismatch(self.program.controller, self.robot.model)
+        if why is not None:
+            raise located(("program", "controller"), why)
         return self
 
     @model_validator(mode="after")

@@ -11,7 +11,7 @@ import numpy as np
 from helpers import ROOT
 
 from fabflow.design.elements import Element
-from fabflow.programs.compile import compile_program
+from fabflow.programs.compile import compile_program, element_payloads
 from fabflow.programs.ir import Program
 from fabflow.programs.motions import work_package_motion
 from fabflow.project import load_project
@@ -33,7 +33,9 @@ def make_pose(xyz, yaw=0.0, flip=False) -> np.ndarray:
 def sample_elements() -> list[Element]:
     size = np.array([0.6, 0.105, 0.105])
     return [
-        Element("B1", "block", make_pose([3.2, 1.0, 0.0525]), extents=size),
+        Element(
+            "B1", "block", make_pose([3.2, 1.0, 0.0525]), extents=size, attributes={"mass": 2.98}
+        ),
         Element("B2", "block", make_pose([3.0, 1.8, 0.1575], yaw=np.pi / 2), extents=size),
         Element(
             "P1",
@@ -62,9 +64,18 @@ def sample_program(robot: str = "kuka_kr60_3") -> Program:
         update={"robot": project.robot.model_copy(update={"model": robot})}
     )
     T_world_base = BASE_OF_ROBOT.get(robot, T_WORLD_BASE)
-    steps = work_package_motion(sample_elements(), project, T_world_base)
+    elements = sample_elements()
+    steps = work_package_motion(elements, project, T_world_base)
     header = {"project": project.name, "station": "S1", "generator": "fabflow test"}
-    return compile_program("writer test S1", steps, project, T_world_base, header)
+    return compile_program(
+        "writer test S1",
+        steps,
+        project,
+        T_world_base,
+        header,
+        lift=0.35,
+        payloads=element_payloads(elements),
+    )
 
 
 CASES = [

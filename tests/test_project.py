@@ -296,6 +296,27 @@ def test_vendor_format_suggests_the_robots_own_format() -> None:
     assert "use format 'json'" in message
 
 
+def test_home_tool_load_lift_axis_and_controller_are_checked() -> None:
+    cabin = "elements: [{cabin: {}}]\n"
+    message = _error(f"name: x\nrobot: {{home_deg: [0, -90, 90, 0, 0]}}\n{cabin}")
+    assert "line 2: robot.home_deg: kuka_kr60_3 has 6 axes, got 5" in message
+    message = _error(f"name: x\nrobot: {{home_deg: [0, -90, 170, 0, 0, 0]}}\n{cabin}")
+    assert "robot.home_deg: outside the joint limits: axis 3: 170 not in [-120, 158]" in message
+    message = _error(f"name: x\nrobot: {{model: ur10e, tool: {{mass: 20}}}}\n{cabin}")
+    assert "robot.tool.mass: 20 kg exceeds the ur10e's rated payload of 12.5 kg" in message
+    assert "robot.tool.mass" in _error(f"name: x\nrobot: {{tool: {{mass: 0}}}}\n{cabin}")
+    assert "lift_axis" in _error(f"name: x\nrobot: {{platform: {{lift_axis: A7}}}}\n{cabin}")
+    message = _error(f"name: x\nprogram: {{controller: irc5}}\n{cabin}")
+    assert "program.controller: 'irc5' (IRC5 / RobotWare 6) is not a controller" in message
+    assert "module_motions" in _error(f"name: x\nprogram: {{module_motions: 5}}\n{cabin}")
+    p = parse_project(
+        "name: x\nrobot: {home_deg: [0, -90, 90, 0, 30, 0], tool: {mass: 12.5, cog: [0, 0, 0.1]},"
+        f" platform: {{lift_axis: E1}}}}\nprogram: {{controller: krc5}}\n{cabin}"
+    )
+    assert p.robot.home_deg == (0, -90, 90, 0, 30, 0) and p.robot.platform.lift_axis == "E1"
+    assert p.robot.tool.mass == 12.5 and p.program.controller == "krc5"
+
+
 @pytest.fixture
 def folder(tmp_path: Path) -> Path:
     """A project folder with a drawing, a file beside the folder and a link out of it."""

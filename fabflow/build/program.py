@@ -25,6 +25,33 @@ def stage_program(ctx: BuildContext) -> None:
     ctx.add("program", "programs / files", f"{len(programs)} / {len(files)}")
     ctx.add("program", "motions", sum(len(p.moves) for p in programs))
     ctx.add("program", "robot time (planned)", f"{sum(p.duration for p in programs) / 60:.1f} min")
+    checks = [p.checks for p in programs if p.checks]
+    if checks:
+        changes = [c["configuration_changes"] for c in checks]
+        ctx.add(
+            "program",
+            "configuration changes",
+            f"{sum(changes)} (at most {max(changes)} in one program)",
+        )
+        swings = sum(c["needless_swings"] for c in checks)
+        ctx.add("program", "PTP moves swinging A1-A3 widely", swings)
+        inside = [p.name for p in programs if p.checks.get("changes_inside_lin")]
+        ctx.add(
+            "program",
+            "linear moves through A5 = 0",
+            f"{sum(p.checks['changes_inside_lin'] for p in programs if p.checks)}"
+            + (
+                f" (in {', '.join(inside[:6])}{', ...' if len(inside) > 6 else ''}: "
+                "a controller refuses these; change the station or lift)"
+                if inside
+                else ""
+            ),
+        )
+        ctx.add(
+            "program",
+            "linear moves with the wrist interpolated",
+            sum(c.get("wrist_interpolated", 0) for c in checks),
+        )
     skipped = sorted(failed(localized))
     if skipped:
         visits = ", ".join(str(i + 1) for i in skipped)

@@ -270,6 +270,8 @@ def cabin_elements(spec: CabinSpec, id_start: int = 0) -> list[Element]:
         Number of the first block id (``"B0000"`` for 0); ids count up from it.
     """
     blocks = cabin_blocks(spec)
+    density = spec.block.density
+    mass = None if density is None else np.prod(blocks.extents, axis=1) * density
     return [
         Element(
             id=f"B{id_start + i:04d}",
@@ -283,6 +285,7 @@ def cabin_elements(spec: CabinSpec, id_start: int = 0) -> list[Element]:
                 "wall": str(blocks.wall[i]),
                 "piece": str(blocks.piece[i]),
                 "kind": str(blocks.kind[i]),
+                **({} if mass is None else {"mass": round(float(mass[i]), 4)}),
             },
         )
         for i in range(len(blocks))

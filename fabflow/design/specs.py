@@ -40,6 +40,10 @@ class BlockSize(StrictModel):
     length: PositiveFloat = 0.60
     width: PositiveFloat = 0.105
     height: PositiveFloat = 0.105
+    density: PositiveFloat | None = None
+    """kg/m^3 (softwood timber about 450): each block then carries its ``mass``
+    attribute (kg, of its own length), which the programs add to the tool's load
+    while the block is held."""
 
 
 class Opening(StrictModel):

@@ -16,7 +16,13 @@ from collections.abc import Sequence
 import numpy as np
 
 from fabflow.errors import InfeasibleError
+from fabflow.programs.motion_checks import configuration_of, wrist_flips
 from fabflow.programs.motions import Waypoint
+from fabflow.programs.wrist_lin import (
+    MAX_DEVIATION_DEG,
+    same_status_ends,
+    wrist_interpolated_path,
+)
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
 from fabflow.transforms.so3 import exp_so3, log_so3
@@ -33,6 +39,15 @@ MAX_JOINT_STEP = np.pi / 2
 configuration change, whatever the time allowed."""
 TOOL_ROTATION_SPEED = 1.0
 """Tool rotation speed assumed for timing linear moves (rad/s)."""
+WRIST_SAMPLES = 36
+"""Samples of a wrist-interpolated linear move at least: A4 and A6 turn half a
+turn on it, so that no sample is more than about 5 deg from the next."""
+AXIS_WEIGHTS = np.array([1.0, 1.0, 1.0, 0.25, 0.25, 0.25])
+"""Weight of each axis' travel in the cost of a PTP move (per radian): the main
+axes move the arm's mass through the work area, the wrist axes only the tool."""
+CONFIGURATION_CHANGE_COST = 2.0 * np.pi
+"""Cost added to a PTP option on another configuration than the current one: a
+configuration is kept while any option on it can follow the motion."""
 
 
 def move_lengths(T_world_tool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -99,7 +114,7 @@ def solve_moves(
     T_base_world: np.ndarray,
     T_flange_tool: np.ndarray,
     q_start: np.ndarray | None = None,
-) -> tuple[np.ndarray, list[np.ndarray | None], list[np.ndarray | None], np.ndarray]:
+) -> tuple[np.ndarray, list[np.ndarray | None], list[np.ndarray | None], np.ndarray, np.ndarray]:
     """Joint configurations for every waypoint, with linear moves checked along the line.
 
     Parameters
@@ -124,6 +139,9 @@ def solve_moves(
     slowdown
         (n,) factor (>= 1) each linear move's speed must be divided by so that
         its joints stay within their speed limits (near a singularity).
+    wrist
+        (n,) bool: linear moves that pass the wrist singularity with the wrist
+        axes interpolated (:mod:`fabflow.programs.wrist_lin`), their status kept.
 
     Raises
     ------
@@ -134,7 +152,7 @@ def solve_moves(
     robot = get_robot(robot_name)
     n = len(waypoints)
     if n == 0:
-        return np.zeros((0, robot.dof)), [], [], np.ones(0)
+        return np.zeros((0, robot.dof)), [], [], np.ones(0), np.zeros(0, dtype=bool)
     T_tool_flange = np.linalg.inv(np.asarray(T_flange_tool, dtype=float))
     T_world_tool = np.stack([w.T_world_tool for w in waypoints])
     flat, stops = sample_linear_moves(T_world_tool, np.array([w.kind == "lin" for w in waypoints]))
@@ -145,6 +163,7 @@ def solve_moves(
     q_prev = (
         robot.joint_limits.mean(axis=1) if q_start is None else np.asarray(q_start, dtype=float)
     )
+    current = int(configuration_of(robot, q_prev[None])[0])
     multi_turn = np.diff(robot.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
     # Time per sample of each linear move at its programmed speed: the joint
     # speeds the line demands must stay within the robot's limits.
@@ -156,6 +175,7 @@ def solve_moves(
     slowdown = np.ones(n)
     via_q: list[np.ndarray | None] = [None] * n
     via_T: list[np.ndarray | None] = [None] * n
+    wrist = np.zeros(n, dtype=bool)
     starts = np.r_[0, stops[:-1]]
 
     def follow(i: int, q_prev: np.ndarray, branch: int) -> tuple[np.ndarray, int, float]:
@@ -177,14 +197,84 @@ def solve_moves(
             dt=dt[i],
         )
 
+    def follow_chain(
+        i: int, end: int, q_i: np.ndarray, branch: int, wrist_ok: bool
+    ) -> tuple[list[tuple[np.ndarray, float, np.ndarray | None]], bool]:
+        """The linear moves after PTP ``i`` from ``q_i``; whether one takes A5 through 0.
+
+        Each move is ``(joint path, slowdown, samples)``: ``samples`` are the tool
+        poses (world) of a wrist-interpolated move's path, None for the others.
+        """
+        chain = []
+        q_chain = q_i
+        flips = False
+        for k in range(i + 1, end):
+            path, branch, slow = follow(k, q_chain, branch)
+            samples = None
+            if wrist_flips(np.vstack([q_chain, path])):
+                kept = _keep_status(k, q_chain) if wrist_ok else None
+                if kept is None:
+                    flips = True
+                else:
+                    path, branch, slow, samples = kept
+            chain.append((path, slow, samples))
+            q_chain = path[-1]
+        return chain, flips
+
+    def _keep_status(
+        k: int, q_from: np.ndarray
+    ) -> tuple[np.ndarray, int, float, np.ndarray] | None:
+        """Linear move ``k`` with the wrist axes interpolated to an end of the same status,
+        sampled finely enough (:data:`WRIST_SAMPLES`) for the wrist's half turn."""
+        end_row = stops[k] - 1
+        count = max(int(stops[k] - starts[k]), WRIST_SAMPLES)
+        samples = _line_samples(flat[starts[k] - 1], flat[end_row], count)
+        T_samples = T_base_world @ samples
+        found = [
+            wrist_interpolated_path(robot, q_from, q_end, T_samples, T_flange_tool)
+            for q_end in same_status_ends(robot, q_from, q_all[end_row], valid[end_row])
+        ]
+        paths = [f for f in found if f is not None and f[1] <= np.radians(MAX_DEVIATION_DEG)]
+        if not paths:
+            return None
+        path = min(paths, key=lambda f: f[1])[0]
+        q_end = path[-1]
+        steps = np.abs(np.diff(np.vstack([q_from, path]), axis=0))
+        dt_sample = dt[k] * (stops[k] - starts[k]) / count
+        slow = max(1.0, float((steps / (robot.velocity_limits * dt_sample)).max()))
+        if steps.max() > MAX_JOINT_STEP or slow > 1.0 / MIN_SPEED_FRACTION:
+            return None
+        same = np.abs(_wrap(q_all[end_row] - q_end)).max(axis=1) < 1e-6
+        return path, int(np.argmax(same & valid[end_row])), slow, samples
+
+    # Branches on which an element's whole motion (every target and every sample
+    # of its linear moves) has a solution: a configuration change, where one is
+    # needed, then happens once, at the element's first target.
+    element_of = np.array([w.element for w in waypoints])
+    _, owner = np.unique(element_of, return_inverse=True)
+    sample_owner = np.repeat(owner.ravel(), np.diff(np.r_[0, stops]))
+    whole = np.ones((owner.max() + 1, valid.shape[1]), dtype=bool)
+    np.logical_and.at(whole, sample_owner, valid)
+    ptp_index = np.flatnonzero([w.kind == "ptp" for w in waypoints])
+
     # A PTP target and the linear moves after it form a chain: the PTP takes the
-    # fastest configuration from which the whole chain can be followed.
+    # cheapest configuration from which the whole chain can be followed.
     i = 0
     while i < n:
         end = i + 1
         while end < n and waypoints[end].kind == "lin":
             end += 1
-        options = _ptp_options(robot, q_all[stops[i] - 1], valid[stops[i] - 1], q_prev)
+        later = ptp_index[ptp_index > i]
+        nxt = stops[later[0]] - 1 if len(later) else None
+        options = _ptp_options(
+            robot,
+            q_all[stops[i] - 1],
+            valid[stops[i] - 1],
+            q_prev,
+            current,
+            whole[owner.ravel()[i]],
+            None if nxt is None else (q_all[nxt], valid[nxt]),
+        )
         if not options:
             raise _fail(
                 waypoints[i],
@@ -192,46 +282,104 @@ def solve_moves(
                 T_base_tool[stops[i] - 1],
             )
         first_error: InfeasibleError | None = None
-        for q_i, branch in options:
-            try:
-                chain = []
-                q_chain = q_i
-                for k in range(i + 1, end):
-                    path, branch, slow = follow(k, q_chain, branch)
-                    chain.append((path, slow))
-                    q_chain = path[-1]
-            except InfeasibleError as error:
-                first_error = first_error or error
-                continue
-            break
-        else:
-            assert first_error is not None
-            raise first_error
+        chosen = flipping = None
+        # First a chain on which no linear move takes A5 through 0; failing that,
+        # one whose flipping moves can keep their status with the wrist axes
+        # interpolated (:mod:`fabflow.programs.wrist_lin`); failing that too, the
+        # cheapest chain, its flips counted by the program's checks.
+        for wrist_ok in (False, True):
+            for q_i, branch in options:
+                try:
+                    chain, flips = follow_chain(i, end, q_i, branch, wrist_ok)
+                except InfeasibleError as error:
+                    first_error = first_error or error
+                    continue
+                if not flips:
+                    chosen = (q_i, branch, chain)
+                    break
+                flipping = flipping or (q_i, branch, chain)
+            if chosen is not None or robot.dof != 6:
+                break
+        if chosen is None:
+            if flipping is None:
+                assert first_error is not None
+                raise first_error
+            chosen = flipping
+        q_i, current, chain = chosen
         q_out[i] = q_prev = q_i
-        for k, (path, slow) in zip(range(i + 1, end), chain, strict=True):
+        for k, (path, slow, samples) in zip(range(i + 1, end), chain, strict=True):
             q_out[k] = q_prev = path[-1]
             slowdown[k] = slow
+            wrist[k] = samples is not None
             if len(path) > 1:
                 via_q[k] = path[:-1]
-                via_T[k] = flat[starts[k] : stops[k] - 1]
+                via_T[k] = flat[starts[k] : stops[k] - 1] if samples is None else samples[:-1]
         i = end
-    return q_out, via_q, via_T, slowdown
+    return q_out, via_q, via_T, slowdown, wrist
+
+
+def _line_samples(T_from: np.ndarray, T_to: np.ndarray, count: int) -> np.ndarray:
+    """``count`` poses from ``T_from`` (excluded) to ``T_to`` (included): positions on the
+    line, rotations on the geodesic, uniformly spaced."""
+    s = np.arange(1, count + 1) / count
+    w = log_so3((T_from[:3, :3].T @ T_to[:3, :3])[None])[0]
+    out = np.repeat(np.eye(4)[None], count, axis=0)
+    out[:, :3, :3] = T_from[:3, :3] @ exp_so3(s[:, None] * w)
+    out[:, :3, 3] = T_from[:3, 3] + s[:, None] * (T_to[:3, 3] - T_from[:3, 3])
+    out[-1] = T_to
+    return out
 
 
 def _ptp_options(
-    robot: RobotModel, q_branches: np.ndarray, ok: np.ndarray, q_prev: np.ndarray
+    robot: RobotModel,
+    q_branches: np.ndarray,
+    ok: np.ndarray,
+    q_prev: np.ndarray,
+    current: int,
+    whole_element: np.ndarray,
+    next_ptp: tuple[np.ndarray, np.ndarray] | None,
 ) -> list[tuple[np.ndarray, int]]:
-    """Valid configurations of a PTP target with their IK branch, fastest first.
+    """Valid configurations of a PTP target with their IK branch, cheapest first.
 
-    A PTP's duration is its largest joint travel over that joint's speed limit.
+    The cost of an option is the joint travel from ``q_prev`` and on to the
+    next PTP target on the same branch, weighted per axis
+    (:data:`AXIS_WEIGHTS`), plus :data:`CONFIGURATION_CHANGE_COST` for a branch
+    other than ``current``, once more for one on which the element's whole
+    motion has no solution (``whole_element``, per branch), and once more for
+    one the next PTP target does not have. Looking one target ahead settles A1
+    at the back of its range (where both turns are within the limits) on the
+    side the arm goes next. Other multi-turn joints take the turn nearest ``q_prev``.
     """
     candidates = np.flatnonzero(ok)
     if len(candidates) == 0:
         return []
     turned = _nearest_turn(robot, q_branches[candidates], q_prev)
-    duration = (np.abs(turned - q_prev) / robot.velocity_limits).max(axis=1)
-    order = np.argsort(duration, kind="stable")
+    turned, candidates = _a1_turns(robot, turned, candidates)
+    weights = AXIS_WEIGHTS[: robot.dof] if robot.dof <= len(AXIS_WEIGHTS) else 1.0
+    cost = (np.abs(turned - q_prev) * weights).sum(axis=1)
+    # a branch the element's motion cannot keep forces a change inside the
+    # element later: as costly as changing now, at its first target
+    penalty = (candidates != current).astype(float) + ~whole_element[candidates]
+    if next_ptp is not None:
+        q_next, ok_next = next_ptp
+        ahead = _nearest_turn(robot, q_next[candidates], turned)
+        reachable = ok_next[candidates]
+        cost += np.where(reachable, (np.abs(ahead - turned) * weights).sum(axis=1), 0.0)
+        penalty += ~reachable
+    cost += CONFIGURATION_CHANGE_COST * penalty
+    order = np.argsort(cost, kind="stable")
     return [(turned[k], int(candidates[k])) for k in order]
+
+
+def _a1_turns(
+    robot: RobotModel, q: np.ndarray, branch: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The options ``q`` plus, where A1 may also stand one turn away, that turn too."""
+    lo, hi = robot.joint_limits[0]
+    other = q.copy()
+    other[:, 0] -= 2.0 * np.pi * np.sign(q[:, 0])
+    inside = (other[:, 0] >= lo - 1e-9) & (other[:, 0] <= hi + 1e-9) & (other[:, 0] != q[:, 0])
+    return np.vstack([q, other[inside]]), np.r_[branch, branch[inside]]
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:
@@ -242,16 +390,18 @@ def _wrap(angle: np.ndarray) -> np.ndarray:
 def _nearest_turn(robot: RobotModel, q: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
     """Candidates (k, dof) with multi-turn joints put at the turn nearest ``q_ref``.
 
+    ``q_ref`` is one configuration ``(dof,)`` or one per candidate ``(k, dof)``.
     The shortest-angle turn is tried first; candidates it puts outside the
     limits are left to the robot model's general rule.
     """
     lo, hi = robot.joint_limits[:, 0], robot.joint_limits[:, 1]
     multi_turn = hi - lo > 2.0 * np.pi
+    ref = np.broadcast_to(q_ref, q.shape)
     turned = q.copy()
-    turned[:, multi_turn] = q_ref[multi_turn] + _wrap(q[:, multi_turn] - q_ref[multi_turn])
+    turned[:, multi_turn] = ref[:, multi_turn] + _wrap(q[:, multi_turn] - ref[:, multi_turn])
     outside = ((turned < lo - 1e-9) | (turned > hi + 1e-9)).any(axis=1)
     if outside.any():
-        turned[outside] = robot.nearest_turn(q[outside], q_ref)
+        turned[outside] = robot.nearest_turn(q[outside], ref[outside])
     return turned
 
 

@@ -7,6 +7,8 @@ tool poses ``T_world_tool`` in that frame, so the design coordinates appear
 unchanged in the program and the localization changes only one frame. Every
 target also carries the joint configuration ``q`` (radians) that inverse
 kinematics chose for it, from which the writers derive configuration bits.
+A joint move (``Move.joint``) is the exception: its target is the joint
+configuration itself (the HOME move every program starts and ends with).
 """
 
 from __future__ import annotations
@@ -47,6 +49,15 @@ class Move:
         at most one controller step apart (from the inverse kinematics check).
     via_T_world_tool
         (k, 4, 4) tool poses matching ``via_q``.
+    wrist_interpolated
+        A linear move past the wrist singularity: the tool centre point follows
+        the line, the orientation follows the wrist axes interpolated between
+        the two ends, both of the same status (KRL ``$ORI_TYPE = #JOINT``,
+        RAPID ``SingArea \\Wrist``); ``via_q`` holds that joint path.
+    joint
+        True when the target is the joint configuration ``q`` itself (an axis
+        target: KRL ``E6AXIS``, RAPID ``jointtarget``); ``T_world_tool`` is then
+        its forward kinematics, for readers that want the pose. Only ``ptp``.
     """
 
     kind: MoveKind
@@ -59,6 +70,8 @@ class Move:
     time: float = 0.0
     via_q: np.ndarray | None = None
     via_T_world_tool: np.ndarray | None = None
+    wrist_interpolated: bool = False
+    joint: bool = False
 
 
 @dataclass(frozen=True)
@@ -89,7 +102,53 @@ class Comment:
     time: float = 0.0
 
 
-Instruction = Move | SetOutput | Wait | Comment
+@dataclass(frozen=True, eq=False)
+class Load:
+    """A load as a point mass: the tool at the flange, or the element it holds.
+
+    Attributes
+    ----------
+    mass
+        Mass in kg (> 0).
+    cog
+        (3,) centre of gravity, metres: in the flange frame for the tool's load
+        (``Program.load``), in the tool frame for a held element's
+        (``SetPayload.payload``).
+    """
+
+    mass: float
+    cog: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class SetPayload:
+    """From here on the tool holds ``payload`` (an element's load), or nothing (``None``)."""
+
+    payload: Load | None
+    element: str | None = None
+    time: float = 0.0
+
+
+Instruction = Move | SetOutput | Wait | Comment | SetPayload
+
+
+@dataclass(frozen=True)
+class Lift:
+    """Where the platform's lift must stand while the program runs.
+
+    Attributes
+    ----------
+    height
+        Lift height above its lowest position (metres), from the plan's station.
+    axis
+        External axis that drives the lift (``"E1"`` ... ``"E6"``), carried in
+        every target of the formats that have external axes; ``None`` when the
+        operator sets the lift by hand: the program then stops before its first
+        motion and waits for the operator's confirmation.
+    """
+
+    height: float
+    axis: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,6 +174,17 @@ class Program:
         element range, localization method and residuals, fabflow version).
     tool_name
         Name of the tool.
+    checks
+        The configuration figures of the moves
+        (:func:`fabflow.programs.motion_checks.program_checks`): needless swings,
+        configuration changes between targets and inside linear moves.
+    load
+        The tool's load at the flange (mass and centre of gravity).
+    lift
+        The lift height and how it is set, or ``None`` (no lift to set).
+    module_motions
+        Most motion instructions one program module may hold (the controller
+        profile); longer programs are split between elements. ``None``: no limit.
     """
 
     name: str
@@ -125,6 +195,10 @@ class Program:
     outputs: dict[str, int] = field(default_factory=dict)
     header: dict[str, Any] = field(default_factory=dict)
     tool_name: str = "tool"
+    checks: dict[str, Any] = field(default_factory=dict)
+    load: Load = field(default_factory=lambda: Load(1.0, np.zeros(3)))
+    lift: Lift | None = None
+    module_motions: int | None = None
 
     @property
     def moves(self) -> list[Move]:

@@ -115,10 +115,12 @@ def element_motion(
         (``T_world_base @ T_base_pick_tool(project)`` with the localized base).
     safe_z
         For a block, a tool height (world z, metres) above the structure: the
-        block is lifted to it above the magazine ("lift"), carried at it to above
-        its place ("travel") and, once placed, the tool rises to it again
-        ("depart"), so that the joint-interpolated moves between the magazine and
-        the place stay above what is built (the re-planning of a collision).
+        block rises straight up to it from the magazine ("lift", linear), is
+        carried at it to above its place ("travel", PTP), goes straight down to
+        the place approach (linear) and, once placed, the tool rises to it again
+        ("depart", linear), so that the only joint-interpolated moves between the
+        magazine and the place run above what is built (the re-planning of a
+        collision).
     """
     settings = project.program
     approach, blend, speed = settings.approach, settings.blend, settings.speed
@@ -134,25 +136,31 @@ def element_motion(
             Action("gripper", True, GRIP_DWELL_S, eid),
             Waypoint("lin", pick_up, speed, blend, "pick retract", eid),
         ]
-        travel_z = max(pick_up[2, 3], place_up[2, 3], -np.inf if safe_z is None else safe_z)
-        if safe_z is not None and safe_z > pick_up[2, 3] + 1e-3:
+        replan = safe_z is not None
+        safe = max(pick_up[2, 3], place_up[2, 3], -np.inf if safe_z is None else safe_z)
+        if replan and safe > pick_up[2, 3] + 1e-3:
+            # straight up from the magazine, across at the safe height, straight down
             lift = pick_up.copy()
-            lift[2, 3] = safe_z
-            steps.append(Waypoint("ptp", lift, PTP_SPEED, blend, "lift", eid, optional=True))
+            lift[2, 3] = safe
+            steps.append(Waypoint("lin", lift, speed, blend, "lift", eid))
+        travel_z = safe
         if travel_z > place_up[2, 3] + 1e-3:
             travel = place_up.copy()
             travel[2, 3] = travel_z
-            steps.append(Waypoint("ptp", travel, PTP_SPEED, blend, "travel", eid, optional=True))
+            steps.append(
+                Waypoint("ptp", travel, PTP_SPEED, blend, "travel", eid, optional=not replan)
+            )
         steps += [
-            Waypoint("ptp", place_up, PTP_SPEED, blend, "place approach", eid),
+            Waypoint("lin" if replan and travel_z > place_up[2, 3] + 1e-3 else "ptp", place_up,
+                     speed if replan else PTP_SPEED, blend, "place approach", eid),
             Waypoint("lin", T_place, speed, 0.0, "place", eid),
             Action("gripper", False, GRIP_DWELL_S, eid),
             Waypoint("lin", place_up, speed, blend, "place retract", eid),
-        ]
-        if safe_z is not None and safe_z > place_up[2, 3] + 1e-3:
+        ]  # fmt: skip
+        if replan and safe > place_up[2, 3] + 1e-3:
             depart = place_up.copy()
-            depart[2, 3] = safe_z
-            steps.append(Waypoint("ptp", depart, PTP_SPEED, blend, "depart", eid, optional=True))
+            depart[2, 3] = safe
+            steps.append(Waypoint("lin", depart, speed, blend, "depart", eid))
         return steps
     if element.type == "print_path":
         return _print_motion(element, approach, blend, speed)

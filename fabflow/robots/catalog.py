@@ -85,6 +85,8 @@ def _kuka_kr60_3() -> RobotModel:
         motion_groups=((0, 1, 2, 3, 4, 5),),
         analytic_ik=lambda T, q_ref=None: opw_ik(KR60_3_OPW, T, q_ref),
         q_nominal=np.array([0, -90, 90, 0, 45, 0], dtype=float) * _DEG,
+        q_home=np.array([0, -90, 90, 0, 0, 0], dtype=float) * _DEG,
+        payload=60.0,
     )
 
 
@@ -110,6 +112,8 @@ def _abb_irb4600_60_205() -> RobotModel:
         motion_groups=((0, 1, 2, 3, 4, 5),),
         analytic_ik=lambda T, q_ref=None: opw_ik(IRB4600_60_205_OPW, T, q_ref),
         q_nominal=np.array([0, 0, 0, 0, 45, 0], dtype=float) * _DEG,
+        q_home=np.array([0, 0, 0, 0, 30, 0], dtype=float) * _DEG,
+        payload=60.0,
     )
 
 
@@ -144,6 +148,8 @@ def _ur10e() -> RobotModel:
         motion_groups=((0, 1, 2, 3, 4, 5),),
         analytic_ik=lambda T, q_ref=None: ur_ik(p, T, q_ref),
         q_nominal=np.array([0, -90, 90, -90, -90, 0], dtype=float) * _DEG,
+        q_home=np.array([0, -90, 0, -90, 0, 0], dtype=float) * _DEG,
+        payload=12.5,
     )
 
 
@@ -176,6 +182,8 @@ def _brokk_170() -> RobotModel:
         motion_groups=((1,), (0, 2, 3, 4)),
         analytic_ik=None,
         q_nominal=np.array([0, 30, -90, -20, -40], dtype=float) * _DEG,
+        q_home=np.array([0, 30, -90, -20, -40], dtype=float) * _DEG,
+        payload=250.0,
     )
 
 
@@ -206,6 +214,113 @@ VENDORS: dict[str, Vendor] = {
     "brokk": Vendor("Brokk", "retrofitted gateway (UDP/CAN)", None),
 }
 """Makers by key; every catalogue robot names one."""
+
+
+@dataclass(frozen=True)
+class ControllerProfile:
+    """Limits of one controller that shape how a program is cut into modules.
+
+    Attributes
+    ----------
+    name
+        The controller and software generation.
+    vendor
+        The :data:`VENDORS` key of its maker.
+    module_motions
+        Most motion instructions (and their point declarations) one program
+        module holds, or ``None`` for no limit. Programs are split between
+        elements below it.
+    """
+
+    name: str
+    vendor: str
+    module_motions: int | None
+
+
+CONTROLLERS: dict[str, ControllerProfile] = {
+    # KUKA publishes no hard limit per module; the robot program memory (R1) and
+    # the smartPAD editor, slow beyond a few thousand lines, bound it in practice.
+    # 1,000 motions make a .src of about 2,000 lines and a .dat of about 1,000.
+    "krc4": ControllerProfile("KR C4 / KSS 8.x", "kuka", 1000),
+    "krc5": ControllerProfile("KR C5 / KSS 8.7", "kuka", 1000),
+    # RAPID modules live in the task's program memory; 2,000 robtargets keep a
+    # module near 0.5 MB of text, quick to load and to open on the FlexPendant.
+    "irc5": ControllerProfile("IRC5 / RobotWare 6", "abb", 2000),
+    "omnicore": ControllerProfile("OmniCore / RobotWare 7", "abb", 2000),
+    "ur_eseries": ControllerProfile("e-Series / PolyScope 5", "ur", None),
+    "gateway": ControllerProfile("retrofitted gateway (UDP/CAN)", "brokk", None),
+}
+"""Controller profiles by key; every vendor's first is its default."""
+
+
+def controller_mismatch(key: str | None, robot: str) -> str | None:
+    """Why the controller profile ``key`` does not drive ``robot``; ``None`` when it does."""
+    if key is None:
+        return None
+    if key not in CONTROLLERS:
+        return f"unknown controller {key!r}; known: {', '.join(CONTROLLERS)}"
+    profile, vendor = CONTROLLERS[key], vendor_of(robot)
+    if profile.vendor == vendor:
+        return None
+    return (
+        f"'{key}' ({profile.name}) is not a controller of the robot '{robot}' "
+        f"({VENDORS[vendor].name})"
+    )
+
+
+def controller_profile(robot: str, key: str | None = None) -> ControllerProfile:
+    """The controller profile ``key``, or the default of ``robot``'s vendor.
+
+    Raises
+    ------
+    UnsupportedError
+        For an unknown key, or a controller of another vendor than the robot's.
+    """
+    why = controller_mismatch(key, robot)
+    if why is not None:
+        raise UnsupportedError(why)
+    if key is None:
+        return next(p for p in CONTROLLERS.values() if p.vendor == vendor_of(robot))
+    return CONTROLLERS[key]
+
+
+def robot_setup_problems(
+    name: str, home_deg: tuple[float, ...] | None, tool_mass: float
+) -> list[tuple[tuple[str, ...], str]]:
+    """What a project's HOME and tool mass get wrong for robot ``name``.
+
+    Parameters
+    ----------
+    name
+        Catalogue robot.
+    home_deg
+        The HOME joint values in degrees, or ``None`` (the catalogue's).
+    tool_mass
+        The tool's mass (kg).
+
+    Returns
+    -------
+    list
+        (field path under ``robot``, message) per problem; empty when none.
+    """
+    arm = get_robot(name)
+    problems: list[tuple[tuple[str, ...], str]] = []
+    if home_deg is not None and len(home_deg) != arm.dof:
+        problems.append((("home_deg",), f"{name} has {arm.dof} axes, got {len(home_deg)}"))
+    elif home_deg is not None:
+        lo, hi = np.degrees(arm.joint_limits).T
+        outside = [
+            f"axis {i + 1}: {v:g} not in [{lo[i]:g}, {hi[i]:g}]"
+            for i, v in enumerate(home_deg)
+            if not lo[i] <= v <= hi[i]
+        ]
+        if outside:
+            problems.append((("home_deg",), "outside the joint limits: " + "; ".join(outside)))
+    if tool_mass > arm.payload:
+        why = f"{tool_mass:g} kg exceeds the {name}'s rated payload of {arm.payload:g} kg"
+        problems.append((("tool", "mass"), why))
+    return problems
+
 
 NEUTRAL_FORMATS: tuple[str, ...] = ("json",)
 """Program formats any machine takes: a command stream its own gateway follows."""

@@ -64,6 +64,12 @@ class RobotModel:
     q_nominal
         A well-conditioned working configuration (radians): start of examples,
         reference for the CLIK manipulability threshold.
+    q_home
+        The HOME (rest) configuration every program starts and ends at (radians),
+        within the joint limits; a project may set its own (``robot.home_deg``).
+    payload
+        Rated payload at the flange (kg): the heaviest tool plus held element
+        the arm is made for.
     """
 
     name: str
@@ -78,6 +84,8 @@ class RobotModel:
     motion_groups: tuple[tuple[int, ...], ...] = ()
     analytic_ik: AnalyticIK | None = field(default=None, repr=False)
     q_nominal: FloatArray | None = None
+    q_home: FloatArray | None = None
+    payload: float = 0.0
 
     # ------------------------------------------------------------------ basics
     @property

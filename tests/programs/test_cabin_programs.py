@@ -12,21 +12,11 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
-from helpers import PROJECTS
-from program_readers import read_krl
+from program_readers import program_files, read_krl
 
-from fabflow.build.runner import run_build
+from fabflow.build.context import BuildContext
 from fabflow.design.elements import elements_from_json
-from fabflow.project import load_project
 from fabflow.tasks.targets import element_tool_frames
-
-
-@pytest.fixture(scope="module")
-def cabin_build(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("cabin") / "out"
-    run_build(load_project(PROJECTS / "cabin"), out, until="program")
-    return out
 
 
 def _angle_deg(R: np.ndarray, R_ref: np.ndarray) -> float:
@@ -34,7 +24,8 @@ def _angle_deg(R: np.ndarray, R_ref: np.ndarray) -> float:
     return float(np.degrees(np.arccos(cos)))
 
 
-def test_every_station_has_a_program(cabin_build: Path) -> None:
+def test_every_station_has_a_program(cabin_build: tuple[Path, BuildContext]) -> None:
+    cabin_build, _ = cabin_build
     plan = json.loads((cabin_build / "plan.json").read_text())
     packages = [wp for wp in plan["work_packages"] if wp["elements"]]
     mains = [p for p in (cabin_build / "programs").glob("*.src") if "_P0" not in p.stem[-4:]]
@@ -44,7 +35,8 @@ def test_every_station_has_a_program(cabin_build: Path) -> None:
         assert any(p.stem.endswith(sid) for p in mains), sid
 
 
-def test_place_targets_reproduce_block_poses(cabin_build: Path) -> None:
+def test_place_targets_reproduce_block_poses(cabin_build: tuple[Path, BuildContext]) -> None:
+    cabin_build, _ = cabin_build
     doc = json.loads((cabin_build / "elements.json").read_text())
     elements = elements_from_json(doc["elements"])
     by_id = {e.id: e for e in elements}
@@ -59,14 +51,10 @@ def test_place_targets_reproduce_block_poses(cabin_build: Path) -> None:
         )
         T_world_base = np.array(loc["T_world_base"])
         name = f"fab_v{visit:02d}_{sid}"
-        files = {
-            p.name: p.read_text()
-            for p in (cabin_build / "programs").iterdir()
-            if p.stem == name or p.stem.startswith(f"{name[:20]}_P")
-        }
-        base, moves = read_krl(files)
+        read = read_krl(program_files(cabin_build / "programs", name))
+        base = read.base
         np.testing.assert_allclose(base, np.linalg.inv(T_world_base), atol=1e-5)
-        for _, T_in_base_frame, _, comment in moves:
+        for _, T_in_base_frame, _, comment in read.moves:
             eid, _, label = comment.partition(" ")
             if label == "place":
                 assert eid not in placed, f"{eid} placed twice"

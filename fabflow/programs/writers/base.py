@@ -10,13 +10,14 @@ validates, then renders. Vendor units and pose conventions come from
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from fabflow.errors import InputError, UnsupportedError
-from fabflow.programs.ir import Move, Program
+from fabflow.programs.ir import Instruction, Lift, Load, Move, Program, SetPayload
 from fabflow.robots.catalog import format_mismatch, format_vendor
 
 
@@ -71,6 +72,12 @@ class Writer:
         values = [program.T_base_world, program.T_flange_tool]
         values += [m.T_world_tool for m in moves] + [m.q for m in moves]
         values.append(np.array([[m.speed, m.blend] for m in moves], dtype=float))
+        values += [np.array([program.load.mass]), program.load.cog]
+        for ins in program.instructions:
+            if isinstance(ins, SetPayload) and ins.payload is not None:
+                values += [np.array([ins.payload.mass]), ins.payload.cog]
+        if program.lift is not None:
+            values.append(np.array([program.lift.height]))
         bad = next((k for k, v in enumerate(values) if not np.all(np.isfinite(v))), None)
         if bad is not None:
             raise InputError(
@@ -82,3 +89,76 @@ class Writer:
         """The files of ``program``: ``{file name: text}`` (validated first)."""
         self.validate(program)
         return self.render(program)
+
+
+def flange_load(program: Program, payload: Load | None) -> Load:
+    """The whole load at the flange: the tool's plus a held payload (tool frame), as one point."""
+    if payload is None:
+        return program.load
+    cog = program.T_flange_tool[:3, :3] @ payload.cog + program.T_flange_tool[:3, 3]
+    mass = program.load.mass + payload.mass
+    return Load(mass, (program.load.mass * program.load.cog + payload.mass * cog) / mass)
+
+
+def lift_message(lift: Lift) -> str:
+    """What the operator must do before the program's first motion (at most 60 characters)."""
+    return f"set the lift to {lift.height * 1000.0:.0f} mm above its lowest position"
+
+
+def lift_axis_value(lift: Lift | None) -> float | None:
+    """The lift's external axis value (mm), or ``None`` when no axis drives the lift."""
+    return None if lift is None or lift.axis is None else lift.height * 1000.0
+
+
+def split_modules(instructions: list[Instruction], limit: int | None) -> list[list[Instruction]]:
+    """Cut instructions into modules of at most ``limit`` motions, between elements.
+
+    An element's instructions stay in one module unless the element alone holds
+    more than ``limit`` motions; it is then cut where the limit falls, and the
+    next module starts with a PTP to the point the previous one ended at (the
+    robot is there already), so no module starts with a linear move.
+
+    Parameters
+    ----------
+    instructions
+        The instructions of the program's body, in order.
+    limit
+        Most motions per module (``None``: one module).
+
+    Returns
+    -------
+    list[list[Instruction]]
+        The modules, in order; their motions are the program's, plus one PTP
+        at each cut inside an element.
+    """
+    if limit is None or sum(isinstance(i, Move) for i in instructions) <= limit:
+        return [list(instructions)]
+    groups: list[list[Instruction]] = []
+    for ins in instructions:
+        if groups and groups[-1][-1].element == ins.element:
+            groups[-1].append(ins)
+        else:
+            groups.append([ins])
+    modules: list[list[Instruction]] = [[]]
+    count = 0
+    for group in groups:
+        n = sum(isinstance(i, Move) for i in group)
+        if count and count + n > limit:
+            modules.append([])
+            count = 0
+        last: Move | None = None
+        for ins in group:
+            if isinstance(ins, Move):
+                if count == limit:
+                    modules.append([])
+                    count = 0
+                    if ins.kind == "lin" and last is not None:
+                        reentry = dataclasses.replace(
+                            last, kind="ptp", blend=0.0, label=f"{last.label} (module start)"
+                        )
+                        modules[-1].append(reentry)
+                        count += 1
+                last = ins
+                count += 1
+            modules[-1].append(ins)
+    return modules

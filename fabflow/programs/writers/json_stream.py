@@ -6,7 +6,12 @@ carry the joint configuration (radians) and the tool pose in the robot base
 frame (metres, quaternion w-x-y-z); linear moves are broken into setpoints at
 most one controller step apart (2 cm / 0.015 rad, as in the BROKK paper), so a
 machine without Cartesian interpolation can follow them joint by joint.
-``io`` commands switch outputs, ``wait`` commands dwell.
+``io`` commands switch outputs, ``wait`` commands dwell. The first and last
+setpoints are the HOME joint configuration (``"joint": true``). The document
+carries the tool's ``load`` (kg, centre of gravity in the flange frame, metres)
+and the ``lift`` (height above the lowest position, metres, and its external
+axis or null); before the first setpoint an ``axis`` command moves an external
+lift axis, or a ``confirm`` command waits for the operator to set the lift.
 """
 
 from __future__ import annotations
@@ -16,9 +21,9 @@ from typing import Any
 import numpy as np
 
 from fabflow.output import json_text
-from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
+from fabflow.programs.ir import Comment, Move, Program, SetOutput, SetPayload, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
-from fabflow.programs.writers.base import Writer
+from fabflow.programs.writers.base import Writer, lift_message
 from fabflow.transforms.so3 import quat_from_matrix
 
 FORMAT = "fabflow-command-stream"
@@ -48,6 +53,11 @@ def write_json_stream(program: Program) -> dict[str, str]:
     # Setpoints are collected first and converted in one batch.
     setpoints: list[tuple[int, float, np.ndarray, np.ndarray, Move]] = []
     t_prev = 0.0
+    lift = program.lift
+    if lift is not None and lift.axis is not None:
+        commands.append({"t": 0.0, "type": "axis", "name": lift.axis, "value": lift.height})
+    elif lift is not None:
+        commands.append({"t": 0.0, "type": "confirm", "text": lift_message(lift)})
     for ins in program.instructions:
         start, t_prev = t_prev, ins.time
         if isinstance(ins, Move):
@@ -66,6 +76,17 @@ def write_json_stream(program: Program) -> dict[str, str]:
             commands.append({"t": round(ins.time, 6), "type": "wait", "seconds": ins.seconds})
         elif isinstance(ins, Comment):
             commands.append({"t": round(ins.time, 6), "type": "comment", "text": ins.text})
+        elif isinstance(ins, SetPayload):
+            held = ins.payload
+            commands.append(
+                {
+                    "t": round(ins.time, 6),
+                    "type": "payload",
+                    "element": ins.element,
+                    "mass": 0.0 if held is None else held.mass,
+                    "cog": [0.0, 0.0, 0.0] if held is None else _r(held.cog),
+                }
+            )
     if setpoints:
         T_base_tool = T_base_world @ np.stack([sp[3] for sp in setpoints])
         q = _r(np.stack([sp[2] for sp in setpoints]))
@@ -81,6 +102,8 @@ def write_json_stream(program: Program) -> dict[str, str]:
                 "quaternion": quaternion[k],
                 "element": move.element,
                 "label": move.label,
+                **({"joint": True} if move.joint else {}),
+                **({"wrist_interpolated": True} if move.wrist_interpolated else {}),
             }
     doc = {
         "format": FORMAT,
@@ -92,6 +115,8 @@ def write_json_stream(program: Program) -> dict[str, str]:
         "T_base_world": _r(T_base_world),
         "T_flange_tool": _r(program.T_flange_tool),
         "outputs": program.outputs,
+        "load": {"mass": program.load.mass, "cog": _r(program.load.cog)},
+        "lift": None if lift is None else {"height": lift.height, "axis": lift.axis},
         "commands": [],
     }
     # One command per line keeps long streams readable and diffable.

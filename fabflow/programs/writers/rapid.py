@@ -1,10 +1,23 @@
-"""ABB RAPID writer: one ``.mod`` module per program.
+"""ABB RAPID writer: one ``.mod`` module per program (more when it is long).
 
-Units at this edge: millimetres and unit quaternions (q1 = w first, q1 >= 0).
-The work object's user frame is the design world in the robot base frame
-(from the localization), so robtargets carry design coordinates; ``tooldata``
-holds the tool centre point. Each robtarget carries ``confdata`` derived from
-the joint configuration inverse kinematics chose.
+Units at this edge: millimetres, degrees and unit quaternions (q1 = w first,
+q1 >= 0). The work object's user frame is the design world in the robot base
+frame (from the localization), so robtargets carry design coordinates;
+``tooldata`` holds the tool centre point and the tool's load (mass, centre of
+gravity in the flange frame, as a point mass); while the gripper holds an
+element with a mass, ``GripLoad`` adds it (``loaddata``, centre of gravity in
+the tool frame) and ``GripLoad load0`` takes it off. Each robtarget carries
+``confdata`` derived from the joint configuration inverse kinematics chose.
+Every program starts and ends with an exact ``MoveAbsJ`` to the HOME
+``jointtarget``; the last motion of every procedure is ``fine``.
+
+The lift: with an external axis (``robot.platform.lift_axis``: ``E1`` is
+``eax_a``) every robtarget and the HOME jointtarget carry the lift height in mm
+in ``extax``; without one ``main`` writes the height on the FlexPendant
+(``TPWrite``) and waits for the operator's OK (``TPReadFK``) before its first
+motion. Programs longer than the controller profile's motions per module are
+split between elements into modules ``NAME_M01``, ... each holding a procedure
+``NAME_P01``, ... that ``main`` calls in order between the HOME moves.
 """
 
 from __future__ import annotations
@@ -12,9 +25,24 @@ from __future__ import annotations
 import numpy as np
 
 from fabflow.errors import UnsupportedError
-from fabflow.programs.ir import Comment, Move, Program, SetOutput, Wait
+from fabflow.programs.ir import (
+    Comment,
+    Instruction,
+    Load,
+    Move,
+    Program,
+    SetOutput,
+    SetPayload,
+    Wait,
+)
 from fabflow.programs.ir import sanitize_identifier as _sanitize
-from fabflow.programs.writers.base import Writer, fixed
+from fabflow.programs.writers.base import (
+    Writer,
+    fixed,
+    lift_axis_value,
+    lift_message,
+    split_modules,
+)
 from fabflow.robots.catalog import IRB4600_60_205_OPW, get_robot
 from fabflow.robots.opw import OPWParameters
 from fabflow.transforms.vendors import to_abb_pose
@@ -56,6 +84,12 @@ SPEEDS_MM_S = (
 
 PTP_TCP_SPEED = 2.0
 """TCP speed (m/s) a PTP speed fraction of 1 stands for in ``MoveJ``."""
+
+HOME = "jhome"
+"""The HOME joint target."""
+
+EXTERNAL_AXES = ("E1", "E2", "E3", "E4", "E5", "E6")
+"""Project external axis names in the order of RAPID's ``extax`` (eax_a ... eax_f)."""
 
 ZONES_MM = (0, 1, 5, 10, 15, 20, 30, 40, 50, 60, 80, 100, 150, 200)
 """The predefined ``zonedata`` (``z0`` ... ``z200``; 0 blending is ``fine``)."""
@@ -111,67 +145,157 @@ def _zone(blend: float) -> str:
     return "z" + str(min(ZONES_MM[1:], key=lambda v: abs(v - blend * 1000.0)))
 
 
-def write_rapid(program: Program) -> dict[str, str]:
-    """RAPID module for a program.
+def _loaddata(load: Load) -> str:
+    """``loaddata``: mass (kg), centre of gravity (mm), a point mass."""
+    cog = ",".join(fixed(v, 3) for v in load.cog * 1000.0)
+    return f"[{fixed(load.mass, 3)},[{cog}],[1,0,0,0],0,0,0]"
+
+
+def _extax(program: Program) -> str:
+    lift = lift_axis_value(program.lift)
+    values = ["9E9"] * 6
+    if lift is not None:
+        values[EXTERNAL_AXES.index(program.lift.axis)] = fixed(lift, 3)  # type: ignore[union-attr]
+    return "[" + ",".join(values) + "]"
+
+
+def _body(
+    program: Program,
+    body: list[Instruction | str],
+    tool: str,
+    first_point: int,
+    extax: str,
+    declare_home: bool = True,
+) -> tuple[list[str], list[str]]:
+    """Declarations and statements of ``body`` (instructions and procedure names).
+
+    HOME (a global ``CONST``) is declared in the main module only
+    (``declare_home``): a second declaration in another module is a name clash.
+    """
+    robot = get_robot(program.robot)
+    arm = ARM_GEOMETRY[program.robot]
+    decl: list[str] = []
+    lines: list[str] = []
+    moves = [i for i in body if isinstance(i, Move)]
+    last_move = moves[-1] if moves else None
+    flanges = robot.fk(np.stack([m.q for m in moves])) if moves else np.zeros((0, 4, 4))
+    n = first_point
+    for k, ins in enumerate(moves):
+        if ins.joint:
+            axes = ",".join(fixed(v, 4) for v in np.degrees(ins.q))
+            home = f"  CONST jointtarget {HOME} := [[{axes}],{extax}];"
+            if declare_home and home not in decl:
+                decl.append(home)
+            continue
+        n += 1
+        conf = confdata(ins.q, flanges[k], arm)
+        decl.append(
+            f"  CONST robtarget p{n} := [{_pose(ins.T_world_tool)[1:-1]},"
+            f"[{','.join(str(c) for c in conf)}],{extax}];"
+        )
+    for ins in body:
+        if isinstance(ins, SetPayload) and ins.payload is not None:
+            name = _sanitize(f"load_{ins.element}", MAX_NAME)
+            decl.append(f"  PERS loaddata {name} := {_loaddata(ins.payload)};")
+    n = first_point
+    for ins in body:
+        if isinstance(ins, str):
+            lines.append(f"    {ins};")
+        elif isinstance(ins, SetPayload):
+            held = "load0" if ins.payload is None else _sanitize(f"load_{ins.element}", MAX_NAME)
+            lines.append(f"    GripLoad {held};")
+        elif isinstance(ins, Comment):
+            lines.append(f"    ! {ins.text}")
+        elif isinstance(ins, SetOutput):
+            lines.append(f"    SetDO do_{_sanitize(ins.name, MAX_NAME - 3)}, {int(ins.value)};")
+        elif isinstance(ins, Wait):
+            lines.append(f"    WaitTime {fixed(ins.seconds, 3)};")
+        else:
+            assert isinstance(ins, Move)
+            zone = "fine" if ins is last_move else _zone(ins.blend)
+            speed = _speed(PTP_TCP_SPEED * ins.speed if ins.kind == "ptp" else ins.speed)
+            if ins.joint:
+                lines.append(
+                    f"    MoveAbsJ {HOME}\\NoEOffs, {speed}, {zone}, {tool}\\WObj:=wobj_world;"
+                    f" ! {ins.label}"
+                )
+                continue
+            n += 1
+            instr = "MoveJ" if ins.kind == "ptp" else "MoveL"
+            comment = f" ! {ins.element} {ins.label}".rstrip() if ins.element else ""
+            if ins.wrist_interpolated:
+                lines.append("    SingArea \\Wrist; ! past the wrist singularity")
+            lines.append(f"    {instr} p{n}, {speed}, {zone}, {tool}\\WObj:=wobj_world;" + comment)
+            if ins.wrist_interpolated:
+                lines.append("    SingArea \\Off;")
+    return decl, lines
+
+
+def write_rapid(program: Program, max_moves: int | None = None) -> dict[str, str]:
+    """RAPID modules for a program.
 
     Parameters
     ----------
     program
         The program (frames in metres and radians).
+    max_moves
+        Most motions (robtargets) in one module (default: the program's
+        controller profile, ``Program.module_motions``); longer programs are
+        split between elements into modules ``<name>_M01``, ... each with one
+        procedure ``<name>_P01``, ..., called in order between the HOME moves.
 
     Returns
     -------
     dict[str, str]
-        ``{"NAME.mod": text}``.
+        ``{"NAME.mod": text, "NAME_M01.mod": text, ...}``.
     """
-
-    robot = get_robot(program.robot)
-    arm = ARM_GEOMETRY.get(program.robot)
-    if arm is None:
+    if program.robot not in ARM_GEOMETRY:
         raise UnsupportedError(
             f"RAPID programs need an ABB arm's geometry; '{program.robot}' has none"
         )
     name = _sanitize(program.name, MAX_NAME)
     tool = _sanitize(f"t_{program.tool_name}", MAX_NAME)
-    lines = [f"MODULE {name}"]
-    lines += [f"  ! {k}: {v}" for k, v in program.header.items()]
-    lines += [
-        f"  PERS tooldata {tool} := [TRUE,{_pose(program.T_flange_tool)},"
-        "[20,[0,0,100],[1,0,0,0],0,0,0]];",
+    extax = _extax(program)
+    limit = program.module_motions if max_moves is None else max_moves
+    instructions = list(program.instructions)
+    homes = [k for k, i in enumerate(instructions) if isinstance(i, Move) and i.joint]
+    first, last = (homes[0], homes[-1]) if len(homes) >= 2 else (-1, len(instructions))
+    chunks = split_modules(instructions[first + 1 : last], limit)
+    files: dict[str, str] = {}
+    main: list[Instruction | str] = instructions
+    if len(chunks) > 1:
+        stem = name[: MAX_NAME - 4]
+        points = 0
+        procs = []
+        for i, chunk in enumerate(chunks):
+            module, proc = f"{stem}_M{i + 1:02d}", f"{stem}_P{i + 1:02d}"
+            decl, lines = _body(program, list(chunk), tool, points, extax, declare_home=False)
+            points += sum(isinstance(m, Move) and not m.joint for m in chunk)
+            text = [f"MODULE {module}", *decl, f"  PROC {proc}()", *lines, "  ENDPROC"]
+            files[f"{module}.mod"] = "\n".join([*text, "ENDMODULE"]) + "\n"
+            procs.append(proc)
+        main = [*instructions[: first + 1], *procs, *instructions[last:]]
+    decl, lines = _body(program, main, tool, 0, extax)
+    load = _loaddata(program.load)
+    head = [f"MODULE {name}", *(f"  ! {k}: {v}" for k, v in program.header.items())]
+    head += [
+        f"  PERS tooldata {tool} := [TRUE,{_pose(program.T_flange_tool)},{load}];",
         f'  PERS wobjdata wobj_world := [FALSE,TRUE,"",{_pose(program.T_base_world)},'
         "[[0,0,0],[1,0,0,0]]];",
+        *decl,
+        "  PROC main()",
     ]
-    body = ["  PROC main()", "    ConfJ \\On;", "    ConfL \\On;"]
-    moves = [i for i in program.instructions if isinstance(i, Move)]
-    flanges = robot.fk(np.stack([m.q for m in moves])) if moves else np.zeros((0, 4, 4))
-    n = 0
-    for ins in program.instructions:
-        if isinstance(ins, Comment):
-            body.append(f"    ! {ins.text}")
-        elif isinstance(ins, SetOutput):
-            body.append(f"    SetDO do_{_sanitize(ins.name, MAX_NAME - 3)}, {int(ins.value)};")
-        elif isinstance(ins, Wait):
-            body.append(f"    WaitTime {fixed(ins.seconds, 3)};")
-        else:
-            assert isinstance(ins, Move)
-            conf = confdata(ins.q, flanges[n], arm)
-            n += 1
-            point = f"p{n}"
-            lines.append(
-                f"  CONST robtarget {point} := [{_pose(ins.T_world_tool)[1:-1]},"
-                f"[{','.join(str(c) for c in conf)}],[9E9,9E9,9E9,9E9,9E9,9E9]];"
-            )
-            instr = "MoveJ" if ins.kind == "ptp" else "MoveL"
-            speed = _speed(PTP_TCP_SPEED * ins.speed if ins.kind == "ptp" else ins.speed)
-            comment = f" ! {ins.element} {ins.label}".rstrip() if ins.element else ""
-            body.append(
-                f"    {instr} {point}, {speed}, {_zone(ins.blend)}, {tool}\\WObj:=wobj_world;"
-                + comment
-            )
-    body.append("  ENDPROC")
-    text = "\n".join([*lines, *body, "ENDMODULE"]) + "\n"
-    return {f"{name}.mod": text}
+    operator: list[str] = []
+    if program.lift is not None and program.lift.axis is None:
+        head.append("    VAR num answer;")
+        operator = [
+            f'    TPWrite "fabflow: {lift_message(program.lift)}";',
+            f'    TPReadFK answer, "Lift at {program.lift.height * 1000.0:.0f} mm?", "OK", '
+            "stEmpty, stEmpty, stEmpty, stEmpty;",
+        ]
+    text = [*head, "    ConfJ \\On;", "    ConfL \\On;", *operator, *lines, "  ENDPROC"]
+    return {f"{name}.mod": "\n".join([*text, "ENDMODULE"]) + "\n", **files}
 
 
-WRITER = Writer("rapid", write_rapid, "ABB RAPID (RobotWare 6): one .mod module")
+WRITER = Writer("rapid", write_rapid, "ABB RAPID (RobotWare 6): .mod modules")
 """The RAPID writer behind the common interface."""

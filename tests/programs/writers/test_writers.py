@@ -59,14 +59,14 @@ def _base_targets(program: Program) -> list[np.ndarray]:
 
 def test_krl_targets_parse_back(kuka_program: Program) -> None:
     robot = get_robot("kuka_kr60_3")
-    base, moves = read_krl(write_krl(kuka_program))
+    read = read_krl(write_krl(kuka_program))
     planned = kuka_program.moves
-    assert [kind for kind, _, _, _ in moves] == [m.kind for m in planned]
+    assert [kind for kind, _, _, _ in read.moves] == [m.kind for m in planned]
     T_flange_tool = kuka_program.T_flange_tool
     for (_, T, st, _), move, T_base_ref in zip(
-        moves, planned, _base_targets(kuka_program), strict=True
+        read.moves[1:-1], planned[1:-1], _base_targets(kuka_program)[1:-1], strict=True
     ):
-        _assert_pose_close(base @ T, T_base_ref)
+        _assert_pose_close(read.base @ T, T_base_ref)
         # joint target through forward kinematics gives the same tool pose
         _assert_pose_close(robot.fk(move.q) @ T_flange_tool, T_base_ref)
         if move.kind == "ptp":
@@ -78,11 +78,12 @@ def test_krl_targets_parse_back(kuka_program: Program) -> None:
 def test_rapid_targets_parse_back() -> None:
     program = sample_program("abb_irb4600_60_205")
     robot = get_robot("abb_irb4600_60_205")
-    (text,) = write_rapid(program).values()
-    wobj, moves = read_rapid(text)
-    assert [kind for kind, _ in moves] == [m.kind for m in program.moves]
-    for (_, T), move, T_base_ref in zip(moves, program.moves, _base_targets(program), strict=True):
-        _assert_pose_close(wobj @ T, T_base_ref)
+    read = read_rapid(write_rapid(program))
+    assert [kind for kind, _, _, _ in read.moves] == [m.kind for m in program.moves]
+    for (_, T, _, _), move, T_base_ref in zip(
+        read.moves[1:-1], program.moves[1:-1], _base_targets(program)[1:-1], strict=True
+    ):
+        _assert_pose_close(read.base @ T, T_base_ref)
         _assert_pose_close(robot.fk(move.q) @ program.T_flange_tool, T_base_ref)
 
 
@@ -143,19 +144,23 @@ def test_krl_header_and_structure(kuka_program: Program) -> None:
     assert "FOLD" not in src
 
 
-def test_krl_long_program_is_split(kuka_program: Program) -> None:
+def test_krl_long_program_is_split_between_elements(kuka_program: Program) -> None:
     files = write_krl(kuka_program, max_moves=10)
     main = files["writer_test_S1.src"]
     subs = sorted(k[:-4] for k in files if k.endswith(".src") and k != "writer_test_S1.src")
-    assert len(subs) == -(-len(kuka_program.moves) // 10)
+    # B1 and B2 hold 7 motions each, P1 5 and T1 3: B1 | B2 | P1 T1
+    assert len(subs) == 3
     for sub in subs:
         assert f"{sub}( )" in main
         assert len(sub) <= 24
-    _, moves = read_krl(files)
-    assert [m[0] for m in moves] == [m.kind for m in kuka_program.moves]
-    _, unsplit = read_krl(write_krl(kuka_program))
-    for a, b in zip(moves, unsplit, strict=True):
+    read = read_krl(files)
+    assert [m[0] for m in read.moves] == [m.kind for m in kuka_program.moves]
+    unsplit = read_krl(write_krl(kuka_program))
+    for a, b in zip(read.moves[1:-1], unsplit.moves[1:-1], strict=True):
         np.testing.assert_array_equal(a[1], b[1])
+    # HOME stays in the main module, around the calls
+    lines = [line for line in main.splitlines()[3:] if line.startswith("PTP") or "( )" in line]
+    assert lines[0].startswith("PTP XFABHOME") and lines[-1].startswith("PTP XFABHOME")
 
 
 def test_identifiers_are_sanitized() -> None:

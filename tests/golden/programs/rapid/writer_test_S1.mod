@@ -2,11 +2,12 @@ MODULE writer_test_S1
   ! project: writer test
   ! station: S1
   ! generator: fabflow test
-  PERS tooldata t_gripper := [TRUE,[[0.000,0.000,250.000],[1.000000000,0.000000000,0.000000000,0.000000000]],[20,[0,0,100],[1,0,0,0],0,0,0]];
+  PERS tooldata t_gripper := [TRUE,[[0.000,0.000,250.000],[1.000000000,0.000000000,0.000000000,0.000000000]],[8.500,[0.000,10.000,120.000],[1,0,0,0],0,0,0]];
   PERS wobjdata wobj_world := [FALSE,TRUE,"",[[-2089.842,-795.337,-600.000],[0.998750260,0.000000000,0.000000000,-0.049979169]],[[0,0,0],[1,0,0,0]]];
-  CONST robtarget p1 := [[1104.496,910.150,830.000],[0.000000000,0.998750260,0.049979169,0.000000000],[2,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
-  CONST robtarget p2 := [[1104.496,910.150,700.000],[0.000000000,0.998750260,0.049979169,0.000000000],[2,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
-  CONST robtarget p3 := [[1104.496,910.150,830.000],[0.000000000,0.998750260,0.049979169,0.000000000],[2,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
+  CONST jointtarget jhome := [[0.0000,0.0000,0.0000,0.0000,30.0000,0.0000],[9E9,9E9,9E9,9E9,9E9,9E9]];
+  CONST robtarget p1 := [[1104.496,910.150,830.000],[0.000000000,0.998750260,0.049979169,0.000000000],[-2,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
+  CONST robtarget p2 := [[1104.496,910.150,700.000],[0.000000000,0.998750260,0.049979169,0.000000000],[-2,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
+  CONST robtarget p3 := [[1104.496,910.150,830.000],[0.000000000,0.998750260,0.049979169,0.000000000],[-2,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
   CONST robtarget p4 := [[3200.000,1000.000,830.000],[0.000000000,1.000000000,0.000000000,0.000000000],[-1,0,-2,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
   CONST robtarget p5 := [[3200.000,1000.000,235.000],[0.000000000,1.000000000,0.000000000,0.000000000],[-1,0,-2,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
   CONST robtarget p6 := [[3200.000,1000.000,105.000],[0.000000000,1.000000000,0.000000000,0.000000000],[-1,0,-2,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
@@ -26,20 +27,27 @@ MODULE writer_test_S1
   CONST robtarget p20 := [[3000.000,500.000,400.000],[0.000000000,1.000000000,0.000000000,0.000000000],[-1,0,-3,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
   CONST robtarget p21 := [[3000.000,500.000,300.000],[0.000000000,1.000000000,0.000000000,0.000000000],[-1,0,-3,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
   CONST robtarget p22 := [[3000.000,500.000,400.000],[0.000000000,1.000000000,0.000000000,0.000000000],[-1,0,-3,0],[9E9,9E9,9E9,9E9,9E9,9E9]];
+  PERS loaddata load_B1 := [2.980,[0.000,0.000,52.500],[1,0,0,0],0,0,0];
   PROC main()
+    VAR num answer;
     ConfJ \On;
     ConfL \On;
+    TPWrite "fabflow: set the lift to 350 mm above its lowest position";
+    TPReadFK answer, "Lift at 350 mm?", "OK", stEmpty, stEmpty, stEmpty, stEmpty;
+    MoveAbsJ jhome\NoEOffs, v1000, fine, t_gripper\WObj:=wobj_world; ! home
     ! element B1
     MoveJ p1, v1000, z10, t_gripper\WObj:=wobj_world; ! B1 pick approach
     MoveL p2, v200, fine, t_gripper\WObj:=wobj_world; ! B1 pick
     SetDO do_gripper, 1;
     WaitTime 0.300;
+    GripLoad load_B1;
     MoveL p3, v200, z10, t_gripper\WObj:=wobj_world; ! B1 pick retract
     MoveJ p4, v1000, z10, t_gripper\WObj:=wobj_world; ! B1 travel
     MoveJ p5, v1000, z10, t_gripper\WObj:=wobj_world; ! B1 place approach
     MoveL p6, v200, fine, t_gripper\WObj:=wobj_world; ! B1 place
     SetDO do_gripper, 0;
     WaitTime 0.300;
+    GripLoad load0;
     MoveL p7, v200, z10, t_gripper\WObj:=wobj_world; ! B1 place retract
     ! element B2
     MoveJ p8, v1000, z10, t_gripper\WObj:=wobj_world; ! B2 pick approach
@@ -68,5 +76,6 @@ MODULE writer_test_S1
     WaitTime 1.000;
     SetDO do_drill, 0;
     MoveL p22, v200, z10, t_gripper\WObj:=wobj_world; ! T1 retract
+    MoveAbsJ jhome\NoEOffs, v1000, fine, t_gripper\WObj:=wobj_world; ! home
   ENDPROC
 ENDMODULE
