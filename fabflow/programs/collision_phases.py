@@ -17,7 +17,10 @@ from fabflow.programs.collision_model import Obstacles
 def capsule_frames(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(n, 3, 3) rotations with z along ``b - a`` and (n, 3) midpoints of segments."""
     axis = b - a
-    z = axis / np.maximum(np.linalg.norm(axis, axis=1), 1e-12)[:, None]
+    length = np.linalg.norm(axis, axis=1)
+    z = np.where(
+        (length > 1e-12)[:, None], axis / np.maximum(length, 1e-12)[:, None], [0.0, 0.0, 1.0]
+    )
     helper = np.where((np.abs(z[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
     x = np.cross(helper, z)
     x /= np.linalg.norm(x, axis=1)[:, None]
