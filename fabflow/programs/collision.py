@@ -55,7 +55,7 @@ from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
 from fabflow.robots.geometry import link_capsules, link_segments
 
-COARSE_TRAVEL = 0.25
+COARSE_TRAVEL = 0.1
 """Body travel between the coarse samples of a PTP move (metres)."""
 COARSE_JOINT_STEP = np.radians(10.0)
 """Largest joint step between coarse samples of a PTP move (radians)."""
