@@ -372,7 +372,13 @@ class ProgramSettings(StrictModel):
     speed: PositiveFloat = 0.25
     """Cartesian speed for linear moves (m/s)."""
     approach: PositiveFloat = 0.10
-    """Approach and retract distance above a target (metres)."""
+    """Approach and retract distance above a target (metres); for a block at least its
+    height plus twice the clearance (the held block clears its neighbours)."""
+    clearance: NonNegativeFloat = 0.01
+    """Smallest distance of the arm, tool and held block from the structure as built,
+    the platform, the magazine and site obstacles along every motion (metres)."""
+    check_collisions: bool = True
+    """Check every program for collisions (re-plan, else an error naming the move)."""
     blend: NonNegativeFloat = 0.01
     """Blending (approximation) distance (metres)."""
     controller: ControllerName | None = None

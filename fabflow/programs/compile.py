@@ -11,12 +11,15 @@ plan and renders the files with the project's writer
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from fabflow.design.elements import Element
-from fabflow.errors import LocalizationError
+from fabflow.errors import InfeasibleError, LocalizationError
 from fabflow.positioning.result import BasePose
+from fabflow.programs.collision import Contact, check_package
+from fabflow.programs.collision_model import environment, safe_heights
 from fabflow.programs.feasibility import TOOL_ROTATION_SPEED, move_lengths, solve_moves
 from fabflow.programs.ir import (
     Comment,
@@ -35,6 +38,7 @@ from fabflow.programs.motions import (
     PTP_SPEED,
     Action,
     Step,
+    T_base_pick_tool,
     Waypoint,
     work_package_motion,
 )
@@ -46,6 +50,10 @@ from fabflow.robots.chain import RobotModel
 from fabflow.tasks.plan import Plan, WorkPackage
 from fabflow.tasks.targets import element_tool_frames
 from fabflow.version import __version__
+
+SAFE_WIDTH = 0.5
+"""Plan distance from the line magazine - place within which the structure sets the
+safe height of a re-planned block (metres): the arm's forearm and wrist pass there."""
 
 
 def _drop_unreachable_optional(
@@ -284,11 +292,17 @@ def work_package_program(
     elements_by_id: dict[str, Element],
     project: Project,
     base_pose: BasePose,
+    built: Sequence[Element] = (),
 ) -> Program:
-    """The checked program of one work package, in the station's localized base frame."""
+    """The checked program of one work package, in the station's localized base frame.
+
+    ``built`` are the elements standing when it starts (pre-built ones and those
+    of earlier work packages): the collision check (:func:`checked_program`)
+    keeps the arm clear of them.
+    """
     elements = [elements_by_id[e] for e in wp.elements]
     T_world_base = np.asarray(base_pose.T_world_base, dtype=float)
-    steps = work_package_motion(elements, project, T_world_base)
+    name = program_name(wp)
     header: dict[str, object] = {
         "project": project.name,
         "station": wp.station.id,
@@ -301,15 +315,74 @@ def work_package_program(
         "tool load": _load_note(project),
         "generator": f"fabflow {__version__}",
     }
-    return compile_program(
-        program_name(wp),
-        steps,
-        project,
-        T_world_base,
-        header,
-        lift=wp.station.lift,
-        payloads=element_payloads(elements),
+    options = {"lift": wp.station.lift, "payloads": element_payloads(elements)}
+    if not project.program.check_collisions:
+        steps = work_package_motion(elements, project, T_world_base)
+        return compile_program(name, steps, project, T_world_base, header, **options)
+    return checked_program(name, elements, built, project, T_world_base, header, **options)
+
+
+def checked_program(
+    name: str,
+    elements: Sequence[Element],
+    built: Sequence[Element],
+    project: Project,
+    T_world_base: np.ndarray,
+    header: dict[str, object],
+    **options: Any,
+) -> Program:
+    """Compile a work package and check it for collisions; re-plan what collides.
+
+    The elements whose moves come closer than ``program.clearance`` to an
+    obstacle (:mod:`fabflow.programs.collision`), and the element before each
+    (whose retract the next pick approach starts from), are re-planned over the
+    structure (:func:`fabflow.programs.motions.element_motion` with a safe
+    height); a collision that remains is an :class:`InfeasibleError` naming the
+    element, the move, the body and the penetration. ``options`` go to
+    :func:`compile_program` (lift, payloads).
+    """
+    program, contacts = replanned_program(
+        name, elements, built, project, T_world_base, header, **options
     )
+    if contacts:
+        worst = min(contacts, key=lambda c: c.distance)
+        raise InfeasibleError(
+            f"program {name}: {len(contacts)} collision(s) at "
+            f"{project.program.clearance * 1000:g} mm clearance; the worst: {worst.describe()}"
+        )
+    return program
+
+
+def replanned_program(
+    name: str,
+    elements: Sequence[Element],
+    built: Sequence[Element],
+    project: Project,
+    T_world_base: np.ndarray,
+    header: dict[str, object],
+    **options: Any,
+) -> tuple[Program, list[Contact]]:
+    """:func:`checked_program` without the error: the program and its remaining contacts."""
+    steps = work_package_motion(elements, project, T_world_base)
+    program = compile_program(name, steps, project, T_world_base, header, **options)
+    obstacles = environment(project, T_world_base, built, elements)
+    contacts = check_package(program, project, obstacles, elements)
+    if contacts:
+        index = {e.id: j for j, e in enumerate(elements)}
+        hit = {index[c.element] for c in contacts if c.element in index}
+        hit |= {j - 1 for j in hit if j > 0}
+        T_world_pick = T_world_base @ T_base_pick_tool(project)
+        heights = safe_heights(
+            obstacles, elements, T_world_pick, project.program.clearance, SAFE_WIDTH
+        )
+        safe = {elements[j].id: heights[elements[j].id] for j in hit if elements[j].id in heights}
+        steps = work_package_motion(elements, project, T_world_base, safe)
+        try:
+            again = compile_program(name, steps, project, T_world_base, header, **options)
+        except InfeasibleError:
+            return program, contacts  # the safe height is out of reach: report the collisions
+        program, contacts = again, check_package(again, project, obstacles, elements)
+    return program, contacts
 
 
 def write_programs(
@@ -351,8 +424,10 @@ def write_programs(
     by_id = {e.id: e for e in elements}
     programs: list[Program] = []
     files: dict[str, str] = {}
+    built = [e for e in elements if not e.robot_built]
     for wp in plan.work_packages:
         if not wp.elements or wp.index not in base_poses:
+            built += [by_id[e] for e in wp.elements]
             continue
         pose = base_poses[wp.index]
         if pose.integrity is None or pose.integrity.failed:
@@ -361,7 +436,8 @@ def write_programs(
                 f"work package {wp.index + 1} (station {wp.station.id}): no program from a "
                 f"base pose that failed its integrity tests: {why}"
             )
-        program = work_package_program(wp, by_id, project, pose)
+        program = work_package_program(wp, by_id, project, pose, built)
+        built += [by_id[e] for e in wp.elements]
         programs.append(program)
         files.update(writer.write(program))
     return programs, files

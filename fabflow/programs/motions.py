@@ -81,7 +81,27 @@ def T_base_pick_tool(project: Project) -> np.ndarray:
     return T_pick
 
 
-def element_motion(element: Element, project: Project, T_world_pick: np.ndarray) -> list[Step]:
+APPROACH_MARGIN = 0.005
+"""Added to a block's height and twice the clearance for its approach distance (metres)."""
+
+
+def block_approach(element: Element, project: Project) -> float:
+    """Approach and retract distance of a block (metres).
+
+    ``program.approach`` is a minimum: a held block arriving above its place must
+    clear the neighbours of its course, which stand as high as itself, so the
+    distance is at least the block's height plus twice ``program.clearance``
+    (the clearance kept, and the same again for the blending and the parking
+    error of the arrival) plus :data:`APPROACH_MARGIN`.
+    """
+    settings = project.program
+    height = 0.0 if element.extents is None else float(np.asarray(element.extents)[2])
+    return max(settings.approach, height + 2.0 * settings.clearance + APPROACH_MARGIN)
+
+
+def element_motion(
+    element: Element, project: Project, T_world_pick: np.ndarray, safe_z: float | None = None
+) -> list[Step]:
     """The motion steps that build one element.
 
     Parameters
@@ -93,11 +113,20 @@ def element_motion(element: Element, project: Project, T_world_pick: np.ndarray)
     T_world_pick
         Tool pose gripping a block in the platform magazine, in the world
         (``T_world_base @ T_base_pick_tool(project)`` with the localized base).
+    safe_z
+        For a block, a tool height (world z, metres) above the structure: the
+        block rises straight up to it from the magazine ("lift", linear), is
+        carried at it to above its place ("travel", PTP), goes straight down to
+        the place approach (linear) and, once placed, the tool rises to it again
+        ("depart", linear), so that the only joint-interpolated moves between the
+        magazine and the place run above what is built (the re-planning of a
+        collision).
     """
     settings = project.program
     approach, blend, speed = settings.approach, settings.blend, settings.speed
     eid = element.id
     if element.type == "block":
+        approach = block_approach(element, project)
         T_place = element_tool_frames(element)[0]
         T_pick = T_world_pick
         pick_up, place_up = approach_poses(np.stack([T_pick, T_place]), False, approach)
@@ -107,17 +136,31 @@ def element_motion(element: Element, project: Project, T_world_pick: np.ndarray)
             Action("gripper", True, GRIP_DWELL_S, eid),
             Waypoint("lin", pick_up, speed, blend, "pick retract", eid),
         ]
-        travel_z = max(pick_up[2, 3], place_up[2, 3])
+        replan = safe_z is not None
+        safe = max(pick_up[2, 3], place_up[2, 3], -np.inf if safe_z is None else safe_z)
+        if replan and safe > pick_up[2, 3] + 1e-3:
+            # straight up from the magazine, across at the safe height, straight down
+            lift = pick_up.copy()
+            lift[2, 3] = safe
+            steps.append(Waypoint("lin", lift, speed, blend, "lift", eid))
+        travel_z = safe
         if travel_z > place_up[2, 3] + 1e-3:
             travel = place_up.copy()
             travel[2, 3] = travel_z
-            steps.append(Waypoint("ptp", travel, PTP_SPEED, blend, "travel", eid, optional=True))
+            steps.append(
+                Waypoint("ptp", travel, PTP_SPEED, blend, "travel", eid, optional=not replan)
+            )
         steps += [
-            Waypoint("ptp", place_up, PTP_SPEED, blend, "place approach", eid),
+            Waypoint("lin" if replan and travel_z > place_up[2, 3] + 1e-3 else "ptp", place_up,
+                     speed if replan else PTP_SPEED, blend, "place approach", eid),
             Waypoint("lin", T_place, speed, 0.0, "place", eid),
             Action("gripper", False, GRIP_DWELL_S, eid),
             Waypoint("lin", place_up, speed, blend, "place retract", eid),
-        ]
+        ]  # fmt: skip
+        if replan and safe > place_up[2, 3] + 1e-3:
+            depart = place_up.copy()
+            depart[2, 3] = safe
+            steps.append(Waypoint("lin", depart, speed, blend, "depart", eid))
         return steps
     if element.type == "print_path":
         return _print_motion(element, approach, blend, speed)
@@ -179,11 +222,19 @@ def _print_motion(element: Element, approach: float, blend: float, speed: float)
 
 
 def work_package_motion(
-    elements: Sequence[Element], project: Project, T_world_base: np.ndarray
+    elements: Sequence[Element],
+    project: Project,
+    T_world_base: np.ndarray,
+    safe_z: dict[str, float] | None = None,
 ) -> list[Step]:
-    """The motion steps of a whole work package, elements in the given order."""
+    """The motion steps of a whole work package, elements in the given order.
+
+    ``safe_z`` gives the elements re-planned over the structure their safe tool
+    height (see :func:`element_motion`).
+    """
     T_world_pick = np.asarray(T_world_base, dtype=float) @ T_base_pick_tool(project)
+    safe_z = safe_z or {}
     steps: list[Step] = []
     for element in elements:
-        steps += element_motion(element, project, T_world_pick)
+        steps += element_motion(element, project, T_world_pick, safe_z.get(element.id))
     return steps

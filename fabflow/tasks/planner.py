@@ -31,6 +31,8 @@ from scipy import sparse
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError, InputError, UnsupportedError
 from fabflow.project import Project
+from fabflow.robots.catalog import get_robot
+from fabflow.robots.geometry import shoulder_radius
 from fabflow.robots.reach_model import ReachModel, reach_model
 from fabflow.tasks.cover import CoverResult, select_stations
 from fabflow.tasks.order import (
@@ -149,6 +151,7 @@ def plan_project(
         reach.r_max,
         planning.candidate_spacing,
         planning.headings_deg,
+        shoulder_radius(get_robot(project.robot.model)) + project.program.clearance,
     )
     t_cand = time.perf_counter()
     A, coverage_notes = reach_matrix(

@@ -222,6 +222,7 @@ def generate_candidates(
     r_max: float,
     spacing: float,
     headings_deg: Sequence[float],
+    arm_radius: float = 0.0,
 ) -> Candidates:
     """Collision-free candidate platform poses near the elements.
 
@@ -242,6 +243,11 @@ def generate_candidates(
         Grid spacing (metres).
     headings_deg
         Platform headings to try at every grid point (degrees).
+    arm_radius
+        Plan radius about the arm's axis 1 that its shoulder sweeps, clearance
+        included (metres; :func:`fabflow.robots.geometry.shoulder_radius`): the disc
+        joins the footprint, so no pre-built element stands in it and robot-built
+        ones in it are built after the platform has left.
     """
     lo = np.asarray(site.extent_min, dtype=float)
     hi = np.asarray(site.extent_max, dtype=float)
@@ -270,6 +276,8 @@ def generate_candidates(
     margin = float(platform.safety_margin)
     fp_corners = footprint_corners(xy, heading, platform.footprint, margin)
     fp = shapely.polygons(fp_corners)
+    if arm_radius > 0:
+        fp = shapely.union(fp, shapely.buffer(shapely.points(base_xy), arm_radius, quad_segs=8))
     inside = np.all((fp_corners >= lo) & (fp_corners <= hi), axis=(1, 2))
 
     bad = ~inside

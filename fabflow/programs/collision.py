@@ -1,0 +1,488 @@
+"""Collision check of a robot program: the arm, tool and held block along every motion.
+
+The arm's links are capsules (:mod:`fabflow.robots.geometry`), the tool a capsule
+from the flange to the TCP, a block the gripper holds its design box (from the
+grip to the release), and the obstacles are the boxes of
+:mod:`fabflow.programs.collision_model`: the structure as built at that moment,
+the platform, the magazine and the site obstacles. A sample is a contact when a
+body comes closer than the clearance to an obstacle present at that moment.
+
+Sampling: a LIN move is checked at its inverse kinematics samples
+(``Move.via_q``, one controller step apart, 2 cm / 0.015 rad). A PTP move is
+interpolated in joint space from the previous target, coarse to fine: first
+every :data:`COARSE_TRAVEL` of body travel (to first order: the joint steps times
+the lever arm of the farthest body point about each joint, at either end of the
+move) with every body grown by that travel, which covers the motion between the
+samples; where a grown body comes near an obstacle, that stretch is sampled again
+every :data:`SAMPLE_TRAVEL` (and at most :data:`MAX_JOINT_STEP` of any joint)
+and checked at the clearance.
+
+By design some bodies touch; these pairs are not contacts:
+
+* the base link and the platform it stands on;
+* the tool and the element its move belongs to (the gripper sits on the block it
+  grips and releases, the place retract lifts off the block just placed);
+* the held block on its *seat moves*, the linear move right after the grip (out
+  of the magazine) and the one right before the release (down into its place
+  between its neighbours): there it may touch but not penetrate deeper than
+  :data:`SEAT_TOLERANCE`.
+
+Broad phase in numpy (:mod:`fabflow.programs.collision_phases`: boxes of the
+bodies swept over chunks of samples against the obstacles' boxes through a plan
+grid, then per sample, then in the obstacle's own axes), narrow phase with
+python-fcl's signed distance between the capsule (or the held box) and the box.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from fabflow.design.elements import Element
+from fabflow.programs.collision_model import Obstacles, held_box
+from fabflow.programs.collision_phases import (
+    Narrow,
+    aabb_pairs,
+    box_aabb,
+    capsule_frames,
+    ranges,
+)
+from fabflow.programs.ir import Move, Program, SetOutput
+from fabflow.project import Project
+from fabflow.robots.catalog import get_robot
+from fabflow.robots.chain import RobotModel
+from fabflow.robots.geometry import link_capsules, link_segments
+
+COARSE_TRAVEL = 0.1
+"""Body travel between the coarse samples of a PTP move (metres)."""
+COARSE_JOINT_STEP = np.radians(10.0)
+"""Largest joint step between coarse samples of a PTP move (radians)."""
+SAMPLE_TRAVEL = 0.02
+"""Body travel between the fine samples of a PTP move near an obstacle (metres)."""
+MAX_JOINT_STEP = np.radians(1.0)
+"""Largest joint step between fine samples of a PTP move (radians)."""
+SEAT_TOLERANCE = 0.001
+"""Penetration allowed for the held block on its seat moves (metres)."""
+CHUNK = 16
+"""Samples swept together in the first broad-phase level."""
+GRID_CELL = 0.5
+"""Plan grid cell of the broad phase (metres)."""
+FIRST_SAMPLES = 4
+"""Samples per move, body and obstacle whose distance fcl computes first (those with
+the smallest lower bound); a contact's reported distance is the smallest of them."""
+
+_CORNERS = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+
+
+@dataclass(frozen=True)
+class Contact:
+    """A body closer to an obstacle than the clearance during one move.
+
+    Attributes
+    ----------
+    move
+        Index of the move in ``Program.moves``.
+    element
+        The move's element.
+    label
+        The move's label (``"travel"``, ``"place approach"``, ...).
+    link
+        The body: a link name, ``"tool"`` or ``"held <element>"``.
+    obstacle
+        What it comes close to (an element id, ``"platform"``, ``"magazine"``, a
+        site obstacle's name).
+    distance
+        Smallest signed distance over the move's samples (metres; negative:
+        penetration).
+    """
+
+    move: int
+    element: str | None
+    label: str
+    link: str
+    obstacle: str
+    distance: float
+
+    def describe(self) -> str:
+        """One line for an error message or a report."""
+        what = "penetrates" if self.distance < 0 else "comes within"
+        return (
+            f"element {self.element}, move '{self.label}': the {self.link} {what} "
+            f"{abs(self.distance) * 1000:.1f} mm of {self.obstacle}"
+        )
+
+
+@dataclass(frozen=True)
+class _Motion:
+    """A program's moves for the check: what holds per move, and the samples.
+
+    ``fixed_*`` are samples checked as they are (linear-move samples, the first
+    target); ``ptp_*`` describe each PTP move for the coarse-to-fine sampling.
+    """
+
+    moves: list[Move]
+    stage: np.ndarray  # (M,) obstacles with since < stage are present
+    held: list[str | None]  # (M,) block held during each move
+    seat: np.ndarray  # (M,) the held block's seat move
+    fixed_q: np.ndarray  # (F, dof)
+    fixed_move: np.ndarray  # (F,)
+    ptp_move: np.ndarray  # (P,)
+    ptp_q0: np.ndarray  # (P, dof)
+    ptp_q1: np.ndarray  # (P, dof)
+    ptp_travel: np.ndarray  # (P,) first-order body travel bound (metres)
+    ptp_step: np.ndarray  # (P,) largest joint change (radians)
+
+
+def _lever_arms(
+    robot: RobotModel, q: np.ndarray, T_flange_tool: np.ndarray, reach_beyond: float
+) -> np.ndarray:
+    """(M, dof) distance of the farthest body point from each joint axis at each target (m).
+
+    The points are the frame origins and the TCP; ``reach_beyond`` (metres) covers
+    the capsule radii and a held block around them.
+    """
+    F = robot.frames(q)
+    tcp = F[:, -1, :3, :3] @ T_flange_tool[:3, 3] + F[:, -1, :3, 3]
+    points = np.concatenate([F[:, :, :3, 3], tcp[:, None]], axis=1)  # (M, P, 3)
+    origin = F[:, : robot.dof, None, :3, 3]  # joint j turns about z of frame j
+    axis = F[:, : robot.dof, None, :3, 2]
+    rel = points[:, None] - origin
+    along = np.sum(rel * axis, axis=-1, keepdims=True)
+    return np.linalg.norm(rel - along * axis, axis=-1).max(axis=-1) + reach_beyond
+
+
+def program_motion(program: Program, robot: RobotModel, reach_beyond: float) -> _Motion:
+    """The moves of a program, with stage, held block and seat flag per move.
+
+    ``reach_beyond`` bounds how far a body reaches past the frame origins and the
+    TCP (metres), for the lever arms of :func:`_lever_arms`.
+    """
+    moves: list[Move] = []
+    grip_at: dict[int, str | None] = {}
+    last_move: dict[str, int] = {}
+    released: dict[str | None, int] = {}
+    for ins in program.instructions:
+        if isinstance(ins, Move):
+            moves.append(ins)
+            if ins.element is not None:
+                last_move[ins.element] = len(moves)
+        elif isinstance(ins, SetOutput) and ins.name == "gripper":
+            if ins.value:
+                grip_at[len(moves)] = ins.element
+            else:
+                released[ins.element] = len(moves)
+    # An element is complete from its release on, else after its last move.
+    complete = np.sort([released.get(e, last) for e, last in last_move.items()])
+    release = set(released.values())
+    targets = np.array([m.q for m in moves], dtype=float).reshape(len(moves), robot.dof)
+    T_flange_tool = np.asarray(program.T_flange_tool, dtype=float)
+    arms = _lever_arms(robot, targets, T_flange_tool, reach_beyond)
+    fixed: list[np.ndarray] = []
+    fixed_move: list[int] = []
+    ptp: list[int] = []
+    held_of: list[str | None] = []
+    seat: list[bool] = []
+    held: str | None = None
+    for i, move in enumerate(moves):
+        held = grip_at.get(i, held)
+        if i in release:
+            held = None
+        if move.kind == "lin" and move.via_q is not None:
+            fixed.append(np.vstack([move.via_q, targets[i][None]]))
+            fixed_move += [i] * (len(move.via_q) + 1)
+        elif i > 0 and move.kind == "ptp":
+            ptp.append(i)
+        else:
+            fixed.append(targets[i][None])
+            fixed_move.append(i)
+        held_of.append(held)
+        seat.append(held is not None and move.kind == "lin" and (i in grip_at or i + 1 in release))
+    p = np.array(ptp, dtype=np.intp)
+    dq = np.abs(targets[p] - targets[p - 1])
+    lever = np.maximum(arms[p - 1], arms[p])
+    return _Motion(
+        moves=moves,
+        stage=np.searchsorted(complete, np.arange(len(moves)), side="right"),
+        held=held_of,
+        seat=np.array(seat, dtype=bool),
+        fixed_q=np.vstack(fixed) if fixed else np.zeros((0, robot.dof)),
+        fixed_move=np.array(fixed_move, dtype=np.intp),
+        ptp_move=p,
+        ptp_q0=targets[p - 1],
+        ptp_q1=targets[p],
+        ptp_travel=np.sum(dq * lever, axis=1),
+        ptp_step=dq.max(axis=1, initial=0.0),
+    )
+
+
+def _counts(travel: np.ndarray, step: np.ndarray, max_travel: float, max_step: float) -> np.ndarray:
+    return np.maximum(1, np.ceil(np.maximum(travel / max_travel, step / max_step))).astype(np.intp)
+
+
+@dataclass(frozen=True)
+class _Near:
+    """Sample, body and obstacle triples closer than their limit by the lower bound."""
+
+    rows: np.ndarray
+    body: np.ndarray
+    obstacle: np.ndarray
+    bound: np.ndarray
+
+
+class _Bodies:
+    """The bodies of a program at a set of samples: capsules and the held block."""
+
+    def __init__(
+        self,
+        robot: RobotModel,
+        motion: _Motion,
+        q: np.ndarray,
+        move: np.ndarray,
+        T_flange_tool: np.ndarray,
+        held_boxes: Mapping[str, tuple[np.ndarray, np.ndarray]],
+    ):
+        self.move = move
+        self.seg, self.radii, self.names = link_segments(robot, q, T_flange_tool)
+        n = len(q)
+        self.T_held = np.zeros((n, 4, 4))
+        self.ext_held = np.zeros((n, 3))
+        held_move = np.array([h is not None and h in held_boxes for h in motion.held], dtype=bool)
+        self.held_rows = np.flatnonzero(held_move[move]) if n else np.zeros(0, dtype=np.intp)
+        if len(self.held_rows):
+            boxes = [held_boxes[motion.held[m]] for m in move[self.held_rows]]  # type: ignore[index]
+            T_tool_box = np.stack([b[0] for b in boxes])
+            self.ext_held[self.held_rows] = np.stack([b[1] for b in boxes])
+            T = robot.fk(q[self.held_rows]) @ T_flange_tool @ T_tool_box
+            self.T_held[self.held_rows] = T
+
+    def near(self, motion: _Motion, obs: Obstacles, grow: np.ndarray, limit: np.ndarray) -> _Near:
+        """Triples whose distance lower bound is below ``limit[row]``; bodies grown by
+        ``grow[row]`` (metres) in the broad phase."""
+        seg, radii = self.seg, self.radii
+        n_samples, n_links = seg.shape[:2]
+        pad = radii[None, :, None] + grow[:, None, None]
+        lo = np.concatenate([seg.min(axis=2) - pad, np.full((n_samples, 1, 3), np.inf)], axis=1)
+        hi = np.concatenate([seg.max(axis=2) + pad, np.full((n_samples, 1, 3), -np.inf)], axis=1)
+        rows = self.held_rows
+        if len(rows):
+            lo[rows, -1], hi[rows, -1] = box_aabb(self.T_held[rows], self.ext_held[rows])
+            lo[rows, -1] -= grow[rows, None]
+            hi[rows, -1] += grow[rows, None]
+        n_bodies = n_links + 1
+        # Level 1: bodies swept over chunks of samples against the obstacles.
+        starts = np.arange(0, n_samples, CHUNK)
+        c_lo = np.minimum.reduceat(lo, starts, axis=0).reshape(-1, 3)
+        c_hi = np.maximum.reduceat(hi, starts, axis=0).reshape(-1, 3)
+        o_lo, o_hi = box_aabb(obs.T, obs.extents)
+        pair, k = aabb_pairs(c_lo, c_hi, o_lo, o_hi, GRID_CELL)
+        chunk, b = np.divmod(pair, n_bodies)
+        # Level 2: every sample of those chunks, with the obstacles present at its
+        # move, without the pairs that touch by design.
+        counts = np.minimum(CHUNK, n_samples - starts[chunk])
+        rows = np.repeat(starts[chunk], counts) + ranges(counts)
+        b, k = np.repeat(b, counts), np.repeat(k, counts)
+        mv = self.move[rows]
+        keep = np.all((lo[rows, b] <= o_hi[k]) & (hi[rows, b] >= o_lo[k]), axis=-1)
+        keep &= obs.since[k] < motion.stage[mv]
+        if "base" in self.names:
+            keep &= ~((b == self.names.index("base")) & (obs.kinds[k] == "platform"))
+        if "tool" in self.names:
+            element = np.array([m.element or "" for m in motion.moves], dtype=object)
+            own = (obs.element[k] == element[mv]) & (element[mv] != "")
+            keep &= ~((b == self.names.index("tool")) & own)
+        rows, b, k = rows[keep], b[keep], k[keep]
+        # Level 3: a lower bound of the distance in the obstacle's own frame.
+        R, t, half = obs.T[k, :3, :3], obs.T[k, :3, 3], 0.5 * obs.extents[k]
+        capsule = b < n_links
+        pts = np.empty((len(rows), 8, 3))
+        pts[capsule, :2] = seg[rows[capsule], b[capsule]]
+        pts[capsule, 2:] = pts[capsule, 1:2]
+        Th = self.T_held[rows[~capsule]]
+        corners = _CORNERS * self.ext_held[rows[~capsule], None]
+        pts[~capsule] = (Th[:, None, :3, :3] @ corners[..., None])[..., 0] + Th[:, None, :3, 3]
+        local = np.einsum("nji,nkj->nki", R, pts - t[:, None])
+        gap = np.maximum(np.maximum(local.min(axis=1) - half, -half - local.max(axis=1)), 0.0)
+        radius = np.where(capsule, radii[np.minimum(b, n_links - 1)], 0.0)
+        bound = np.linalg.norm(gap, axis=1) - radius
+        close = bound < limit[rows]
+        return _Near(rows[close], b[close], k[close], bound[close])
+
+    def distances(
+        self, near: _Near, narrow: Narrow, limit: np.ndarray
+    ) -> dict[tuple[int, int, int], float]:
+        """Smallest signed distance per (move, body, obstacle) below ``limit[row]``.
+
+        fcl computes first the :data:`FIRST_SAMPLES` samples with the smallest
+        lower bound of every triple, then the rest of the triples without a contact.
+        """
+        if not len(near.rows):
+            return {}
+        n_links = self.seg.shape[1]
+        mv = self.move[near.rows]
+        triple = (mv * (n_links + 1) + near.body) * (near.obstacle.max() + 1) + near.obstacle
+        order = np.lexsort((near.bound, triple))
+        rows, b, k, triple = near.rows[order], near.body[order], near.obstacle[order], triple[order]
+        mv = mv[order]
+        first = np.r_[True, triple[1:] != triple[:-1]]
+        index = np.arange(len(triple))
+        rank = index - np.maximum.accumulate(np.where(first, index, 0))
+        capsule = b < n_links
+        R = np.zeros((len(rows), 3, 3))
+        t = np.zeros((len(rows), 3))
+        R[capsule], t[capsule] = capsule_frames(
+            self.seg[rows[capsule], b[capsule], 0], self.seg[rows[capsule], b[capsule], 1]
+        )
+        R[~capsule] = self.T_held[rows[~capsule], :3, :3]
+        t[~capsule] = self.T_held[rows[~capsule], :3, 3]
+        found: dict[int, float] = {}
+        for i in [*np.flatnonzero(rank < FIRST_SAMPLES), *np.flatnonzero(rank >= FIRST_SAMPLES)]:
+            key = int(triple[i])
+            if rank[i] >= FIRST_SAMPLES and key in found:
+                continue
+            extents = None if capsule[i] else self.ext_held[rows[i]]
+            d = narrow.distance(int(k[i]), int(b[i]), R[i], t[i], extents)
+            if d < limit[rows[i]]:
+                found[key] = min(d, found.get(key, np.inf))
+        out = {}
+        for i in np.flatnonzero(first):
+            if int(triple[i]) in found:
+                out[(int(mv[i]), int(b[i]), int(k[i]))] = found[int(triple[i])]
+        return out
+
+
+def check_program(
+    program: Program,
+    robot: RobotModel,
+    obstacles: Obstacles,
+    held_boxes: Mapping[str, tuple[np.ndarray, np.ndarray]],
+    clearance: float,
+) -> list[Contact]:
+    """Every body that comes closer than ``clearance`` to an obstacle, per move.
+
+    Parameters
+    ----------
+    program
+        The program (joint values of every target and linear-move sample).
+    robot
+        Its robot model.
+    obstacles
+        The obstacles in the world frame (:func:`fabflow.programs.collision_model.environment`).
+    held_boxes
+        Per block id, its box in the tool frame while held: ``(T_tool_box, extents)``.
+    clearance
+        Smallest allowed distance (metres).
+
+    Returns
+    -------
+    list[Contact]
+        One per move, body and obstacle: the smallest distance over the move's
+        samples; empty when the program keeps its clearance everywhere.
+    """
+    if not len(obstacles) or not program.moves:
+        return []
+    T_flange_tool = np.asarray(program.T_flange_tool, dtype=float)
+    obs = obstacles.moved(np.asarray(program.T_base_world, dtype=float))
+    beyond = max(float(c.radius) for c in link_capsules(robot))
+    beyond = max([beyond, *(float(np.linalg.norm(e)) for _, e in held_boxes.values())])
+    motion = program_motion(program, robot, beyond)
+    narrow: Narrow | None = None
+
+    def limits(bodies: _Bodies) -> np.ndarray:
+        seat = motion.seat[bodies.move]
+        return np.where(seat, -SEAT_TOLERANCE, clearance)
+
+    # Coarse PTP samples, every body grown by the travel to its neighbours.
+    n_coarse = _counts(motion.ptp_travel, motion.ptp_step, COARSE_TRAVEL, COARSE_JOINT_STEP)
+    which = np.repeat(np.arange(len(n_coarse)), n_coarse)
+    j = ranges(n_coarse) + 1
+    frac = j / n_coarse[which]
+    q0, q1 = motion.ptp_q0[which], motion.ptp_q1[which]
+    travel = (motion.ptp_travel / n_coarse)[which]
+    q = np.vstack([motion.fixed_q, q0 + frac[:, None] * (q1 - q0)])
+    move = np.r_[motion.fixed_move, motion.ptp_move[which]].astype(np.intp)
+    order = np.argsort(move, kind="stable")
+    q, move = q[order], move[order]
+    grow = np.r_[np.zeros(len(motion.fixed_q)), travel][order]
+    coarse = np.r_[np.zeros(len(motion.fixed_q), dtype=bool), np.ones(len(which), dtype=bool)]
+    coarse = coarse[order]
+    sample_ptp = np.r_[np.full(len(motion.fixed_q), -1), which][order]
+    sample_j = np.r_[np.zeros(len(motion.fixed_q), dtype=np.intp), j][order]
+    bodies = _Bodies(robot, motion, q, move, T_flange_tool, held_boxes)
+    limit = limits(bodies) + grow
+    near = bodies.near(motion, obs, clearance + grow, limit)
+    # Every sample at the clearance itself: linear-move samples are final; a coarse
+    # sample whose own distance is already below the clearance settles its move
+    # (it collides; its other near samples are not refined); the coarse samples
+    # that came near in the other moves are refined.
+    found: dict[tuple[int, int, int], float] = {}
+    limit = limits(bodies)
+    at_sample = near.bound < limit[near.rows]
+    if at_sample.any():
+        narrow = Narrow(obs, _lengths(bodies), bodies.radii, clearance + SEAT_TOLERANCE)
+        sub = _Near(*(getattr(near, f)[at_sample] for f in ("rows", "body", "obstacle", "bound")))
+        found.update(bodies.distances(sub, narrow, limit))
+    refine = coarse[near.rows]
+    settled = np.isin(move[near.rows[refine]], [m for m, _, _ in found])
+    rows = near.rows[refine][~settled]
+    flagged = np.unique(np.c_[sample_ptp[rows], sample_j[rows]], axis=0).reshape(-1, 2)
+    if len(flagged):
+        p, jf = flagged[:, 0], flagged[:, 1]
+        nc = n_coarse[p]
+        lo, hi = np.maximum(jf - 1, 0) / nc, np.minimum(jf + 1, nc) / nc
+        n_fine = _counts(
+            motion.ptp_travel[p] * (hi - lo), motion.ptp_step[p] * (hi - lo),
+            SAMPLE_TRAVEL, MAX_JOINT_STEP,
+        )  # fmt: skip
+        owner = np.repeat(np.arange(len(p)), n_fine)
+        frac = lo[owner] + (ranges(n_fine) + 1) / n_fine[owner] * (hi - lo)[owner]
+        q0, q1 = motion.ptp_q0[p[owner]], motion.ptp_q1[p[owner]]
+        move = motion.ptp_move[p[owner]]
+        order = np.argsort(move, kind="stable")
+        q = (q0 + frac[:, None] * (q1 - q0))[order]
+        fine = _Bodies(robot, motion, q, move[order], T_flange_tool, held_boxes)
+        limit = limits(fine)
+        near = fine.near(motion, obs, np.full(len(q), clearance), limit)
+        if len(near.rows):
+            narrow = narrow or Narrow(obs, _lengths(fine), fine.radii, clearance + SEAT_TOLERANCE)
+            for key, d in fine.distances(near, narrow, limit).items():
+                found[key] = min(d, found.get(key, np.inf))
+    names = [*bodies.names, "held"]
+    out = []
+    for (mv, body, k), d in sorted(found.items()):
+        link = f"held {motion.held[mv]}" if body == len(names) - 1 else names[body]
+        m = motion.moves[mv]
+        out.append(Contact(mv, m.element, m.label, link, str(obs.names[k]), d))
+    return out
+
+
+def _lengths(bodies: _Bodies) -> np.ndarray:
+    return np.linalg.norm(bodies.seg[0, :, 1] - bodies.seg[0, :, 0], axis=1)
+
+
+def check_package(
+    program: Program,
+    project: Project,
+    obstacles: Obstacles,
+    package: Sequence[Element],
+    clearance: float | None = None,
+) -> list[Contact]:
+    """:func:`check_program` of a work package's program.
+
+    Parameters
+    ----------
+    program
+        The work package's program.
+    project
+        ``program.clearance`` (the default clearance).
+    obstacles
+        Its obstacles (:func:`fabflow.programs.collision_model.environment`).
+    package
+        The program's elements in build order (the blocks it holds).
+    clearance
+        Overrides ``project.program.clearance`` (metres).
+    """
+    held = {e.id: box for e in package if (box := held_box(e)) is not None}
+    limit = project.program.clearance if clearance is None else clearance
+    return check_program(program, get_robot(program.robot), obstacles, held, limit)

@@ -1,0 +1,156 @@
+"""Collision check of programs: broad phase, the check, re-planning, the independent replay."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from collision_replay import opw_fk, replay
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from program_cases import PROJECT, make_pose
+
+from fabflow.design.elements import Element
+from fabflow.errors import InfeasibleError
+from fabflow.programs.collision import check_package
+from fabflow.programs.collision_model import environment, print_path_boxes
+from fabflow.programs.collision_phases import aabb_pairs
+from fabflow.programs.compile import checked_program, compile_program, replanned_program
+from fabflow.programs.motions import block_approach, work_package_motion
+from fabflow.programs.writers.json_stream import write_json_stream
+from fabflow.project import load_project
+from fabflow.robots.catalog import get_robot
+
+SIZE = np.array([0.6, 0.105, 0.105])
+T_WORLD_BASE = make_pose([2.0, 1.0, 0.6])
+
+
+def _wall(height: float) -> list[Element]:
+    """A pre-built wall across the way from the magazine to the places, ``height`` m high."""
+    courses = round(height / 0.105)
+    return [
+        Element(
+            f"W{i}{j}",
+            "block",
+            make_pose([2.9, 0.7 + 0.6 * j, 0.0525 + 0.105 * i]),
+            extents=SIZE,
+            robot_built=False,
+        )
+        for i in range(courses)
+        for j in range(2)
+    ]
+
+
+def _package() -> list[Element]:
+    return [
+        Element("B1", "block", make_pose([3.3, 1.0, 0.0525]), extents=SIZE),
+        Element("B2", "block", make_pose([3.3, 1.0, 0.1575]), extents=SIZE),
+    ]
+
+
+@pytest.fixture(scope="module")
+def project():
+    return load_project(PROJECT)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_grid_pairs_are_the_brute_force_pairs(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    a_lo = rng.uniform(-3, 3, (40, 3))
+    a_hi = a_lo + rng.uniform(0, 1.5, (40, 3))
+    b_lo = rng.uniform(-3, 3, (60, 3))
+    b_hi = b_lo + rng.uniform(0, 2.5, (60, 3))
+    a_lo[3] = np.inf  # an empty box (no held block) pairs with nothing
+    a_hi[3] = -np.inf
+    ia, ib = aabb_pairs(a_lo, a_hi, b_lo, b_hi, 0.5)
+    brute = np.all((a_lo[:, None] <= b_hi[None]) & (a_hi[:, None] >= b_lo[None]), axis=-1)
+    assert sorted(zip(ia.tolist(), ib.tolist(), strict=True)) == sorted(
+        zip(*np.nonzero(brute), strict=True)
+    )
+
+
+@pytest.mark.parametrize("robot", ["kuka_kr60_3", "abb_irb4600_60_205"])
+def test_replay_kinematics_is_the_robot_model(robot: str) -> None:
+    model = get_robot(robot)
+    rng = np.random.default_rng(4)
+    q = rng.uniform(model.joint_limits[:, 0], model.joint_limits[:, 1], (50, 6))
+    points, T = opw_fk(robot, q)
+    np.testing.assert_allclose(T, model.fk(q), atol=1e-9)
+    np.testing.assert_allclose(points["wrist"], model.frames(q)[:, 4, :3, 3], atol=1e-9)
+
+
+def test_block_approach_clears_the_neighbours(project) -> None:
+    block = _package()[0]
+    assert block_approach(block, project) >= 0.105 + 2 * project.program.clearance
+
+
+def test_print_boxes_cover_the_path() -> None:
+    t = np.linspace(0, np.pi, 200)
+    path = np.c_[np.cos(t), np.sin(t), np.zeros_like(t)]
+    element = Element(
+        "P",
+        "print_path",
+        np.eye(4),
+        polyline=path,
+        attributes={"bead_width": 0.04, "layer_height": 0.02},
+    )
+    T, ext = print_path_boxes(element)
+    local = np.einsum("kji,knj->kni", T[:, :3, :3], path[None] - T[:, None, :3, 3])
+    inside = np.all(np.abs(local[..., :2]) <= 0.5 * ext[:, None, :2] + 1e-9, axis=-1).any(axis=0)
+    assert inside.all()
+    assert np.allclose(T[:, 2, 3], -0.01)
+
+
+def test_a_wall_in_the_way_is_found_and_the_replay_agrees(project) -> None:
+    wall, package = _wall(1.0), _package()
+    steps = work_package_motion(package, project, T_WORLD_BASE)
+    program = compile_program("t", steps, project, T_WORLD_BASE, {})
+    contacts = check_package(
+        program, project, environment(project, T_WORLD_BASE, wall, package), package
+    )
+    assert contacts and {c.element for c in contacts} <= {"B1", "B2"}
+    assert any(c.obstacle.startswith("W") and c.distance < 0 for c in contacts)
+    stream = next(iter(write_json_stream(program).values()))
+    found = replay(stream, [*wall, *package], [w.id for w in wall])
+    assert found
+    assert {(c[0], c[1]) for c in found} <= {(c.element, c.label) for c in contacts} | {
+        (c[0], c[1]) for c in found if c[4] > -0.005
+    }
+
+
+@pytest.mark.parametrize("height", [0.0, 0.6, 1.0])
+def test_replanned_programs_replay_without_contacts(project, height: float) -> None:
+    wall, package = _wall(height), _package()
+    program = checked_program("t", package, wall, project, T_WORLD_BASE, {})
+    if height >= 0.6:
+        assert "depart" in [m.label for m in program.moves]
+    stream = next(iter(write_json_stream(program).values()))
+    assert replay(stream, [*wall, *package], [w.id for w in wall]) == []
+
+
+def test_an_unavoidable_collision_names_element_move_and_body(project) -> None:
+    package = _package()[:1]
+    roof = [
+        Element(
+            "R1",
+            "block",
+            make_pose([3.3, 1.0, 0.2]),
+            extents=np.array([0.6, 0.4, 0.05]),
+            robot_built=False,
+        )
+    ]
+    _, contacts = replanned_program("t", package, roof, project, T_WORLD_BASE, {})
+    assert contacts
+    with pytest.raises(InfeasibleError, match=r"element B1, move '.*': the .* R1"):
+        checked_program("t", package, roof, project, T_WORLD_BASE, {})
+
+
+def test_a_clear_program_has_no_contacts_and_the_platform_is_no_obstacle_to_the_base(
+    project,
+) -> None:
+    package = _package()
+    steps = work_package_motion(package, project, T_WORLD_BASE)
+    program = compile_program("t", steps, project, T_WORLD_BASE, {})
+    env = environment(project, T_WORLD_BASE, [], package)
+    assert "platform" in set(env.kinds)
+    assert check_package(program, project, env, package) == []
