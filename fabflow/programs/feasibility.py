@@ -310,7 +310,10 @@ def solve_moves(
             chosen = flipping
         q_i, current, chain = chosen
         if chain:  # the configuration the chain ends in, which the next one keeps
-            current = int(configuration_of(robot, chain[-1][0][-1:])[0])
+            end_row = stops[end - 1] - 1
+            same = (np.abs(_wrap(q_all[end_row] - chain[-1][0][-1])) < 1e-6).all(axis=1)
+            if same.any():
+                current = int(np.argmax(same))
         q_out[i] = q_prev = q_i
         for k, (path, slow, samples) in zip(range(i + 1, end), chain, strict=True):
             q_out[k] = q_prev = path[-1]
