@@ -12,10 +12,11 @@ computed here with numpy. PTP moves are interpolated in joint space every
 setpoints (one controller step apart).
 
 Rules, as in docs/robots.md: the tool may touch the element its motion belongs
-to; a held block may touch (not penetrate by more than 1 mm) on the linear move
-out of the magazine and the one into its place; an element counts as built from
-its release (a block) or from the first setpoint of another element (a print
-path, a task point).
+to (for a piece of a split print layer, any piece of that layer: they meet at
+the seams, where the nozzle joins new bead to old); a held block may touch (not
+penetrate by more than 1 mm) on the linear move out of the magazine and the one
+into its place; an element counts as built from its release (a block) or from
+the first setpoint of another element (a print path, a task point).
 """
 
 from __future__ import annotations
@@ -282,7 +283,12 @@ def _contacts(robot, qs, T_world_base, T_flange_tool, boxes, element, held, seat
     if not len(i):
         return {}
     d = point_box_distance(P[i], boxes.T[j], boxes.extents[j]) - R[i]
-    own = (B[i] == names.index("tool")) & (boxes.owner[j] == element)
+
+    def layer(e: str) -> str:
+        return str(by_id[e].attributes.get("parent", e)) if e in by_id else e
+
+    owner_layer = np.array([layer(o) for o in boxes.owner], dtype=object)
+    own = (B[i] == names.index("tool")) & (owner_layer[j] == layer(element))
     hit = (d < np.asarray(limit)[B[i]]) & ~own
     out: dict[tuple[str, str], float] = {}
     for b, o, dist in zip(B[i][hit], boxes.owner[j][hit], d[hit], strict=True):

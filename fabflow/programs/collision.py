@@ -21,7 +21,8 @@ By design some bodies touch; these pairs are not contacts:
 
 * the base link and the platform it stands on;
 * the tool and the element its move belongs to (the gripper sits on the block it
-  grips and releases, the place retract lifts off the block just placed);
+  grips and releases, the place retract lifts off the block just placed; the
+  nozzle prints onto its layer, whose other pieces it meets at the seams);
 * the held block on its *seat moves*, the linear move right after the grip (out
   of the magazine) and the one right before the release (down into its place
   between its neighbours): there it may touch but not penetrate deeper than
@@ -41,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fabflow.design.elements import Element
-from fabflow.programs.collision_model import Obstacles, held_box
+from fabflow.programs.collision_model import Obstacles, held_box, part_of
 from fabflow.programs.collision_phases import (
     Narrow,
     aabb_pairs,
@@ -242,8 +243,10 @@ class _Bodies:
         move: np.ndarray,
         T_flange_tool: np.ndarray,
         held_boxes: Mapping[str, tuple[np.ndarray, np.ndarray]],
+        parts: Mapping[str, str],
     ):
         self.move = move
+        self.parts = parts
         self.seg, self.radii, self.names = link_segments(robot, q, T_flange_tool)
         n = len(q)
         self.T_held = np.zeros((n, 4, 4))
@@ -289,7 +292,9 @@ class _Bodies:
         if "base" in self.names:
             keep &= ~((b == self.names.index("base")) & (obs.kinds[k] == "platform"))
         if "tool" in self.names:
-            element = np.array([m.element or "" for m in motion.moves], dtype=object)
+            element = np.array(
+                [self.parts.get(m.element, m.element) or "" for m in motion.moves], dtype=object
+            )
             own = (obs.element[k] == element[mv]) & (element[mv] != "")
             keep &= ~((b == self.names.index("tool")) & own)
         rows, b, k = rows[keep], b[keep], k[keep]
@@ -358,6 +363,7 @@ def check_program(
     obstacles: Obstacles,
     held_boxes: Mapping[str, tuple[np.ndarray, np.ndarray]],
     clearance: float,
+    parts: Mapping[str, str] | None = None,
 ) -> list[Contact]:
     """Every body that comes closer than ``clearance`` to an obstacle, per move.
 
@@ -373,6 +379,10 @@ def check_program(
         Per block id, its box in the tool frame while held: ``(T_tool_box, extents)``.
     clearance
         Smallest allowed distance (metres).
+    parts
+        Element id to the part it belongs to
+        (:func:`fabflow.programs.collision_model.part_of`; default: itself), for
+        the tool's by-design contact with its own part.
 
     Returns
     -------
@@ -409,7 +419,7 @@ def check_program(
     coarse = coarse[order]
     sample_ptp = np.r_[np.full(len(motion.fixed_q), -1), which][order]
     sample_j = np.r_[np.zeros(len(motion.fixed_q), dtype=np.intp), j][order]
-    bodies = _Bodies(robot, motion, q, move, T_flange_tool, held_boxes)
+    bodies = _Bodies(robot, motion, q, move, T_flange_tool, held_boxes, parts or {})
     limit = limits(bodies) + grow
     near = bodies.near(motion, obs, clearance + grow, limit)
     # Every sample at the clearance itself: linear-move samples are final; a coarse
@@ -441,7 +451,7 @@ def check_program(
         move = motion.ptp_move[p[owner]]
         order = np.argsort(move, kind="stable")
         q = (q0 + frac[:, None] * (q1 - q0))[order]
-        fine = _Bodies(robot, motion, q, move[order], T_flange_tool, held_boxes)
+        fine = _Bodies(robot, motion, q, move[order], T_flange_tool, held_boxes, parts or {})
         limit = limits(fine)
         near = fine.near(motion, obs, np.full(len(q), clearance), limit)
         if len(near.rows):
@@ -485,4 +495,5 @@ def check_package(
     """
     held = {e.id: box for e in package if (box := held_box(e)) is not None}
     limit = project.program.clearance if clearance is None else clearance
-    return check_program(program, get_robot(program.robot), obstacles, held, limit)
+    parts = {e.id: part_of(e) for e in package}
+    return check_program(program, get_robot(program.robot), obstacles, held, limit, parts)

@@ -59,7 +59,8 @@ class Obstacles:
     kinds
         (K,) ``"structure"``, ``"platform"``, ``"magazine"`` or ``"site"``.
     element
-        (K,) id of the element a structure box belongs to, else ``""``.
+        (K,) the part a structure box belongs to (:func:`part_of`: the element's
+        id, or the layer a piece of a split print path was cut from), else ``""``.
     since
         (K,) stage after which the box is present (see the module docstring).
     """
@@ -165,6 +166,15 @@ def print_path_boxes(element: Element) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(element.T_world_element, dtype=float) @ T_local, extents
 
 
+def part_of(element: Element) -> str:
+    """The part an element belongs to: the print layer a piece was cut from, else itself.
+
+    Pieces of one print layer (:mod:`fabflow.tasks.split`) meet at their seams, where
+    the nozzle joins the new bead to the old one: for the tool they are one part.
+    """
+    return str(element.attributes.get("parent", element.id))
+
+
 def structure_boxes(elements: Sequence[Element], since: Sequence[int]) -> Obstacles:
     """The boxes of built elements (blocks and printed layers), each with its ``since``."""
     parts = []
@@ -175,7 +185,8 @@ def structure_boxes(elements: Sequence[Element], since: Sequence[int]) -> Obstac
             T, ext = print_path_boxes(e)
         else:
             continue
-        parts.append(_boxes(T, ext, [e.id] * len(T), "structure", [e.id] * len(T), [s] * len(T)))
+        part = part_of(e)
+        parts.append(_boxes(T, ext, [e.id] * len(T), "structure", [part] * len(T), [s] * len(T)))
     return Obstacles.join(parts)
 
 

@@ -293,7 +293,30 @@ def schedule(
                     indeg[w] -= 1
                     if indeg[w] == 0:
                         push(int(w))
-    return [Visit(station=s, elements=np.array(seq, dtype=np.intp)) for s, seq in stays]
+    return [
+        Visit(station=s, elements=_layer_major(np.array(seq, dtype=np.intp), layer, src, dst))
+        for s, seq in stays
+    ]
+
+
+def _layer_major(
+    seq: np.ndarray, layer: np.ndarray, src: np.ndarray, dst: np.ndarray
+) -> np.ndarray:
+    """``seq`` stably sorted by layer, when that keeps every support before what rests on it.
+
+    Planned visits at one station merge into one stay, each visit's elements
+    after the other's: a station printing two pieces of a wall would print one
+    to full height, then reach past it for the other's lower layers. Layer by
+    layer the arm stays above what is built. Supports within one layer keep the
+    order as it was.
+    """
+    order = seq[np.argsort(layer[seq], kind="stable")]
+    position = np.full(len(layer), -1, dtype=np.int64)
+    position[order] = np.arange(len(order))
+    inside = (position[src] >= 0) & (position[dst] >= 0)
+    if np.any(position[src[inside]] > position[dst[inside]]):
+        return seq
+    return order
 
 
 def _nearest_order(batch: np.ndarray, p: np.ndarray, start: np.ndarray) -> np.ndarray:
