@@ -25,15 +25,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
+from _exact import exact_plan  # noqa: E402
 from collision_replay import replay  # noqa: E402
 
 from fabflow.design.generate import generate_elements  # noqa: E402
-from fabflow.localize.plan import localize_plan  # noqa: E402
 from fabflow.programs.compile import program_name, replanned_program  # noqa: E402
 from fabflow.programs.writers.json_stream import write_json_stream  # noqa: E402
 from fabflow.project import load_project  # noqa: E402
-from fabflow.tasks.planner import make_plan  # noqa: E402
-from fabflow.tasks.split import with_pieces  # noqa: E402
 
 
 def main() -> None:
@@ -50,20 +48,15 @@ def main() -> None:
     )
     for name in names:
         project = load_project(ROOT / "projects" / name)
-        project = project.model_copy(
-            update={"simulation": project.simulation.model_copy(update={"sensor_noise": False})}
-        )
         elements = generate_elements(project.elements, project.path)
-        plan = make_plan(project, elements)
-        elements = with_pieces(elements, plan.split_elements)
+        project, elements, plan, located = exact_plan(project, elements)
         by_id = {e.id: e for e in elements}
-        located = localize_plan(project, plan, elements, np.random.default_rng(0))
         built = [e for e in elements if not e.robot_built]
         packages = [wp for wp in plan.work_packages if wp.elements and wp.index in located]
         totals = np.zeros(5)
         for wp in packages[: 2 if args.quick else None]:
             package = [by_id[e] for e in wp.elements]
-            T_world_base = np.asarray(located[wp.index][0].T_world_base, dtype=float)
+            T_world_base = np.asarray(located[wp.index].T_world_base, dtype=float)
             start = time.perf_counter()
             program, contacts = replanned_program(
                 program_name(wp), package, built, project, T_world_base, {}

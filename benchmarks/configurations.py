@@ -17,15 +17,13 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from _exact import exact_plan
 
 from fabflow.design.generate import generate_elements
-from fabflow.localize.plan import localize_plan
 from fabflow.programs.compile import write_programs
 from fabflow.programs.motion_checks import configuration_of
 from fabflow.project import load_project
 from fabflow.robots.catalog import get_robot
-from fabflow.tasks.planner import make_plan
-from fabflow.tasks.split import with_pieces
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -53,14 +51,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="the same (one project, fast)")
     args = parser.parse_args()
     project = load_project(ROOT / "projects" / args.project)
-    project = project.model_copy(
-        update={"simulation": project.simulation.model_copy(update={"sensor_noise": False})}
-    )
     elements = generate_elements(project.elements, project.path)
-    plan = make_plan(project, elements)
-    elements = with_pieces(elements, plan.split_elements)
-    located = localize_plan(project, plan, elements, np.random.default_rng(0))
-    poses = {i: pose for i, (pose, _) in located.items()}
+    project, elements, plan, poses = exact_plan(project, elements)
     programs, _ = write_programs(plan, elements, project, poses, fmt="json")
     robot = get_robot(project.robot.model)
     header = (

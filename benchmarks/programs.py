@@ -19,28 +19,16 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _exact import exact_plan
 
 from fabflow.design.generate import generate_elements
-from fabflow.localize.plan import localize_plan
 from fabflow.programs.collision import check_package
 from fabflow.programs.collision_model import environment
 from fabflow.programs.compile import write_programs
 from fabflow.project import load_project
-from fabflow.tasks.planner import make_plan
 from fabflow.tasks.synthetic import cabin_rows
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _case(project, elements):
-    # Localization is exact here (the parking error stays): this measures program
-    # writing, and the UWB anchors of the cabin do not cover ten cabins.
-    project = project.model_copy(
-        update={"simulation": project.simulation.model_copy(update={"sensor_noise": False})}
-    )
-    plan = make_plan(project, elements)
-    located = localize_plan(project, plan, elements, np.random.default_rng(0))
-    return plan, {i: pose for i, (pose, _) in located.items()}
 
 
 def main() -> None:
@@ -61,7 +49,7 @@ def main() -> None:
         f"{'median s':>9} {'cpu s':>7} {'per motion us':>14}"
     )
     for label, project, elements in cases:
-        plan, poses = _case(project, elements)
+        project, elements, plan, poses = exact_plan(project, elements)
         for fmt in ("krl", "json"):
             times, cpu = [], []
             for _ in range(repeats):

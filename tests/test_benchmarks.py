@@ -11,7 +11,8 @@ import sys
 import pytest
 from helpers import ROOT
 
-SCRIPTS = sorted((ROOT / "benchmarks").glob("*.py"))
+SCRIPTS = sorted(p for p in (ROOT / "benchmarks").glob("*.py") if not p.name.startswith("_"))
+"""Every benchmark script; ``_name.py`` modules are shared code the scripts import."""
 
 
 def test_every_area_has_a_benchmark() -> None:

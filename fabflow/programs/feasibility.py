@@ -16,7 +16,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from fabflow.errors import InfeasibleError
-from fabflow.programs.motion_checks import configuration_of, wrist_flips
+from fabflow.programs.motion_checks import configuration_of, wrap_angle, wrist_flips
 from fabflow.programs.motions import Waypoint
 from fabflow.programs.wrist_lin import (
     MAX_DEVIATION_DEG,
@@ -90,14 +90,21 @@ def sample_linear_moves(
     within = np.arange(stops[-1]) - np.repeat(stops - counts, counts) + 1
     frac = within / counts[owner]
     prev = np.maximum(owner - 1, 0)
-    R0 = T_world_tool[prev, :3, :3]
-    w = log_so3(R0.transpose(0, 2, 1) @ T_world_tool[owner, :3, :3])
-    out = np.repeat(np.eye(4)[None], len(owner), axis=0)
-    out[:, :3, :3] = R0 @ exp_so3(frac[:, None] * w)
-    p0, p1 = T_world_tool[prev, :3, 3], T_world_tool[owner, :3, 3]
-    out[:, :3, 3] = p0 + frac[:, None] * (p1 - p0)
+    out = _along_line(T_world_tool[prev], T_world_tool[owner], frac)
     out[stops - 1] = T_world_tool  # targets exactly as given, not re-interpolated
     return out, stops
+
+
+def _along_line(T_from: np.ndarray, T_to: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """(m, 4, 4) poses at fractions ``frac`` (m,) of the way from ``T_from`` to ``T_to``
+    ((m, 4, 4) each): positions on the line, rotations on the geodesic."""
+    R0 = T_from[:, :3, :3]
+    w = log_so3(R0.transpose(0, 2, 1) @ T_to[:, :3, :3])
+    out = np.repeat(np.eye(4)[None], len(frac), axis=0)
+    out[:, :3, :3] = R0 @ exp_so3(frac[:, None] * w)
+    p0, p1 = T_from[:, :3, 3], T_to[:, :3, 3]
+    out[:, :3, 3] = p0 + frac[:, None] * (p1 - p0)
+    return out
 
 
 def _fail(wp: Waypoint, why: str, T_base_tool: np.ndarray) -> InfeasibleError:
@@ -247,7 +254,7 @@ def solve_moves(
         slow = max(1.0, float((steps / (robot.velocity_limits * dt_sample)).max()))
         if steps.max() > MAX_JOINT_STEP or slow > 1.0 / MIN_SPEED_FRACTION:
             return None
-        same = np.abs(_wrap(q_all[end_row] - q_end)).max(axis=1) < 1e-6
+        same = _same_branch(q_all[end_row], q_end)
         return path, int(np.argmax(same & valid[end_row])), slow, samples
 
     # Branches on which an element's whole motion (every target and every sample
@@ -311,7 +318,7 @@ def solve_moves(
         q_i, current, chain = chosen
         if chain:  # the configuration the chain ends in, which the next one keeps
             end_row = stops[end - 1] - 1
-            same = (np.abs(_wrap(q_all[end_row] - chain[-1][0][-1])) < 1e-6).all(axis=1)
+            same = _same_branch(q_all[end_row], chain[-1][0][-1])
             if same.any():
                 current = int(np.argmax(same))
         q_out[i] = q_prev = q_i
@@ -329,11 +336,8 @@ def solve_moves(
 def _line_samples(T_from: np.ndarray, T_to: np.ndarray, count: int) -> np.ndarray:
     """``count`` poses from ``T_from`` (excluded) to ``T_to`` (included): positions on the
     line, rotations on the geodesic, uniformly spaced."""
-    s = np.arange(1, count + 1) / count
-    w = log_so3((T_from[:3, :3].T @ T_to[:3, :3])[None])[0]
-    out = np.repeat(np.eye(4)[None], count, axis=0)
-    out[:, :3, :3] = T_from[:3, :3] @ exp_so3(s[:, None] * w)
-    out[:, :3, 3] = T_from[:3, 3] + s[:, None] * (T_to[:3, 3] - T_from[:3, 3])
+    frac = np.arange(1, count + 1) / count
+    out = _along_line(T_from[None].repeat(count, 0), T_to[None].repeat(count, 0), frac)
     out[-1] = T_to
     return out
 
@@ -390,9 +394,10 @@ def _a1_turns(
     return np.vstack([q, other[inside]]), np.r_[branch, branch[inside]]
 
 
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    """Angles wrapped into [-pi, pi)."""
-    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+def _same_branch(q_branches: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(K,) which branches of one target's solutions ``q_branches`` (K, dof) are ``q``,
+    modulo whole turns."""
+    return (np.abs(wrap_angle(q_branches - q)) < 1e-6).all(axis=1)
 
 
 def _nearest_turn(robot: RobotModel, q: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
@@ -406,7 +411,7 @@ def _nearest_turn(robot: RobotModel, q: np.ndarray, q_ref: np.ndarray) -> np.nda
     multi_turn = hi - lo > 2.0 * np.pi
     ref = np.broadcast_to(q_ref, q.shape)
     turned = q.copy()
-    turned[:, multi_turn] = ref[:, multi_turn] + _wrap(q[:, multi_turn] - ref[:, multi_turn])
+    turned[:, multi_turn] = ref[:, multi_turn] + wrap_angle(q[:, multi_turn] - ref[:, multi_turn])
     outside = ((turned < lo - 1e-9) | (turned > hi + 1e-9)).any(axis=1)
     if outside.any():
         turned[outside] = robot.nearest_turn(q[outside], ref[outside])
@@ -431,7 +436,7 @@ def _follow_branch(
     if not ok.all():
         return None
     steps = np.diff(np.vstack([q_prev, q_branch]), axis=0)
-    steps[:, multi_turn] = _wrap(steps[:, multi_turn])
+    steps[:, multi_turn] = wrap_angle(steps[:, multi_turn])
     if np.abs(steps).max() > MAX_JOINT_STEP:
         return None
     slowdown = max(1.0, float((np.abs(steps) / (robot.velocity_limits * dt)).max()))

@@ -36,7 +36,8 @@ _WRIST_FRAME = 4
 """Index in :meth:`RobotModel.frames` of the frame at the wrist centre (DH frame 4)."""
 
 
-def _wrap(angle: np.ndarray) -> np.ndarray:
+def wrap_angle(angle: np.ndarray) -> np.ndarray:
+    """Angles (radians) wrapped into [-pi, pi)."""
     return (angle + np.pi) % (2.0 * np.pi) - np.pi
 
 
@@ -61,7 +62,7 @@ def configuration_of(robot: RobotModel, q: np.ndarray) -> np.ndarray:
     if len(q) == 0:
         return np.zeros(0, dtype=np.intp)
     q_all, _ = robot.ik_batch(robot.fk(q), q_ref=q)
-    close = (np.abs(_wrap(q_all - q[:, None, :])) < _SAME_ANGLE).all(axis=2) & np.isfinite(
+    close = (np.abs(wrap_angle(q_all - q[:, None, :])) < _SAME_ANGLE).all(axis=2) & np.isfinite(
         q_all
     ).all(axis=2)
     branch = np.argmax(close, axis=1)
@@ -95,7 +96,7 @@ def needless_swings(robot: RobotModel, q_from: np.ndarray, q_to: np.ndarray) -> 
         return np.zeros(0, dtype=bool)
     turn = np.abs(q_to - q_from)
     main = (turn[:, 1:3] > np.radians(SWING_MAIN_AXIS_DEG)).any(axis=1)
-    azimuth = np.abs(_wrap(wrist_azimuth(robot, q_to) - wrist_azimuth(robot, q_from)))
+    azimuth = np.abs(wrap_angle(wrist_azimuth(robot, q_to) - wrist_azimuth(robot, q_from)))
     around = turn[:, 0] > azimuth + np.radians(SWING_A1_EXCESS_DEG)
     return main | around
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from fabflow.programs.motion_checks import configuration_of
 from fabflow.robots.chain import RobotModel
-from fabflow.transforms.so3 import log_so3
+from fabflow.transforms.so3 import log_so3, skew
 
 MAX_DEVIATION_DEG = 2.0
 """Largest tool orientation deviation (degrees) accepted on a wrist-interpolated
@@ -30,15 +30,6 @@ linear move; beyond it the move is left as it is (and reported)."""
 _NEWTON_STEPS = 30
 _POSITION_TOL = 1e-6
 """Tool centre point accuracy of the solved samples (metres)."""
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(k, 3, 3) cross-product matrices of (k, 3) vectors."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
-    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
-    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
-    return out
 
 
 def same_status_ends(
@@ -119,7 +110,7 @@ def wrist_interpolated_path(
         if step == _NEWTON_STEPS:
             return None
         J = robot.jacobian(q)
-        J_arm = J[:, :3, :3] - _skew(lever) @ J[:, 3:, :3]
+        J_arm = J[:, :3, :3] - skew(lever) @ J[:, 3:, :3]
         try:
             q[:, :3] -= np.linalg.solve(J_arm, residual[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
