@@ -2,7 +2,7 @@
 independent replay of the JSON command streams.
 
 Plans and localizes each example (no sensor noise), compiles every work package
-with the collision re-planning of ``fabflow.programs.compile`` (reporting what
+with the collision re-planning of ``fabflow.programs.replan`` (reporting what
 remains instead of failing), then replays each program's JSON command stream
 through ``tests/collision_replay.py`` (its own kinematics and geometry) against
 the structure as built, at the project's clearance. Prints, per program, the
@@ -28,8 +28,10 @@ sys.path.insert(0, str(ROOT / "tests"))
 from _exact import exact_plan  # noqa: E402
 from collision_replay import replay  # noqa: E402
 
+from fabflow.design.elements import structure_timeline  # noqa: E402
 from fabflow.design.generate import generate_elements  # noqa: E402
-from fabflow.programs.compile import program_name, replanned_program  # noqa: E402
+from fabflow.programs.compile import program_name  # noqa: E402
+from fabflow.programs.replan import replanned_program  # noqa: E402
 from fabflow.programs.writers.json_stream import write_json_stream  # noqa: E402
 from fabflow.project import load_project  # noqa: E402
 
@@ -51,20 +53,24 @@ def main() -> None:
         elements = generate_elements(project.elements, project.path)
         project, elements, plan, located = exact_plan(project, elements)
         by_id = {e.id: e for e in elements}
-        built = [e for e in elements if not e.robot_built]
-        packages = [wp for wp in plan.work_packages if wp.elements and wp.index in located]
+        timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
+        packages = [
+            (wp, built, coming)
+            for wp, (built, coming) in zip(plan.work_packages, timeline, strict=True)
+            if wp.elements and wp.index in located
+        ]
         totals = np.zeros(5)
-        for wp in packages[: 2 if args.quick else None]:
+        for wp, built, coming in packages[: 2 if args.quick else None]:
             package = [by_id[e] for e in wp.elements]
             T_world_base = np.asarray(located[wp.index].T_world_base, dtype=float)
             start = time.perf_counter()
             program, contacts = replanned_program(
-                program_name(wp), package, built, project, T_world_base, {}
+                program_name(wp), package, built, project, T_world_base, {}, coming=coming
             )
             seconds = time.perf_counter() - start
             stream = next(iter(write_json_stream(program).values()))
-            found = replay(stream, elements, [e.id for e in built], project.program.clearance)
-            built = built + package
+            robot = [e.id for e in built if e.robot_built]  # the replay adds the hand-built
+            found = replay(stream, elements, robot, project.program.clearance)
             setpoints = stream.count('"setpoint"')
             check_moves = len({c.move for c in contacts})
             replay_moves = len({(c[0], c[1]) for c in found})

@@ -3,10 +3,12 @@
 Plans and localizes once (not timed), then times ``write_programs`` (motions,
 IK of every target and every 2 cm step of every linear move, the writer) for
 the cabin and for a 10x larger project (ten cabins), in KRL and as a JSON
-stream. Prints medians over repeats, and the CPU time. Target: the cabin in
-under 1 s. The cabin's ``collide`` row times the collision check of all its
-programs on its own (the cabin project leaves it off while it still collides;
-the IK solves column there counts the contacts found).
+stream, without the collision check. Prints medians over repeats, and the CPU
+time. Target: the cabin in under 1 s. The cabin's ``replan`` row times writing
+its KRL programs with the check and the collision re-planning as the project
+sets them (``program.check_collisions``), the ``collide`` row the collision
+check of all its programs on its own (the IK solves column there counts the
+contacts found).
 
     python benchmarks/programs.py [--quick] [--repeats N]
 """
@@ -21,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from _exact import exact_plan
 
+from fabflow.design.elements import structure_timeline
 from fabflow.design.generate import generate_elements
 from fabflow.programs.collision import check_package
 from fabflow.programs.collision_model import environment
@@ -50,18 +53,25 @@ def main() -> None:
     )
     for label, project, elements in cases:
         project, elements, plan, poses = exact_plan(project, elements)
-        for fmt in ("krl", "json"):
+        checked = project
+        project = project.model_copy(
+            update={"program": project.program.model_copy(update={"check_collisions": False})}
+        )
+        rows = [(p, fmt, fmt) for p, fmt in ((project, "krl"), (project, "json"))]
+        if label == "cabin" and checked.program.check_collisions:
+            rows.append((checked, "krl", "replan"))
+        for settings, fmt, name in rows:
             times, cpu = [], []
             for _ in range(repeats):
                 start, start_cpu = time.perf_counter(), time.process_time()
-                programs, _ = write_programs(plan, elements, project, poses, fmt)
+                programs, _ = write_programs(plan, elements, settings, poses, fmt)
                 times.append(time.perf_counter() - start)
                 cpu.append(time.process_time() - start_cpu)
             moves = [m for p in programs for m in p.moves]
             solves = len(moves) + sum(0 if m.via_q is None else len(m.via_q) for m in moves)
             median = statistics.median(times)
             print(
-                f"{label:<10} {fmt:<9} {len(programs):>8} {len(moves):>8} {solves:>10} "
+                f"{label:<10} {name:<9} {len(programs):>8} {len(moves):>8} {solves:>10} "
                 f"{median:>9.3f} {statistics.median(cpu):>7.3f} "
                 f"{1e6 * median / len(moves):>14.1f}"
             )
@@ -72,14 +82,14 @@ def main() -> None:
 def _collision_row(label, project, plan, elements, programs, repeats) -> None:
     """The collision check of every program alone (obstacles as built before each)."""
     by_id = {e.id: e for e in elements}
-    packages = [wp for wp in plan.work_packages if wp.elements]
-    built = [e for e in elements if not e.robot_built]
+    timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
+    packages = [(wp, *t) for wp, t in zip(plan.work_packages, timeline, strict=True) if wp.elements]
     jobs = []
-    for wp, program in zip(packages, programs, strict=True):
+    for (wp, built, coming), program in zip(packages, programs, strict=True):
         package = [by_id[e] for e in wp.elements]
         T_world_base = np.linalg.inv(program.T_base_world)
-        jobs.append((program, environment(project, T_world_base, built, package), package))
-        built = built + package
+        env = environment(project, T_world_base, built, package, coming)
+        jobs.append((program, env, package))
     times, cpu = [], []
     for _ in range(repeats):
         start, start_cpu = time.perf_counter(), time.process_time()

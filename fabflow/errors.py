@@ -51,7 +51,12 @@ class InputError(FabflowError):
 
 
 class InfeasibleError(FabflowError):
-    """The project cannot be carried out as specified (unreachable elements, cycles)."""
+    """The project cannot be carried out as specified (unreachable elements, cycles).
+
+    ``element`` is the id of the element it concerns, where there is one.
+    """
+
+    element: str | None = None
 
 
 class UnsupportedError(FabflowError):

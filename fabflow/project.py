@@ -377,8 +377,10 @@ class ProgramSettings(StrictModel):
     clearance: NonNegativeFloat = 0.01
     """Smallest distance of the arm, tool and held block from the structure as built,
     the platform, the magazine and site obstacles along every motion (metres)."""
-    check_collisions: bool = True
-    """Check every program for collisions (re-plan, else an error naming the move)."""
+    check_collisions: bool | Literal["report"] = True
+    """Check every program for collisions and re-plan what collides; what still does
+    is an error naming the move (true), or is written into the program header and
+    the build report (``report``); false skips the check."""
     blend: NonNegativeFloat = 0.01
     """Blending (approximation) distance (metres)."""
     controller: ControllerName | None = None

@@ -14,9 +14,14 @@ setpoints (one controller step apart).
 Rules, as in docs/robots.md: the tool may touch the element its motion belongs
 to (for a piece of a split print layer, any piece of that layer: they meet at
 the seams, where the nozzle joins new bead to old); a held block may touch (not
-penetrate by more than 1 mm) on the linear move out of the magazine and the one
-into its place; an element counts as built from its release (a block) or from
-the first setpoint of another element (a print path, a task point).
+penetrate by more than 1 mm) on the linear move out of the magazine and on the
+linear moves before its release that end at the height of its place (into its
+place, and for a block slid in, down onto its bed beside it); an element counts
+as built from its release (a block) or from the first setpoint of another
+element (a print path, a task point); an element the robot does not build
+stands once every element it rests on stands, coming (by hand) when the tool
+has left, at the next element's first setpoint (``built_before`` lists the
+robot-built elements of earlier programs).
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ OPW = {
 TOOL_RADIUS = 0.05
 PTP_STEP = np.radians(1.0)
 SEAT_TOLERANCE = 0.001
+SEAT_HEIGHT = 0.001
 
 
 def _rz(t: np.ndarray) -> np.ndarray:
@@ -183,11 +189,32 @@ def replay(
     rows: list[tuple[np.ndarray, str, str, str, bool]] = []
     gripping = False
     done: list[tuple[int, str]] = []  # (setpoint index from which it stands, element id)
+    # hand-built elements (robot_built False) stand once everything under them does
+    hand = [e for e in elements if not e.robot_built and e.id not in built_before]
+    up = set(built_before)
+
+    pending: list[str] = []  # hand-built, coming once the tool has left
+
+    def finish(k: int, element: str | None) -> None:
+        if element is not None:
+            done.append((k, element))
+            up.add(element)
+        grown = True
+        while grown:
+            new = [e for e in hand if e.id not in up and set(e.supports) <= up]
+            grown = bool(new)
+            for e in new:
+                (pending if element is not None else done_now).append(e.id)
+                up.add(e.id)
+
+    done_now: list[str] = []
+    finish(0, None)  # those standing from the start
+    done += [(0, e) for e in done_now]
     for c in doc["commands"]:
         if c["type"] == "io" and c["name"] == "gripper":
             gripping = bool(c["value"])
             if not gripping and rows:
-                done.append((len(rows), rows[-1][2]))
+                finish(len(rows), rows[-1][2])
         elif c["type"] == "setpoint":
             previous = rows[-1][2] if rows else None
             if (
@@ -195,7 +222,10 @@ def replay(
                 and c["element"] != previous
                 and by_id[previous].type != "block"
             ):
-                done.append((len(rows), rows[-1][2]))
+                finish(len(rows), rows[-1][2])
+            if c["element"] != previous:  # the next element's first setpoint
+                done += [(len(rows), e) for e in pending]
+                pending.clear()
             rows.append((np.array(c["q"], float), c["kind"], c["element"], c["label"], gripping))
     # runs of setpoints of one move label
     starts = [0] + [i for i in range(1, len(rows)) if rows[i][1:4] != rows[i - 1][1:4]]
@@ -203,6 +233,19 @@ def replay(
     all_boxes = structure_boxes([by_id[e] for e in {*built_before, *(d[1] for d in done)}])
     contacts: dict[tuple[str, str, str, str], float] = {}
     surfaces: dict[str, np.ndarray] = {}
+    # the tool's height at the end of every run, and the runs down onto the bed:
+    # the linear runs right before a release that end at the place's height
+    last_q = np.array([rows[b - 1][0] for b in ends]).reshape(len(ends), -1)
+    end_z = (T_world_base @ opw_fk(robot, last_q)[1] @ T_flange_tool)[:, 2, 3]
+    on_bed = np.zeros(len(starts), dtype=bool)
+    for r, b in enumerate(ends):
+        if rows[b - 1][4] and (b == len(rows) or not rows[b][4]):  # released after run r
+            k = r
+            while k >= 0 and rows[starts[k]][1] == "lin" and rows[starts[k]][4]:
+                if abs(end_z[k] - end_z[r]) > SEAT_HEIGHT:
+                    break
+                on_bed[k] = True
+                k -= 1
     for r, (a, b) in enumerate(zip(starts, ends, strict=True)):
         _, kind, element, label, grip = rows[a]
         samples = []
@@ -217,11 +260,8 @@ def replay(
         if not samples:
             continue
         held = element if grip else None
-        seat = (
-            held is not None
-            and kind == "lin"
-            and (r == 0 or not rows[starts[r - 1]][4] or b == len(rows) or not rows[b][4])
-        )
+        seat = held is not None and kind == "lin" and (r == 0 or not rows[starts[r - 1]][4])
+        seat = seat or bool(on_bed[r])
         standing = set(built_before) | {e for k, e in done if k <= a}
         keep = np.array([o in standing for o in all_boxes.owner], dtype=bool)
         boxes = Boxes(all_boxes.T[keep], all_boxes.extents[keep], all_boxes.owner[keep])

@@ -11,7 +11,8 @@ import numpy as np
 from helpers import ROOT
 
 from fabflow.design.elements import Element
-from fabflow.programs.compile import compile_program, element_payloads
+from fabflow.programs.assemble import compile_program
+from fabflow.programs.compile import element_payloads
 from fabflow.programs.ir import Program
 from fabflow.programs.motions import work_package_motion
 from fabflow.project import load_project

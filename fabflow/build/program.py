@@ -52,6 +52,19 @@ def stage_program(ctx: BuildContext) -> None:
             "linear moves with the wrist interpolated",
             sum(c.get("wrist_interpolated", 0) for c in checks),
         )
+        if any("collision_moves" in c for c in checks):
+            colliding = [p.name for p in programs if p.checks.get("collision_moves")]
+            ctx.add(
+                "program",
+                "moves still colliding after re-planning",
+                f"{sum(c.get('collision_moves', 0) for c in checks)}"
+                + (
+                    f" (in {', '.join(colliding[:6])}{', ...' if len(colliding) > 6 else ''}: "
+                    "see their headers; do not run them as they are)"
+                    if colliding
+                    else ""
+                ),
+            )
     skipped = sorted(failed(localized))
     if skipped:
         visits = ", ".join(str(i + 1) for i in skipped)

@@ -94,6 +94,78 @@ class Element:
         )
 
 
+def hand_built_stages(elements: Sequence[Element], robot_order: Sequence[str]) -> dict[str, int]:
+    """When each element the robot does not build stands, counted in robot-built elements.
+
+    An element with ``robot_built=False`` stands once everything it rests on
+    stands: from the start when that is the ground or other such elements, else
+    as soon as the robot has built the elements under it. Hand work keeps pace
+    with the robot: a log cabin's pre-built wall rests, at the corners, on the
+    walls the robot builds, and rises course by course with them; a
+    prefabricated gable is set on its wall once the wall is finished.
+
+    Parameters
+    ----------
+    elements
+        Every element of the design (``supports`` filled in).
+    robot_order
+        The robot-built element ids in the order the robot builds them.
+
+    Returns
+    -------
+    dict[str, int]
+        Id to ``k``: the element stands once the first ``k`` elements of
+        ``robot_order`` are built (0: from the start). Elements resting on one
+        that is never built are left out.
+    """
+    position = {eid: k + 1 for k, eid in enumerate(robot_order)}
+    stage: dict[str, int] = {}
+    # supports lie below what they carry: one pass from the bottom up
+    pre = [e for e in elements if not e.robot_built]
+    for e in sorted(pre, key=lambda e: float(np.asarray(e.T_world_element)[2, 3])):
+        after = [stage.get(s, position.get(s, -1)) for s in e.supports]
+        if min(after, default=0) >= 0:
+            stage[e.id] = max(after, default=0)
+    return stage
+
+
+def structure_timeline(
+    elements: Sequence[Element], packages: Sequence[Sequence[str]]
+) -> list[tuple[list[Element], list[tuple[Element, int]]]]:
+    """What stands during each work package of a build.
+
+    Parameters
+    ----------
+    elements
+        Every element of the design.
+    packages
+        Per work package in build order, its robot-built element ids in build order.
+
+    Returns
+    -------
+    list
+        Per package: the elements standing when it starts (those of earlier
+        packages and the hand-built ones, :func:`hand_built_stages`), and the
+        hand-built ones that come during it, each with the index of the
+        package's element after whose completion it stands.
+    """
+    by_id = {e.id: e for e in elements}
+    stage = hand_built_stages(elements, [eid for ids in packages for eid in ids])
+    hand = [e for e in elements if e.id in stage]
+    out = []
+    robot: list[Element] = []
+    offset = 0
+    for ids in packages:
+        standing = [e for e in hand if stage[e.id] <= offset] + robot
+        coming = [
+            (e, stage[e.id] - offset - 1) for e in hand if offset < stage[e.id] <= offset + len(ids)
+        ]
+        out.append((standing, coming))
+        robot = robot + [by_id[i] for i in ids]
+        offset += len(ids)
+    return out
+
+
 def element_poses(elements: Sequence[Element]) -> np.ndarray:
     """Stack the element poses into an (N, 4, 4) array (world frame, metres)."""
     if not elements:

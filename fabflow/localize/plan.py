@@ -14,7 +14,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from fabflow.design.elements import Element
+from fabflow.design.elements import Element, structure_timeline
 from fabflow.errors import LocalizationError
 from fabflow.localize.methods import LOCALIZERS, LocalizeStation, localizer_arguments
 from fabflow.positioning.integrity import consistency_test, exact, guard_exclusion, unchecked
@@ -117,13 +117,11 @@ def localize_plan(
     """
     method = method or project.localization.method
     localize = station_localizer(project, method)
-    by_id = {e.id: e for e in elements}
-    prebuilt = [e for e in elements if not e.robot_built]
-    built_ids: list[str] = []
+    timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
     T_platform_base = project.robot.platform.T_platform_base.matrix()
     results: VisitPoses = {}
     previous = None
-    for wp in plan.work_packages:
+    for wp, (built, _) in zip(plan.work_packages, timeline, strict=True):
         if previous is not None and previous.station.id == wp.station.id:
             # Same visit, the lift moved: no new parking, no new measurement.
             estimate, T_true = results[previous.index]
@@ -139,7 +137,6 @@ def localize_plan(
             )
         else:
             T_planned, T_true = parked_pose(project, wp.station, rng)
-            built = prebuilt + [by_id[i] for i in built_ids]
             estimate = localize(
                 project,
                 T_true,
@@ -150,7 +147,6 @@ def localize_plan(
             )
             estimate = check_visit(project, estimate, T_planned)
         results[wp.index] = (estimate, T_true)
-        built_ids += list(wp.elements)
         previous = wp
     return results
 

@@ -24,9 +24,10 @@ By design some bodies touch; these pairs are not contacts:
   grips and releases, the place retract lifts off the block just placed; the
   nozzle prints onto its layer, whose other pieces it meets at the seams);
 * the held block on its *seat moves*, the linear move right after the grip (out
-  of the magazine) and the one right before the release (down into its place
-  between its neighbours): there it may touch but not penetrate deeper than
-  :data:`SEAT_TOLERANCE`.
+  of the magazine) and the linear moves right before the release that end at
+  the place's height (down into its place between its neighbours, or, for a
+  block slid in, down onto its bed beside the place and along the bed into it):
+  there it may touch but not penetrate deeper than :data:`SEAT_TOLERANCE`.
 
 Broad phase in numpy (:mod:`fabflow.programs.collision_phases`: boxes of the
 bodies swept over chunks of samples against the obstacles' boxes through a plan
@@ -66,6 +67,8 @@ MAX_JOINT_STEP = np.radians(1.0)
 """Largest joint step between fine samples of a PTP move (radians)."""
 SEAT_TOLERANCE = 0.001
 """Penetration allowed for the held block on its seat moves (metres)."""
+SEAT_HEIGHT = 0.001
+"""A linear move ending within this height of the place's is on the bed (metres)."""
 CHUNK = 16
 """Samples swept together in the first broad-phase level."""
 GRID_CELL = 0.5
@@ -199,13 +202,31 @@ def program_motion(program: Program, robot: RobotModel, reach_beyond: float) -> 
             fixed.append(targets[i][None])
             fixed_move.append(i)
         held_of.append(held)
-        seat.append(held is not None and move.kind == "lin" and (i in grip_at or i + 1 in release))
+        seat.append(held is not None and move.kind == "lin" and i in grip_at)
+    # down onto the bed: the linear moves right before a release that end at the
+    # place's height (the place, and the lowering beside it of a block slid in)
+    for i in release:
+        z_place = moves[i - 1].T_world_tool[2, 3]
+        k = i - 1
+        while k >= 0 and moves[k].kind == "lin" and held_of[k] is not None:
+            if abs(moves[k].T_world_tool[2, 3] - z_place) > SEAT_HEIGHT:
+                break
+            seat[k] = True
+            k -= 1
+    # stage 2c - 1 for the moves of the c-th completed element after its completion
+    # (its retract), 2c from the next element's first move (see
+    # fabflow.programs.collision_model): what comes by hand waits for the tool to leave
+    done_at = {e: released.get(e, last) for e, last in last_move.items()}
+    own_done = np.array(
+        [m.element is not None and done_at[m.element] <= i for i, m in enumerate(moves)],
+        dtype=bool,
+    )
     p = np.array(ptp, dtype=np.intp)
     dq = np.abs(targets[p] - targets[p - 1])
     lever = np.maximum(arms[p - 1], arms[p])
     return _Motion(
         moves=moves,
-        stage=np.searchsorted(complete, np.arange(len(moves)), side="right"),
+        stage=2 * np.searchsorted(complete, np.arange(len(moves)), side="right") - own_done,
         held=held_of,
         seat=np.array(seat, dtype=bool),
         fixed_q=np.vstack(fixed) if fixed else np.zeros((0, robot.dof)),
@@ -261,8 +282,8 @@ class _Bodies:
             self.T_held[self.held_rows] = T
 
     def near(self, motion: _Motion, obs: Obstacles, grow: np.ndarray, limit: np.ndarray) -> _Near:
-        """Triples whose distance lower bound is below ``limit[row]``; bodies grown by
-        ``grow[row]`` (metres) in the broad phase."""
+        """Triples whose distance lower bound is below their limit (:func:`_limit`); bodies
+        grown by ``grow[row]`` (metres) in the broad phase."""
         seg, radii = self.seg, self.radii
         n_samples, n_links = seg.shape[:2]
         pad = radii[None, :, None] + grow[:, None, None]
@@ -311,13 +332,17 @@ class _Bodies:
         gap = np.maximum(np.maximum(local.min(axis=1) - half, -half - local.max(axis=1)), 0.0)
         radius = np.where(capsule, radii[np.minimum(b, n_links - 1)], 0.0)
         bound = np.linalg.norm(gap, axis=1) - radius
-        close = bound < limit[rows]
+        # a held box whose corners' box overlaps the obstacle: the penetration is at
+        # most the overlap along the obstacle's shallowest axis
+        overlap = np.minimum(local.max(axis=1) + half, half - local.min(axis=1)).min(axis=1)
+        bound = np.where(~capsule & (bound <= 0.0), -overlap, bound)
+        close = bound < _limit(limit, rows, b, n_links)
         return _Near(rows[close], b[close], k[close], bound[close])
 
     def distances(
         self, near: _Near, narrow: Narrow, limit: np.ndarray
     ) -> dict[tuple[int, int, int], float]:
-        """Smallest signed distance per (move, body, obstacle) below ``limit[row]``.
+        """Smallest signed distance per (move, body, obstacle) below its limit (:func:`_limit`).
 
         fcl computes first the :data:`FIRST_SAMPLES` samples with the smallest
         lower bound of every triple, then the rest of the triples without a contact.
@@ -348,7 +373,7 @@ class _Bodies:
                 continue
             extents = None if capsule[i] else self.ext_held[rows[i]]
             d = narrow.distance(int(k[i]), int(b[i]), R[i], t[i], extents)
-            if d < limit[rows[i]]:
+            if d < _limit(limit, rows[i], b[i], n_links):
                 found[key] = min(d, found.get(key, np.inf))
         out = {}
         for i in np.flatnonzero(first):
@@ -400,8 +425,9 @@ def check_program(
     narrow: Narrow | None = None
 
     def limits(bodies: _Bodies) -> np.ndarray:
+        """Per sample, the limit of the links and of the held block (:func:`_limit`)."""
         seat = motion.seat[bodies.move]
-        return np.where(seat, -SEAT_TOLERANCE, clearance)
+        return np.c_[np.full(len(seat), clearance), np.where(seat, -SEAT_TOLERANCE, clearance)]
 
     # Coarse PTP samples, every body grown by the travel to its neighbours.
     n_coarse = _counts(motion.ptp_travel, motion.ptp_step, COARSE_TRAVEL, COARSE_JOINT_STEP)
@@ -420,7 +446,7 @@ def check_program(
     sample_ptp = np.r_[np.full(len(motion.fixed_q), -1), which][order]
     sample_j = np.r_[np.zeros(len(motion.fixed_q), dtype=np.intp), j][order]
     bodies = _Bodies(robot, motion, q, move, T_flange_tool, held_boxes, parts or {})
-    limit = limits(bodies) + grow
+    limit = limits(bodies) + grow[:, None]
     near = bodies.near(motion, obs, clearance + grow, limit)
     # Every sample at the clearance itself: linear-move samples are final; a coarse
     # sample whose own distance is already below the clearance settles its move
@@ -428,7 +454,7 @@ def check_program(
     # that came near in the other moves are refined.
     found: dict[tuple[int, int, int], float] = {}
     limit = limits(bodies)
-    at_sample = near.bound < limit[near.rows]
+    at_sample = near.bound < _limit(limit, near.rows, near.body, len(bodies.names))
     if at_sample.any():
         narrow = Narrow(obs, _lengths(bodies), bodies.radii, clearance + SEAT_TOLERANCE)
         sub = _Near(*(getattr(near, f)[at_sample] for f in ("rows", "body", "obstacle", "bound")))
@@ -465,6 +491,12 @@ def check_program(
         m = motion.moves[mv]
         out.append(Contact(mv, m.element, m.label, link, str(obs.names[k]), d))
     return out
+
+
+def _limit(limit: np.ndarray, rows: np.ndarray, body: np.ndarray, n_links: int) -> np.ndarray:
+    """The distance limit of each (sample, body): ``limit`` holds per sample the links'
+    (the clearance) and the held block's (less on its seat moves, where it may touch)."""
+    return limit[rows, (np.asarray(body) >= n_links).astype(np.intp)]
 
 
 def _lengths(bodies: _Bodies) -> np.ndarray:

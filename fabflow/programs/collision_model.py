@@ -21,9 +21,14 @@ Every obstacle is a box (centre frame and full side lengths, metres):
 * **site**: ``site.obstacles``; a polygon obstacle is checked as its bounding box.
 
 ``since`` orders obstacles in time: an obstacle is present for the motions of
-stage ``s`` when ``since < s``; stage 0 is the program's start and stage ``j + 1``
-follows the completion of the program's ``j``-th element (``since = j``).
-Obstacles present from the start have ``since = -1``.
+stage ``s`` when ``since < s``. When ``c`` elements are complete, a move of the
+last of them (its retract) has stage ``2 c - 1``, and the moves from the next
+element's first on (and the HOME moves) have stage ``2 c``. So the program's
+``j``-th element has ``since = 2 j`` (present from its completion), an element
+built by hand that can come once the ``j``-th element stands has
+``since = 2 j + 1`` (it comes when the tool has left, before the next element's
+first move), and obstacles present from the start have ``since = -1``.
+:func:`present_while` gives the obstacles standing while an element is built.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fabflow.design.elements import Element, element_boxes
-from fabflow.programs.motions import T_base_pick_tool
+from fabflow.programs.motions import Placement, T_base_pick_tool, block_approach
 from fabflow.project import Project
 from fabflow.tasks.targets import element_tool_frames
 
@@ -279,6 +284,7 @@ def environment(
     T_world_base: np.ndarray,
     built: Sequence[Element],
     package: Sequence[Element],
+    coming: Sequence[tuple[Element, int]] = (),
 ) -> Obstacles:
     """Every obstacle of one work package's program, in the world frame.
 
@@ -292,7 +298,10 @@ def environment(
         Elements standing before the program starts (pre-built ones and those of
         earlier work packages).
     package
-        The program's elements in build order (element ``j`` has ``since = j``).
+        The program's elements in build order (element ``j`` has ``since = 2 j``).
+    coming
+        Elements the robot does not build that come during the program, each
+        with its ``since`` (:func:`fabflow.design.elements.structure_timeline`).
     """
     blocks = [e.extents for e in package if e.type == "block" and e.extents is not None]
     # the magazine holds the shortest block; longer ones overhang it
@@ -300,11 +309,18 @@ def environment(
     return Obstacles.join(
         [
             structure_boxes(built, [-1] * len(built)),
-            structure_boxes(package, range(len(package))),
+            structure_boxes(package, [2 * j for j in range(len(package))]),
+            structure_boxes([e for e, _ in coming], [2 * k + 1 for _, k in coming]),
             platform_boxes(project, T_world_base, None if not blocks else np.asarray(blocks[0])),
             site_boxes(project),
         ]
     )
+
+
+def present_while(obstacles: Obstacles, j: int) -> np.ndarray:
+    """Which obstacles stand while the program's ``j``-th element is built (before
+    its release): the stage of its moves is ``2 j``."""
+    return obstacles.since < 2 * j
 
 
 SAFE_MARGIN = 0.02
@@ -338,13 +354,155 @@ def safe_heights(
         ab = b - a
         t = np.clip((centre - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
         gap = np.linalg.norm(a + t[:, None] * ab - centre, axis=1) - half
-        crossed = structure & (obstacles.since < j) & (gap < width)
+        crossed = structure & present_while(obstacles, j) & (gap < width)
         if crossed.any():
             top = float(hi[crossed, 2].max())
             out[e.id] = top + float(e.extents[2]) + 2.0 * clearance + SAFE_MARGIN
     return out
 
 
+def tuck_heights(
+    obstacles: Obstacles,
+    package: Sequence[Element],
+    T_world_base: np.ndarray,
+    radius: float,
+    clearance: float,
+) -> dict[str, float]:
+    """Per block of the package, a tool height (world z) at which the arm, tucked to
+    ``radius`` about A1, turns above all the structure it could sweep.
+
+    The highest structure box standing while the block is built whose plan
+    outline comes within ``radius`` plus the block's half length plus twice the
+    clearance of the A1 axis, plus the block's height (it hangs below the tool),
+    twice the clearance and :data:`SAFE_MARGIN`. Blocks with no such structure
+    are left out.
+    """
+    structure = obstacles.kinds == "structure"
+    lo, hi = _box_aabb_world(obstacles.T, obstacles.extents)
+    axis = np.asarray(T_world_base, dtype=float)[:2, 3]
+    # plan distance of each box from the A1 axis
+    gap = np.linalg.norm(np.maximum(np.maximum(lo[:, :2] - axis, axis - hi[:, :2]), 0.0), axis=1)
+    out = {}
+    for j, e in enumerate(package):
+        if e.type != "block" or e.extents is None:
+            continue
+        ext = np.asarray(e.extents, dtype=float)
+        reach = radius + 0.5 * float(np.hypot(ext[0], ext[1])) + 2.0 * clearance
+        swept = structure & present_while(obstacles, j) & (gap < reach)
+        if swept.any():
+            top = float(hi[swept, 2].max())
+            out[e.id] = top + float(ext[2]) + 2.0 * clearance + SAFE_MARGIN
+    return out
+
+
 def _box_aabb_world(T: np.ndarray, extents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     half = 0.5 * np.einsum("kij,kj->ki", np.abs(T[:, :3, :3]), extents)
     return T[:, :3, 3] - half, T[:, :3, 3] + half
+
+
+SLIDE_MARGIN = 0.005
+"""Added to twice the clearance for the length a block slides in over and for the
+height its descent starts above its neighbours (metres)."""
+_TOUCH = 1e-6
+"""Boxes that only touch (a face on a face) do not overlap (metres)."""
+
+
+def placements(
+    obstacles: Obstacles, package: Sequence[Element], project: Project
+) -> dict[str, Placement]:
+    """How each block of a work package goes into its place, where the structure
+    standing around it asks for more than the plain descent.
+
+    * **Slide.** A block is lowered onto its bed from above. Where structure
+      standing when it is built covers one end of its place from above (a log
+      cabin's corner, where the crossing wall's next layer already stands), it is
+      lowered beside its place instead, along its length away from that end, and
+      slides in at its final height. The offset is the covered length plus twice
+      the clearance plus :data:`SLIDE_MARGIN`; the column above the offset place
+      and the path of the slide must be free of standing structure (else the
+      block gets no slide, and the collision check reports its descent).
+    * **Approach.** The descent starts above whatever stands within the
+      clearance around the block's footprint (its place and, sliding, its
+      lowering point): neighbours standing higher than the block's own layer
+      (the crossing wall's layer above, at a corner) raise it to their top
+      plus twice the clearance plus :data:`SLIDE_MARGIN`.
+
+    Parameters
+    ----------
+    obstacles
+        The work package's obstacles (:func:`environment`); only structure counts.
+    package
+        The program's elements in build order (:func:`present_while` for element ``j``).
+    project
+        ``program.clearance`` and the plain approach (:func:`block_approach`).
+
+    Returns
+    -------
+    dict[str, Placement]
+        Block id to its placement, for the blocks that need more than the plain one.
+    """
+    clearance = project.program.clearance
+    structure = obstacles.kinds == "structure"
+    out: dict[str, Placement] = {}
+    for j, e in enumerate(package):
+        if e.type != "block" or e.extents is None:
+            continue
+        standing = structure & present_while(obstacles, j)
+        if not standing.any():
+            continue
+        T_block = np.asarray(e.T_world_element, dtype=float)
+        half = 0.5 * np.asarray(e.extents, dtype=float)
+        lo, hi = _local_aabbs(T_block, obstacles.T[standing], obstacles.extents[standing])
+        shift = _slide(lo, hi, half, clearance)
+        # what stands around the footprint (at the place and where it is lowered)
+        grow = 2.0 * clearance + SLIDE_MARGIN
+        around = _overlap(
+            lo, hi, [min(shift, 0.0) - half[0] - grow, -half[1] - grow, -half[2]],
+            [max(shift, 0.0) + half[0] + grow, half[1] + grow, np.inf],
+        )  # fmt: skip
+        top = float(hi[around, 2].max()) if around.any() else -np.inf
+        need = top + half[2] + 2.0 * clearance + SLIDE_MARGIN
+        approach = need if need > block_approach(e, project) + 1e-9 else None
+        slide = T_block[:3, 0] * shift if shift else None
+        if approach is not None or slide is not None:
+            out[e.id] = Placement(approach=approach, slide=slide)
+    return out
+
+
+def _slide(lo: np.ndarray, hi: np.ndarray, half: np.ndarray, clearance: float) -> float:
+    """Signed offset along the block's length (metres) where it is lowered to slide
+    in, 0.0 for none (see :func:`placements`); boxes in the block's frame."""
+    above = _overlap(lo, hi, [-half[0], -half[1], half[2]], [half[0], half[1], np.inf])
+    if not above.any():
+        return 0.0
+    covered_lo = max(float(lo[above, 0].min()), -half[0])
+    covered_hi = min(float(hi[above, 0].max()), half[0])
+    if covered_lo > 0.0:  # the + end is covered: slide in from -x
+        shift = -(half[0] - covered_lo)
+    elif covered_hi < 0.0:
+        shift = covered_hi + half[0]
+    else:
+        return 0.0  # covered across the middle: no slide gets it in
+    shift = float(np.sign(shift)) * (abs(shift) + 2.0 * clearance + SLIDE_MARGIN)
+    # the slide's path in the block's own layer and the column above its start
+    path = _overlap(
+        lo, hi, [min(shift, 0.0) - half[0], -half[1], -half[2]],
+        [max(shift, 0.0) + half[0], half[1], half[2]],
+    )  # fmt: skip
+    column = _overlap(lo, hi, [shift - half[0], -half[1], -half[2]],
+                      [shift + half[0], half[1], np.inf])  # fmt: skip
+    return 0.0 if (path | column).any() else shift
+
+
+def _local_aabbs(
+    T_block: np.ndarray, T: np.ndarray, extents: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The boxes' bounding boxes in the block's frame, (K, 3) each."""
+    T_local = np.linalg.solve(T_block, T)
+    half = 0.5 * np.einsum("kij,kj->ki", np.abs(T_local[:, :3, :3]), extents)
+    return T_local[:, :3, 3] - half, T_local[:, :3, 3] + half
+
+
+def _overlap(lo: np.ndarray, hi: np.ndarray, a: Sequence[float], b: Sequence[float]) -> np.ndarray:
+    """Which boxes overlap the box ``[a, b]`` by more than a touch."""
+    return np.all((lo < np.asarray(b) - _TOUCH) & (hi > np.asarray(a) + _TOUCH), axis=1)

@@ -109,10 +109,12 @@ def _along_line(T_from: np.ndarray, T_to: np.ndarray, frac: np.ndarray) -> np.nd
 
 def _fail(wp: Waypoint, why: str, T_base_tool: np.ndarray) -> InfeasibleError:
     x, y, z = T_base_tool[:3, 3]
-    return InfeasibleError(
+    error = InfeasibleError(
         f"element {wp.element}, target '{wp.label}': {why} "
         f"(tool at x={x:.3f}, y={y:.3f}, z={z:.3f} m in the robot base frame)"
     )
+    error.element = wp.element
+    return error
 
 
 def solve_moves(

@@ -99,8 +99,82 @@ def block_approach(element: Element, project: Project) -> float:
     return max(settings.approach, height + 2.0 * settings.clearance + APPROACH_MARGIN)
 
 
+@dataclass(frozen=True)
+class Route:
+    """How a re-planned block travels between the magazine and its place.
+
+    Attributes
+    ----------
+    height
+        Tool height (world z, metres) of the travel: the block rises straight up
+        to it from the magazine and comes straight down from it to its place
+        approach. None: the higher of the two approach poses.
+    tuck
+        None: the block is carried across at ``height`` by one joint move.
+        A radius about the A1 axis (metres): the arm turns about A1 with the tool
+        at that radius only, and the block goes out to its place, and the tool
+        back in after the release, by linear moves along the radius. A swing
+        between the magazine behind the arm and a far place then sweeps no wider
+        than the tucked arm.
+    joint_descent
+        Down from the travel height to the place approach, and back up after the
+        release, by joint moves instead of linear ones: a linear move there can
+        take A5 through 0 (which a controller refuses in a linear move), a joint
+        move does it with a turn of A4 and A6 (and the collision check follows
+        its bow).
+    """
+
+    height: float | None = None
+    tuck: float | None = None
+    joint_descent: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class Placement:
+    """How a block goes into its place where the structure standing around it asks
+    for more than the plain descent from :func:`block_approach` above it.
+
+    Attributes
+    ----------
+    approach
+        Distance above the place where the descent starts (metres), when longer
+        than :func:`block_approach`: neighbours standing higher than the block's
+        own layer.
+    slide
+        Offset (3,) of where the block is lowered onto its bed from its place
+        (world, metres), to slide in along the bed; None: straight down.
+    """
+
+    approach: float | None = None
+    slide: np.ndarray | None = None
+
+
+def tucked(T_world_tool: np.ndarray, T_world_base: np.ndarray, radius: float) -> np.ndarray:
+    """The tool pose moved along its radius about the A1 axis to ``radius`` (metres).
+
+    The radius is measured in the robot base frame's xy plane; the height in the
+    base frame and the orientation stay.
+    """
+    T_base_tool = np.linalg.solve(T_world_base, T_world_tool)
+    xy = T_base_tool[:2, 3]
+    r = float(np.hypot(*xy))
+    T_base_tool[:2, 3] = xy * (radius / r) if r > 1e-9 else (radius, 0.0)
+    return T_world_base @ T_base_tool
+
+
+def _raised(T: np.ndarray, z: float) -> np.ndarray:
+    out = T.copy()
+    out[2, 3] = z
+    return out
+
+
 def element_motion(
-    element: Element, project: Project, T_world_pick: np.ndarray, safe_z: float | None = None
+    element: Element,
+    project: Project,
+    T_world_pick: np.ndarray,
+    route: Route | None = None,
+    T_world_base: np.ndarray | None = None,
+    placement: Placement | None = None,
 ) -> list[Step]:
     """The motion steps that build one element.
 
@@ -113,57 +187,24 @@ def element_motion(
     T_world_pick
         Tool pose gripping a block in the platform magazine, in the world
         (``T_world_base @ T_base_pick_tool(project)`` with the localized base).
-    safe_z
-        For a block, a tool height (world z, metres) above the structure: the
-        block rises straight up to it from the magazine ("lift", linear), is
-        carried at it to above its place ("travel", PTP), goes straight down to
-        the place approach (linear) and, once placed, the tool rises to it again
-        ("depart", linear), so that the only joint-interpolated moves between the
-        magazine and the place run above what is built (the re-planning of a
-        collision).
+    route
+        For a block re-planned around a collision, how it travels between the
+        magazine and its place (:class:`Route`); None: by joint moves through
+        its approach poses.
+    T_world_base
+        The station's localized base pose, for a route with a ``tuck``.
+    placement
+        For a block, how it goes into its place where the structure around it
+        asks for more than the plain descent (:class:`Placement`,
+        :func:`fabflow.programs.collision_model.placements`).
     """
     settings = project.program
     approach, blend, speed = settings.approach, settings.blend, settings.speed
-    eid = element.id
     if element.type == "block":
-        approach = block_approach(element, project)
-        T_place = element_tool_frames(element)[0]
-        T_pick = T_world_pick
-        pick_up, place_up = approach_poses(np.stack([T_pick, T_place]), False, approach)
-        steps: list[Step] = [
-            Waypoint("ptp", pick_up, PTP_SPEED, blend, "pick approach", eid),
-            Waypoint("lin", T_pick, speed, 0.0, "pick", eid),
-            Action("gripper", True, GRIP_DWELL_S, eid),
-            Waypoint("lin", pick_up, speed, blend, "pick retract", eid),
-        ]
-        replan = safe_z is not None
-        safe = max(pick_up[2, 3], place_up[2, 3], -np.inf if safe_z is None else safe_z)
-        if replan and safe > pick_up[2, 3] + 1e-3:
-            # straight up from the magazine, across at the safe height, straight down
-            lift = pick_up.copy()
-            lift[2, 3] = safe
-            steps.append(Waypoint("lin", lift, speed, blend, "lift", eid))
-        travel_z = safe
-        if travel_z > place_up[2, 3] + 1e-3:
-            travel = place_up.copy()
-            travel[2, 3] = travel_z
-            steps.append(
-                Waypoint("ptp", travel, PTP_SPEED, blend, "travel", eid, optional=not replan)
-            )
-        steps += [
-            Waypoint("lin" if replan and travel_z > place_up[2, 3] + 1e-3 else "ptp", place_up,
-                     speed if replan else PTP_SPEED, blend, "place approach", eid),
-            Waypoint("lin", T_place, speed, 0.0, "place", eid),
-            Action("gripper", False, GRIP_DWELL_S, eid),
-            Waypoint("lin", place_up, speed, blend, "place retract", eid),
-        ]  # fmt: skip
-        if replan and safe > place_up[2, 3] + 1e-3:
-            depart = place_up.copy()
-            depart[2, 3] = safe
-            steps.append(Waypoint("lin", depart, speed, blend, "depart", eid))
-        return steps
+        return _block_motion(element, project, T_world_pick, route, T_world_base, placement)
     if element.type == "print_path":
         return _print_motion(element, approach, blend, speed)
+    eid = element.id
     T_point = element_tool_frames(element)[0]
     backed = approach_poses(T_point, True, approach)
     action = str(element.attributes.get("action", "mark"))
@@ -173,6 +214,115 @@ def element_motion(
         Action(action, True, ACTION_DWELL_S, eid),
         Action(action, False, 0.0, eid),
         Waypoint("lin", backed, speed, blend, "retract", eid),
+    ]
+
+
+def _block_motion(
+    element: Element,
+    project: Project,
+    T_pick: np.ndarray,
+    route: Route | None,
+    T_world_base: np.ndarray | None,
+    placement: Placement | None,
+) -> list[Step]:
+    """Pick in the magazine, carry, place (see the module docstring, :class:`Route` and
+    :class:`Placement`)."""
+    blend, speed = project.program.blend, project.program.speed
+    eid = element.id
+    placement = placement or Placement()
+    T_place = element_tool_frames(element)[0]
+    T_seat = T_place.copy()  # where the block comes down onto its bed
+    if placement.slide is not None:
+        T_seat[:3, 3] += np.asarray(placement.slide, dtype=float)
+    approach = max(block_approach(element, project), placement.approach or 0.0)
+    pick_up, seat_up, place_up = approach_poses(
+        np.stack([T_pick, T_seat, T_place]), False, approach
+    )
+    placing = _release(T_seat, T_place, place_up, speed, blend, eid)
+    if route is None:
+        # through a travel point at the pick height where the arm reaches it
+        steps: list[Step] = [Waypoint("ptp", pick_up, PTP_SPEED, blend, "pick approach", eid)]
+        steps += _grip(T_pick, pick_up, speed, blend, eid)
+        if pick_up[2, 3] > seat_up[2, 3] + 1e-3:
+            travel = _raised(seat_up, pick_up[2, 3])
+            steps.append(Waypoint("ptp", travel, PTP_SPEED, blend, "travel", eid, optional=True))
+        steps.append(Waypoint("ptp", seat_up, PTP_SPEED, blend, "place approach", eid))
+        return steps + placing
+    tuck = route.tuck
+    if tuck is not None and T_world_base is None:
+        raise ValueError("a tucked route needs the station's base pose")
+    low = max(pick_up[2, 3], seat_up[2, 3])
+    h_pick = h_place = max(low, route.height if route.height is not None else low)
+    steps = []
+    if h_pick > pick_up[2, 3] + 1e-3 and tuck is not None:
+        # come down onto the magazine from the tucked height
+        steps.append(
+            Waypoint("ptp", _raised(pick_up, h_pick), PTP_SPEED, blend, "over magazine", eid)
+        )
+        steps.append(Waypoint("lin", pick_up, speed, blend, "pick approach", eid))
+    else:
+        steps.append(Waypoint("ptp", pick_up, PTP_SPEED, blend, "pick approach", eid))
+    steps += _grip(T_pick, pick_up, speed, blend, eid)
+    if h_pick > pick_up[2, 3] + 1e-3:
+        steps.append(Waypoint("lin", _raised(pick_up, h_pick), speed, blend, "lift", eid))
+    above = _raised(seat_up, h_place)
+    here = above
+    if tuck is None:
+        label = "travel" if _apart(above, seat_up) else "place approach"
+        steps.append(Waypoint("ptp", above, PTP_SPEED, blend, label, eid))
+    else:
+        here = tucked(above, T_world_base, tuck)
+        steps.append(Waypoint("ptp", here, PTP_SPEED, blend, "tuck", eid))
+        if _apart(above, seat_up) and _apart(here, above):
+            steps.append(Waypoint("lin", above, speed, blend, "travel", eid))
+            here = above
+    kind, vertical = ("ptp", PTP_SPEED) if route.joint_descent else ("lin", speed)
+    if _apart(here, seat_up):
+        steps.append(Waypoint(kind, seat_up, vertical, blend, "place approach", eid))
+    steps += placing
+    depart = _raised(place_up, h_place)
+    if _apart(depart, place_up):
+        steps.append(Waypoint(kind, depart, vertical, blend, "depart", eid))
+    if tuck is not None:
+        T_in = tucked(depart, T_world_base, tuck)
+        if _apart(T_in, depart):
+            steps.append(Waypoint("lin", T_in, speed, blend, "tuck in", eid))
+    return steps
+
+
+def _apart(T_a: np.ndarray, T_b: np.ndarray) -> bool:
+    """Whether two tool poses are more than a millimetre apart."""
+    return bool(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > 1e-3)
+
+
+def _grip(
+    T_pick: np.ndarray, pick_up: np.ndarray, speed: float, blend: float, eid: str
+) -> list[Step]:
+    return [
+        Waypoint("lin", T_pick, speed, 0.0, "pick", eid),
+        Action("gripper", True, GRIP_DWELL_S, eid),
+        Waypoint("lin", pick_up, speed, blend, "pick retract", eid),
+    ]
+
+
+def _release(
+    T_seat: np.ndarray,
+    T_place: np.ndarray,
+    place_up: np.ndarray,
+    speed: float,
+    blend: float,
+    eid: str,
+) -> list[Step]:
+    """Down onto the bed at ``T_seat`` (slid in along the bed where that is not the
+    place), release, retract straight up."""
+    seat: list[Step] = []
+    if _apart(T_seat, T_place):
+        seat.append(Waypoint("lin", T_seat, speed, 0.0, "seat", eid))
+    return [
+        *seat,
+        Waypoint("lin", T_place, speed, 0.0, "place", eid),
+        Action("gripper", False, GRIP_DWELL_S, eid),
+        Waypoint("lin", place_up, speed, blend, "place retract", eid),
     ]
 
 
@@ -225,16 +375,37 @@ def work_package_motion(
     elements: Sequence[Element],
     project: Project,
     T_world_base: np.ndarray,
-    safe_z: dict[str, float] | None = None,
+    routes: dict[str, Route] | None = None,
+    placements: dict[str, Placement] | None = None,
 ) -> list[Step]:
     """The motion steps of a whole work package, elements in the given order.
 
-    ``safe_z`` gives the elements re-planned over the structure their safe tool
-    height (see :func:`element_motion`).
+    ``routes`` gives the blocks re-planned around a collision their route and
+    ``placements`` the blocks the structure around their place asks more of
+    their placement (see :func:`element_motion`). A block followed by a tucked one ends with its
+    tool drawn in to the next one's tuck radius, so that the joint move back to
+    the magazine turns the arm tucked too.
     """
-    T_world_pick = np.asarray(T_world_base, dtype=float) @ T_base_pick_tool(project)
-    safe_z = safe_z or {}
+    T_world_base = np.asarray(T_world_base, dtype=float)
+    T_world_pick = T_world_base @ T_base_pick_tool(project)
+    routes, placements = routes or {}, placements or {}
+    speed, blend = project.program.speed, project.program.blend
     steps: list[Step] = []
-    for element in elements:
-        steps += element_motion(element, project, T_world_pick, safe_z.get(element.id))
+    for k, element in enumerate(elements):
+        route = routes.get(element.id)
+        steps += element_motion(
+            element, project, T_world_pick, route, T_world_base, placements.get(element.id)
+        )
+        following = routes.get(elements[k + 1].id) if k + 1 < len(elements) else None
+        last = steps[-1]
+        if (
+            element.type == "block"
+            and (route is None or route.tuck is None)
+            and following is not None
+            and following.tuck is not None
+            and isinstance(last, Waypoint)
+        ):
+            T_in = tucked(last.T_world_tool, T_world_base, following.tuck)
+            if _apart(T_in, last.T_world_tool):
+                steps.append(Waypoint("lin", T_in, speed, blend, "tuck in", element.id))
     return steps

@@ -30,7 +30,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from fabflow.design.elements import Element
+from fabflow.design.elements import Element, structure_timeline
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
 from fabflow.localize.methods import localizer_arguments
@@ -175,15 +175,14 @@ def prepare_study(
         plan = plan_project(project, elements)
     elements = with_pieces(elements, plan.split_elements)
     by_id = {e.id: e for e in elements}
-    standing: list[Element] = [e for e in elements if not e.robot_built]
+    timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
     ids: list[str] = []
     visit_of: list[int] = []
     built_before: list[tuple[Element, ...]] = []
-    for v, wp in enumerate(plan.work_packages):
+    for v, (wp, (standing, _)) in enumerate(zip(plan.work_packages, timeline, strict=True)):
         built_before.append(tuple(standing))
         ids += wp.elements
         visit_of += [v] * len(wp.elements)
-        standing += [by_id[i] for i in wp.elements]
     T = np.stack([np.asarray(by_id[i].T_world_element, dtype=float) for i in ids])
     study = Study(
         project=project,

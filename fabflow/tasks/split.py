@@ -10,9 +10,13 @@ attributes ``parent`` and ``waypoints`` (first and last waypoint index in the
 parent).
 
 Supports: when a piece's parent rests on a path split at the same waypoints
-(stacked layers of an extruded wall), piece k rests on piece k of that path,
-so each station can print its stretch of wall layer after layer; otherwise it
-rests on every piece of the parent's supports.
+(stacked layers of an extruded wall), piece k rests on pieces k - 1, k and k + 1
+of that path: its ends sit on the seams it shares with its neighbours' bead
+below. So no station prints a layer of its stretch before the neighbouring
+stretches have the layer below, and the plan alternates between the stations
+layer by layer: a stretch printed ahead of its neighbour would stand in the
+nozzle's way where the neighbour's next layer meets it at the seam. Otherwise a
+piece rests on every piece of the parent's supports.
 """
 
 from __future__ import annotations
@@ -103,7 +107,8 @@ def split_wide_paths(
             sup: list[str] = []
             for s in e.supports:
                 if s in same:
-                    sup.append(pieces[s][k])
+                    # the piece and its neighbours below: they meet at the seams
+                    sup += pieces[s][max(k - 1, 0) : k + 2]
                 else:
                     sup.extend(pieces.get(s, [s]))
             attrs = dict(e.attributes)

@@ -37,9 +37,15 @@ def test_a_swap_of_two_readings_is_undone(seed: int, n: int) -> None:
     a, b = rng.choice(n, 2, replace=False)
     swapped = M.copy()
     swapped[[a, b]] = M[[b, a]]
+    labels = [f"P{i + 1}" for i in range(n)]
     try:
-        order, report = match_prisms(P, swapped, C, [f"P{i + 1}" for i in range(n)], 1e-3)
+        order, report = match_prisms(P, swapped, C, labels, 1e-3)
     except LocalizationError:
         return  # several orders fit: refused, not guessed
+    if report["assignment"] == "as given (no order fits)":
+        # only where the true order fails the test too (a false alarm, rate alpha)
+        _, clean = match_prisms(P, M, C, labels, 1e-3)
+        assert clean["distance_test"] > clean["threshold"]
+        return
     assert report["assignment"] == "reassigned"
     np.testing.assert_allclose(swapped[order], M)

@@ -11,11 +11,23 @@ from program_cases import PROJECT, make_pose
 
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError
+from fabflow.programs.assemble import compile_program
 from fabflow.programs.collision import check_package
-from fabflow.programs.collision_model import environment, print_path_boxes
+from fabflow.programs.collision_model import (
+    SLIDE_MARGIN,
+    environment,
+    placements,
+    print_path_boxes,
+)
 from fabflow.programs.collision_phases import aabb_pairs
-from fabflow.programs.compile import checked_program, compile_program, replanned_program
-from fabflow.programs.motions import block_approach, work_package_motion
+from fabflow.programs.motions import (
+    Placement,
+    Route,
+    Waypoint,
+    block_approach,
+    work_package_motion,
+)
+from fabflow.programs.replan import checked_program, replanned_program, with_contacts
 from fabflow.programs.writers.json_stream import write_json_stream
 from fabflow.project import load_project
 from fabflow.robots.catalog import get_robot
@@ -154,3 +166,111 @@ def test_a_clear_program_has_no_contacts_and_the_platform_is_no_obstacle_to_the_
     env = environment(project, T_WORLD_BASE, [], package)
     assert "platform" in set(env.kinds)
     assert check_package(program, project, env, package) == []
+
+
+def _cover(x: float, length: float, z: float = 0.1575) -> Element:
+    """A pre-built block across the first course's place at ``x`` (from above)."""
+    return Element(
+        f"C{x:.2f}",
+        "block",
+        make_pose([x, 1.0, z], yaw=np.pi / 2),
+        extents=np.array([0.6, length, 0.105]),
+        robot_built=False,
+    )
+
+
+def test_a_block_covered_at_one_end_slides_in_and_the_replay_agrees(project) -> None:
+    block = _package()[:1]  # x 3.0 .. 3.6, first course
+    cover = [_cover(3.55, 0.1)]  # covers x 3.5 .. 3.6 from the second course
+    env = environment(project, T_WORLD_BASE, cover, block)
+    placed = placements(env, block, project)["B1"]
+    clearance = project.program.clearance
+    np.testing.assert_allclose(placed.slide, [-(0.1 + 2 * clearance + SLIDE_MARGIN), 0, 0])
+    # the descent starts above the cover (its top 0.21 m, the block's bottom at 0)
+    assert placed.approach == pytest.approx(0.21 + 2 * clearance + SLIDE_MARGIN)
+    program = checked_program("t", block, cover, project, T_WORLD_BASE, {})
+    labels = [m.label for m in program.moves]
+    assert labels[labels.index("seat") + 1] == "place"
+    stream = next(iter(write_json_stream(program).values()))
+    assert replay(stream, [*cover, *block], [c.id for c in cover]) == []
+    # straight down it would have gone through the cover
+    steps = work_package_motion(block, project, T_WORLD_BASE)
+    plain = compile_program("t", steps, project, T_WORLD_BASE, {})
+    assert any(c.obstacle == cover[0].id for c in check_package(plain, project, env, block))
+
+
+def test_no_slide_where_the_way_in_is_blocked_or_the_middle_is_covered(project) -> None:
+    block = _package()[:1]
+    neighbour = Element(
+        "N", "block", make_pose([2.7, 1.0, 0.0525]), extents=SIZE, robot_built=False
+    )
+    for standing in ([_cover(3.55, 0.1), neighbour], [_cover(3.3, 0.1)]):
+        env = environment(project, T_WORLD_BASE, standing, block)
+        assert placements(env, block, project).get("B1", Placement()).slide is None
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(0.02, 0.25), st.booleans(), st.floats(-np.pi, np.pi), st.floats(0.0, 0.3))
+def test_a_slide_clears_what_covers_the_place(project, covered, plus_end, yaw, height) -> None:
+    T = make_pose([3.3, 1.0, 0.0525], yaw=yaw)
+    block = [Element("B1", "block", T, extents=SIZE)]
+    sign = 1.0 if plus_end else -1.0
+    centre = T @ np.r_[sign * (0.3 - covered / 2), 0.0, 0.105 + height, 1.0]
+    cover = Element(
+        "C", "block", make_pose(centre[:3], yaw=yaw), extents=np.array([covered, 0.3, 0.105]),
+        robot_built=False,
+    )  # fmt: skip
+    env = environment(project, T_WORLD_BASE, [cover], block)
+    slide = placements(env, block, project)["B1"].slide
+    along = float(slide @ T[:3, 0])
+    np.testing.assert_allclose(slide, along * T[:3, 0], atol=1e-12)  # along the length
+    # lowered beside its place, the block's end keeps twice the clearance from the cover
+    gap = abs(along) - covered
+    assert np.sign(along) == -sign
+    assert gap >= 2 * project.program.clearance - 1e-9
+
+
+def test_a_tucked_route_turns_at_its_radius_and_the_block_before_tucks_in(project) -> None:
+    package = _package()
+    routes = {"B2": Route(tuck=0.7)}
+    steps = [s for s in work_package_motion(package, project, T_WORLD_BASE, routes) if
+             isinstance(s, Waypoint)]  # fmt: skip
+    radius = {
+        (s.element, s.label): float(np.hypot(*np.linalg.solve(T_WORLD_BASE, s.T_world_tool)[:2, 3]))
+        for s in steps
+    }
+    assert radius[("B1", "tuck in")] == pytest.approx(0.7)
+    assert radius[("B2", "tuck")] == pytest.approx(0.7)
+    assert radius[("B2", "tuck in")] == pytest.approx(0.7)
+    assert ("B1", "tuck") not in radius
+    tuck = next(s for s in steps if s.label == "tuck")
+    pick_up = next(s for s in steps if s.element == "B2" and s.label == "pick approach")
+    assert tuck.kind == "ptp" and tuck.T_world_tool[2, 3] >= pick_up.T_world_tool[2, 3] - 1e-12
+
+
+def test_report_mode_writes_what_still_collides_into_the_program(project) -> None:
+    package = _package()[:1]
+    roof = [
+        Element(
+            "R1", "block", make_pose([3.3, 1.0, 0.2]), extents=np.array([0.6, 0.4, 0.05]),
+            robot_built=False,
+        )
+    ]  # fmt: skip
+    program, contacts = replanned_program("t", package, roof, project, T_WORLD_BASE, {})
+    reported = with_contacts(program, contacts, project.program.clearance)
+    assert reported.checks["collision_moves"] == len({c.move for c in contacts}) > 0
+    assert "R1" in reported.header["collisions"]
+    assert "do not run" in reported.header["collisions"].lower()
+    clean = with_contacts(program, [], project.program.clearance)
+    assert clean.checks["collision_moves"] == 0 and "collisions" not in clean.header
+
+
+@pytest.mark.parametrize("value", [True, False, "report"])
+def test_check_collisions_takes_true_false_or_report(project, value) -> None:
+    settings_ = project.program.model_validate({"check_collisions": value})
+    assert settings_.check_collisions == value
+
+
+def test_check_collisions_rejects_anything_else(project) -> None:
+    with pytest.raises(ValueError, match="check_collisions"):
+        project.program.model_validate({"check_collisions": "sometimes"})

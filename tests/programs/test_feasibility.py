@@ -8,7 +8,7 @@ from program_cases import PROJECT, T_WORLD_BASE, make_pose
 
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError
-from fabflow.programs.compile import compile_program
+from fabflow.programs.assemble import compile_program
 from fabflow.programs.ir import Move, Program
 from fabflow.programs.motions import work_package_motion
 from fabflow.project import load_project

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from program_cases import PROJECT, T_WORLD_BASE, make_pose
 
 from fabflow.design.elements import Element
-from fabflow.programs.compile import compile_program
+from fabflow.programs.assemble import compile_program
 from fabflow.programs.motion_checks import (
     avoidable_swings,
     configuration_of,

@@ -12,7 +12,7 @@ from program_cases import CASES, PROJECT, T_WORLD_BASE, make_pose, sample_progra
 from program_readers import read_krl, read_rapid
 
 from fabflow.design.elements import Element
-from fabflow.programs.compile import compile_program
+from fabflow.programs.assemble import compile_program
 from fabflow.programs.ir import Move, Program
 from fabflow.programs.motions import work_package_motion
 from fabflow.programs.writers import WRITERS
