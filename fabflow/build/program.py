@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from fabflow.build.context import BuildContext
+from fabflow.design.elements import hand_built_stages
 from fabflow.localize.plan import VisitPoses, failed_visits
 from fabflow.programs.compile import write_programs
 
@@ -65,6 +66,18 @@ def stage_program(ctx: BuildContext) -> None:
                     else ""
                 ),
             )
+    elements = ctx.need_elements()
+    plan = ctx.need_plan()
+    order = [e for wp in plan.work_packages for e in wp.elements]
+    stages = hand_built_stages(elements, order)
+    later = sum(k > 0 for k in stages.values())
+    if later:
+        ctx.add(
+            "program",
+            "pre-built elements set by hand as the robot goes",
+            f"{later} of {len(stages)}: each once what it rests on stands "
+            "(program headers: 'hand work'); the collision check assumes so",
+        )
     skipped = sorted(failed(localized))
     if skipped:
         visits = ", ".join(str(i + 1) for i in skipped)

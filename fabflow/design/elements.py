@@ -115,17 +115,30 @@ def hand_built_stages(elements: Sequence[Element], robot_order: Sequence[str]) -
     -------
     dict[str, int]
         Id to ``k``: the element stands once the first ``k`` elements of
-        ``robot_order`` are built (0: from the start). Elements resting on one
-        that is never built are left out.
+        ``robot_order`` are built (0: from the start). An element that rests,
+        directly or through others, on a robot-built element missing from
+        ``robot_order`` (or on a cycle of such elements) counts as standing from
+        the start: the cautious choice for the collision check. Supports naming
+        no element are ignored.
     """
     position = {eid: k + 1 for k, eid in enumerate(robot_order)}
+    robot = {e.id for e in elements if e.robot_built}
+    pre = {e.id: e for e in elements if not e.robot_built}
     stage: dict[str, int] = {}
-    # supports lie below what they carry: one pass from the bottom up
-    pre = [e for e in elements if not e.robot_built]
-    for e in sorted(pre, key=lambda e: float(np.asarray(e.T_world_element)[2, 3])):
-        after = [stage.get(s, position.get(s, -1)) for s in e.supports]
-        if min(after, default=0) >= 0:
-            stage[e.id] = max(after, default=0)
+    pending = dict(pre)
+    while pending:  # what rests on resolved elements resolves; at most one pass per level
+        done = {}
+        for eid, e in pending.items():
+            after = [stage.get(s, position.get(s)) for s in e.supports if s in pre or s in robot]
+            if all(a is not None for a in after):
+                done[eid] = max([a for a in after if a is not None], default=0)
+        if not done:
+            break
+        stage.update(done)
+        pending = {k: v for k, v in pending.items() if k not in done}
+    # resting (through others) on an element that is never built, or on each other:
+    # taken as standing from the start, where the collision check sees them all along
+    stage.update({eid: 0 for eid in pending})
     return stage
 
 

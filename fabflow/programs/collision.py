@@ -226,7 +226,10 @@ def program_motion(program: Program, robot: RobotModel, reach_beyond: float) -> 
     lever = np.maximum(arms[p - 1], arms[p])
     return _Motion(
         moves=moves,
-        stage=2 * np.searchsorted(complete, np.arange(len(moves)), side="right") - own_done,
+        # never back: a HOME move between two moves of one block keeps what came
+        stage=np.maximum.accumulate(
+            2 * np.searchsorted(complete, np.arange(len(moves)), side="right") - own_done
+        ),
         held=held_of,
         seat=np.array(seat, dtype=bool),
         fixed_q=np.vstack(fixed) if fixed else np.zeros((0, robot.dof)),

@@ -39,9 +39,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from fabflow.design.elements import Element, element_boxes
-from fabflow.programs.motions import Placement, T_base_pick_tool, block_approach
+from fabflow.programs.motions import Placement, T_base_pick_tool
 from fabflow.project import Project
-from fabflow.tasks.targets import element_tool_frames
+from fabflow.tasks.targets import block_approach, element_tool_frames
 
 PRINT_CHORD_POINTS = 8
 """Path points per box of a printed layer (the sine wall's points are ~6 mm apart)."""
@@ -372,8 +372,8 @@ def tuck_heights(
     ``radius`` about A1, turns above all the structure it could sweep.
 
     The highest structure box standing while the block is built whose plan
-    outline comes within ``radius`` plus the block's half length plus twice the
-    clearance of the A1 axis, plus the block's height (it hangs below the tool),
+    outline comes within ``radius`` plus half the block's plan diagonal plus
+    twice the clearance of the A1 axis, plus the block's height (it hangs below the tool),
     twice the clearance and :data:`SAFE_MARGIN`. Blocks with no such structure
     are left out.
     """

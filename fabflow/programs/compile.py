@@ -88,6 +88,13 @@ def work_package_program(
         "tool load": _load_note(project),
         "generator": f"fabflow {__version__}",
     }
+    if coming:
+        first, after = min(coming, key=lambda c: c[1])
+        header["hand work"] = (
+            f"{len(coming)} pre-built elements come during this program, each set by hand "
+            f"once what it rests on stands and the tool has left (the first, {first.id}, "
+            f"after {elements[after].id}); the collision check assumes so"
+        )
     options = {"lift": wp.station.lift, "payloads": element_payloads(elements)}
     if not project.program.check_collisions:
         steps = work_package_motion(elements, project, T_world_base)

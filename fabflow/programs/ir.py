@@ -185,6 +185,9 @@ class Program:
     module_motions
         Most motion instructions one program module may hold (the controller
         profile); longer programs are split between elements. ``None``: no limit.
+    confirm
+        Messages the operator must confirm before the first motion, after the
+        lift's (the program stops for each): moves that still collide.
     """
 
     name: str
@@ -199,6 +202,7 @@ class Program:
     load: Load = field(default_factory=lambda: Load(1.0, np.zeros(3)))
     lift: Lift | None = None
     module_motions: int | None = None
+    confirm: tuple[str, ...] = ()
 
     @property
     def moves(self) -> list[Move]:

@@ -24,7 +24,12 @@ import numpy as np
 
 from fabflow.design.elements import Element
 from fabflow.project import Project
-from fabflow.tasks.targets import approach_poses, element_tool_frames
+from fabflow.tasks.targets import (
+    T_base_pick_tool,
+    approach_poses,
+    block_approach,
+    element_tool_frames,
+)
 from fabflow.transforms.so3 import R_FLIP_X
 
 OUTPUTS = {"gripper": 1, "extruder": 2, "drill": 3, "mark": 4, "measure": 5}
@@ -66,37 +71,6 @@ class Action:
 
 
 Step = Waypoint | Action
-
-
-def T_base_pick_tool(project: Project) -> np.ndarray:
-    """Tool pose for gripping a block in the platform magazine, in the robot base frame.
-
-    ``robot.platform.T_platform_pick`` is the centre of the top face of the block
-    waiting in the magazine (z up); the magazine rides on the lift with the arm.
-    """
-    platform = project.robot.platform
-    T_platform_base = platform.T_platform_base.matrix()
-    T_pick = np.linalg.inv(T_platform_base) @ platform.T_platform_pick.matrix()
-    T_pick[:3, :3] = T_pick[:3, :3] @ R_FLIP_X
-    return T_pick
-
-
-APPROACH_MARGIN = 0.005
-"""Added to a block's height and twice the clearance for its approach distance (metres)."""
-
-
-def block_approach(element: Element, project: Project) -> float:
-    """Approach and retract distance of a block (metres).
-
-    ``program.approach`` is a minimum: a held block arriving above its place must
-    clear the neighbours of its course, which stand as high as itself, so the
-    distance is at least the block's height plus twice ``program.clearance``
-    (the clearance kept, and the same again for the blending and the parking
-    error of the arrival) plus :data:`APPROACH_MARGIN`.
-    """
-    settings = project.program
-    height = 0.0 if element.extents is None else float(np.asarray(element.extents)[2])
-    return max(settings.approach, height + 2.0 * settings.clearance + APPROACH_MARGIN)
 
 
 @dataclass(frozen=True)
@@ -382,9 +356,10 @@ def work_package_motion(
 
     ``routes`` gives the blocks re-planned around a collision their route and
     ``placements`` the blocks the structure around their place asks more of
-    their placement (see :func:`element_motion`). A block followed by a tucked one ends with its
-    tool drawn in to the next one's tuck radius, so that the joint move back to
-    the magazine turns the arm tucked too.
+    their placement (see :func:`element_motion`). A tucked block starts by
+    drawing the tool in from where the block before it ended ("tuck in", a move
+    of the tucked block) to its tuck radius, so that the joint move back to the
+    magazine turns the arm tucked too.
     """
     T_world_base = np.asarray(T_world_base, dtype=float)
     T_world_pick = T_world_base @ T_base_pick_tool(project)
@@ -405,7 +380,8 @@ def work_package_motion(
             and following.tuck is not None
             and isinstance(last, Waypoint)
         ):
+            # the next block's move: its route owns it (and is re-planned if it fails)
             T_in = tucked(last.T_world_tool, T_world_base, following.tuck)
             if _apart(T_in, last.T_world_tool):
-                steps.append(Waypoint("lin", T_in, speed, blend, "tuck in", element.id))
+                steps.append(Waypoint("lin", T_in, speed, blend, "tuck in", elements[k + 1].id))
     return steps

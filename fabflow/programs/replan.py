@@ -40,17 +40,24 @@ safe height of a re-planned block (metres): the arm's forearm and wrist pass the
 
 def with_contacts(program: Program, contacts: Sequence[Contact], clearance: float) -> Program:
     """The program with its remaining collisions in its checks (``collision_moves``) and,
-    where there are any, its header (how many moves, the worst)."""
+    where there are any, in its header (how many moves, the worst) and as a stop the
+    operator must confirm before the first motion (``Program.confirm``)."""
     moves = len({c.move for c in contacts})
     checks = {**program.checks, "collision_moves": moves}
-    header = dict(program.header)
-    if contacts:
-        worst = min(contacts, key=lambda c: c.distance)
-        header["collisions"] = (
+    if not contacts:
+        return dataclasses.replace(program, checks=checks)
+    worst = min(contacts, key=lambda c: c.distance)
+    header = {
+        **program.header,
+        "collisions": (
             f"{moves} moves closer than {clearance * 1000:g} mm to an obstacle after "
             f"re-planning; the worst: {worst.describe()}. Do not run them as they are."
-        )
-    return dataclasses.replace(program, header=header, checks=checks)
+        ),
+    }
+    stop = f"{moves} move{'s' if moves != 1 else ''} may collide, see the header"
+    return dataclasses.replace(
+        program, header=header, checks=checks, confirm=(*program.confirm, stop)
+    )
 
 
 def checked_program(
@@ -243,6 +250,8 @@ _TO_MAGAZINE = ("pick approach", "over magazine")
 """Labels of the joint move from the previous block's place back to the magazine."""
 TUCK_FRACTIONS = (1.0, 0.8, 0.6)
 """Tuck radii of the candidate routes, as fractions of the magazine's radius about A1."""
+MIN_TUCK_RADIUS = 0.3
+"""The smallest tuck radius about A1 (metres)."""
 
 
 def candidate_routes(
@@ -270,17 +279,19 @@ def candidate_routes(
         obstacles, elements, T_world_base @ T_base_pick, project.program.clearance, SAFE_WIDTH
     )
     clearance = project.program.clearance
+    # no tuck near the A1 axis, where the wrist nears the shoulder singularity
+    fractions = [f for f in TUCK_FRACTIONS if f * radius >= MIN_TUCK_RADIUS]
     above = [tuck_heights(obstacles, elements, T_world_base, f * radius, clearance)
-             for f in TUCK_FRACTIONS]  # fmt: skip
+             for f in fractions]  # fmt: skip
     out = {}
     for e in elements:
         if e.type != "block":
             continue
         routes = [Route(height=heights[e.id])] if e.id in heights else []
-        routes += [Route(tuck=f * radius) for f in TUCK_FRACTIONS]
+        routes += [Route(tuck=f * radius) for f in fractions]
         routes += [
             Route(height=h[e.id], tuck=f * radius)
-            for f, h in zip(TUCK_FRACTIONS, above, strict=True)
+            for f, h in zip(fractions, above, strict=True)
             if e.id in h
         ]
         out[e.id] = [

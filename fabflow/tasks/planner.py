@@ -33,6 +33,7 @@ from fabflow.errors import InfeasibleError, InputError, UnsupportedError
 from fabflow.project import Project
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.geometry import shoulder_radius
+from fabflow.robots.platform import T_world_base
 from fabflow.robots.reach_model import ReachModel, reach_model
 from fabflow.tasks.cover import CoverResult, select_stations
 from fabflow.tasks.order import (
@@ -56,7 +57,12 @@ from fabflow.tasks.reachability import (
 )
 from fabflow.tasks.split import split_wide_paths
 from fabflow.tasks.stations import Candidates, generate_candidates, lift_levels
-from fabflow.tasks.targets import tool_frames
+from fabflow.tasks.targets import (
+    T_base_pick_tool,
+    block_approach,
+    element_tool_frames,
+    tool_frames,
+)
 from fabflow.tasks.verify import unreachable_targets
 
 SPLIT_FRACTION = 0.35
@@ -187,7 +193,10 @@ def plan_project(
         )
     visits = _visits(A, res.chosen, cands, work, idx_work, (src, dst), T_targets, ids)
     t_ord = time.perf_counter()
-    packages, travel_total = _work_packages(visits, A, res.chosen, cands, lifts, ids, T_targets)
+    singular = _singular_lifts(project, visits, res.chosen, cands, lifts, work)
+    packages, travel_total = _work_packages(
+        visits, A, res.chosen, cands, lifts, ids, T_targets, singular
+    )
     t_end = time.perf_counter()
 
     notes += _station_notes(res, len(cands), len(visits), reach, ids)
@@ -324,10 +333,14 @@ def _work_packages(
     lifts: np.ndarray,
     ids: Sequence[str],
     T_targets: np.ndarray,
+    singular: dict[int, np.ndarray] | None = None,
 ) -> tuple[list[WorkPackage], float]:
     """One work package per stay at one lift height, and the total travel (metres).
 
-    Station ids follow the order of first visit.
+    Station ids follow the order of first visit. ``singular`` gives per visit
+    (its index) the lift levels at which each element's descent is singular
+    (bit masks, :func:`_singular_lifts`): the lift avoids them where another
+    level reaches the element.
     """
     first_visit: dict[int, int] = {}
     for v in visits:
@@ -336,9 +349,12 @@ def _work_packages(
     packages: list[WorkPackage] = []
     prev_xy: np.ndarray | None = None
     travel_total = 0.0
-    for v in visits:
+    for k, v in enumerate(visits):
         c = int(chosen[v.station])
         masks = np.asarray(A_ch_r[v.station, v.elements].todense()).ravel().astype(np.int64)
+        if singular is not None and k in singular:
+            regular = masks & ~singular[k]
+            masks = np.where(regular != 0, regular, masks)
         levels = lift_bands(masks)
         cuts = np.flatnonzero(np.diff(levels)) + 1
         T_wp = cands.T_world_platform(c)
@@ -362,6 +378,69 @@ def _work_packages(
                 )
             )
     return packages, travel_total
+
+
+DESCENT_SAMPLES = 9
+"""Points along a block's descent checked for the wrist singularity."""
+WRIST_MARGIN_DEG = 10.0
+"""A descent with A5 closer to 0 than this counts as singular: the platform parks a
+few centimetres off its plan, which moves A5 by a few degrees there."""
+
+
+def _singular_lifts(
+    project: Project,
+    visits: Sequence[Visit],
+    chosen: np.ndarray,
+    cands: Candidates,
+    lifts: np.ndarray,
+    work: Sequence[Element],
+) -> dict[int, np.ndarray]:
+    """Per visit, the lift levels at which each block's descent passes the wrist singularity.
+
+    A block goes straight down from its approach pose (:func:`block_approach`)
+    onto its place by a linear move; where A5 changes sign, or comes within
+    :data:`WRIST_MARGIN_DEG` of 0, on the way on every
+    inverse kinematics branch that follows the whole descent and also reaches
+    the magazine (a block's motion keeps one configuration), the controller
+    would refuse the move (or the wrist axes must be interpolated, tilting the
+    block between its neighbours). Returns visit index -> ``(m,)`` int bit masks
+    over ``lifts`` (bit ``l``: singular at level ``l``) for the visit's
+    elements; a robot without six axes gets none.
+    """
+    robot = get_robot(project.robot.model)
+    if robot.dof != 6:
+        return {}
+    T_tool_flange = np.linalg.inv(project.robot.tool.T_flange_tool.matrix())
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
+    frac = np.linspace(0.0, 1.0, DESCENT_SAMPLES)
+    # the branches that also reach the magazine: a block's motion keeps one
+    _, at_pick = robot.ik_batch((T_base_pick_tool(project) @ T_tool_flange)[None])
+    out: dict[int, np.ndarray] = {}
+    for k, v in enumerate(visits):
+        blocks = [i for i, e in enumerate(v.elements) if work[e].type == "block"]
+        if not blocks:
+            continue
+        T_place = np.stack([element_tool_frames(work[v.elements[i]])[0] for i in blocks])
+        up = np.array([block_approach(work[v.elements[i]], project) for i in blocks])
+        # (blocks, samples, 4, 4): the tool from its approach pose down to the place
+        T_path = np.repeat(T_place[:, None], DESCENT_SAMPLES, axis=1)
+        T_path[..., 2, 3] += up[:, None] * frac[None, ::-1]
+        T_wb = T_world_base(
+            cands.T_world_platform(int(chosen[v.station])), lifts, T_platform_base
+        )  # (L, 4, 4)
+        T = np.linalg.inv(T_wb)[:, None, None] @ T_path[None] @ T_tool_flange
+        q, valid = robot.ik_batch(T.reshape(-1, 4, 4))
+        shape = (len(lifts), len(blocks), DESCENT_SAMPLES, valid.shape[-1])
+        a5 = q[..., 4].reshape(shape)
+        valid = valid.reshape(shape).all(axis=2) & at_pick[0]  # the whole descent and the pick
+        near = (np.abs(a5) < np.radians(WRIST_MARGIN_DEG)).any(axis=2)
+        flips = (np.sign(a5) != np.sign(a5[:, :, :1])).any(axis=2) | near
+        bad = (valid & ~flips).sum(axis=-1) == 0
+        bad &= valid.any(axis=-1)  # unreachable levels are the reach mask's business
+        masks = np.zeros(len(v.elements), dtype=np.int64)
+        masks[blocks] = (bad.astype(np.int64) << np.arange(len(lifts))[:, None]).sum(axis=0)
+        out[k] = masks
+    return out
 
 
 def _station_notes(

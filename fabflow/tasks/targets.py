@@ -18,6 +18,7 @@ import numpy as np
 
 from fabflow.design.elements import Element
 from fabflow.design.print_path import element_tool_frames as print_path_tool_frames
+from fabflow.project import Project
 from fabflow.transforms.so3 import R_FLIP_X
 
 
@@ -106,6 +107,37 @@ def approach_poses(T_world_tool: np.ndarray, along_tool: np.ndarray, distance: f
     T[..., 2, 3] += np.where(along, 0.0, distance)
     T[..., :3, 3] -= along[..., None] * T[..., :3, 2] * distance
     return T
+
+
+def T_base_pick_tool(project: Project) -> np.ndarray:
+    """Tool pose for gripping a block in the platform magazine, in the robot base frame.
+
+    ``robot.platform.T_platform_pick`` is the centre of the top face of the block
+    waiting in the magazine (z up); the magazine rides on the lift with the arm.
+    """
+    platform = project.robot.platform
+    T_platform_base = platform.T_platform_base.matrix()
+    T_pick = np.linalg.inv(T_platform_base) @ platform.T_platform_pick.matrix()
+    T_pick[:3, :3] = T_pick[:3, :3] @ R_FLIP_X
+    return T_pick
+
+
+APPROACH_MARGIN = 0.005
+"""Added to a block's height and twice the clearance for its approach distance (metres)."""
+
+
+def block_approach(element: Element, project: Project) -> float:
+    """Approach and retract distance of a block (metres).
+
+    ``program.approach`` is a minimum: a held block arriving above its place must
+    clear the neighbours of its course, which stand as high as itself, so the
+    distance is at least the block's height plus twice ``program.clearance``
+    (the clearance kept, and the same again for the blending and the parking
+    error of the arrival) plus :data:`APPROACH_MARGIN`.
+    """
+    settings = project.program
+    height = 0.0 if element.extents is None else float(np.asarray(element.extents)[2])
+    return max(settings.approach, height + 2.0 * settings.clearance + APPROACH_MARGIN)
 
 
 def element_targets(elements: Sequence[Element]) -> np.ndarray:

@@ -31,7 +31,7 @@ def test_a_stack_alternating_robot_and_hand() -> None:
         _block("R5", 0.35, (), True),
     ]
     stages = hand_built_stages(elements, ["R1", "R3"])
-    assert stages == {"H0": 0, "H2": 1}  # H4 rests on R5, which is never built
+    assert stages == {"H0": 0, "H2": 1, "H4": 0}  # on R5, never built: there all along
     stages = hand_built_stages(elements, ["R5", "R1", "R3"])
     assert stages == {"H0": 0, "H2": 2, "H4": 3}
     timeline = structure_timeline(elements, [["R5", "R1"], ["R3"]])
@@ -83,3 +83,18 @@ def test_the_cabin_walls_rise_with_the_robot_and_the_gable_comes_last() -> None:
     top = max(e.layer for e in rear)
     first_of_top = min(robot.index(e.id) + 1 for e in rear if e.layer == top)
     assert gable and min(stages[g] for g in gable) >= first_of_top
+
+
+def test_the_order_of_the_elements_does_not_matter() -> None:
+    # H1 rests on H2 at the same height, H3 on a cycle with H4, H5 on an unknown id
+    elements = [
+        _block("H1", 0.15, ("H2",), False),
+        _block("H2", 0.15, ("R0",), False),
+        _block("R0", 0.05, (), True),
+        _block("H3", 0.25, ("H4",), False),
+        _block("H4", 0.25, ("H3",), False),
+        _block("H5", 0.05, ("nothing",), False),
+    ]
+    expected = {"H1": 1, "H2": 1, "H3": 0, "H4": 0, "H5": 0}
+    assert hand_built_stages(elements, ["R0"]) == expected
+    assert hand_built_stages(elements[::-1], ["R0"]) == expected

@@ -7,7 +7,8 @@ import pytest
 from collision_replay import opw_fk, replay
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from program_cases import PROJECT, make_pose
+from program_cases import CASES, PROJECT, make_pose, sample_program
+from program_readers import read_krl, read_rapid
 
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError
@@ -24,15 +25,17 @@ from fabflow.programs.motions import (
     Placement,
     Route,
     Waypoint,
-    block_approach,
     work_package_motion,
 )
 from fabflow.programs.replan import checked_program, replanned_program, with_contacts
+from fabflow.programs.writers import writer_for
 from fabflow.programs.writers.json_stream import write_json_stream
 from fabflow.project import load_project
 from fabflow.robots.catalog import get_robot
+from fabflow.tasks.targets import block_approach
 
 SIZE = np.array([0.6, 0.105, 0.105])
+READERS = {"krl": read_krl, "rapid": read_rapid}
 T_WORLD_BASE = make_pose([2.0, 1.0, 0.6])
 
 
@@ -230,22 +233,26 @@ def test_a_slide_clears_what_covers_the_place(project, covered, plus_end, yaw, h
     assert gap >= 2 * project.program.clearance - 1e-9
 
 
-def test_a_tucked_route_turns_at_its_radius_and_the_block_before_tucks_in(project) -> None:
+def test_a_tucked_route_turns_at_its_radius_and_starts_by_tucking_in(project) -> None:
     package = _package()
     routes = {"B2": Route(tuck=0.7)}
     steps = [s for s in work_package_motion(package, project, T_WORLD_BASE, routes) if
              isinstance(s, Waypoint)]  # fmt: skip
-    radius = {
-        (s.element, s.label): float(np.hypot(*np.linalg.solve(T_WORLD_BASE, s.T_world_tool)[:2, 3]))
-        for s in steps
-    }
-    assert radius[("B1", "tuck in")] == pytest.approx(0.7)
-    assert radius[("B2", "tuck")] == pytest.approx(0.7)
-    assert radius[("B2", "tuck in")] == pytest.approx(0.7)
-    assert ("B1", "tuck") not in radius
-    tuck = next(s for s in steps if s.label == "tuck")
-    pick_up = next(s for s in steps if s.element == "B2" and s.label == "pick approach")
-    assert tuck.kind == "ptp" and tuck.T_world_tool[2, 3] >= pick_up.T_world_tool[2, 3] - 1e-12
+
+    def radius(s: Waypoint) -> float:
+        return float(np.hypot(*np.linalg.solve(T_WORLD_BASE, s.T_world_tool)[:2, 3]))
+
+    b1 = [s for s in steps if s.element == "B1"]
+    b2 = [s for s in steps if s.element == "B2"]
+    assert not any("tuck" in s.label for s in b1)
+    # B2 draws the tool in from where B1 ended, at B1's height, to its own radius
+    assert b2[0].label == "tuck in" and radius(b2[0]) == pytest.approx(0.7)
+    assert b2[0].T_world_tool[2, 3] == pytest.approx(b1[-1].T_world_tool[2, 3])
+    tuck = next(s for s in b2 if s.label == "tuck")
+    pick_up = next(s for s in b2 if s.label == "pick approach")
+    assert tuck.kind == "ptp" and radius(tuck) == pytest.approx(0.7)
+    assert tuck.T_world_tool[2, 3] >= pick_up.T_world_tool[2, 3] - 1e-12
+    assert b2[-1].label == "tuck in" and radius(b2[-1]) == pytest.approx(0.7)
 
 
 def test_report_mode_writes_what_still_collides_into_the_program(project) -> None:
@@ -261,8 +268,20 @@ def test_report_mode_writes_what_still_collides_into_the_program(project) -> Non
     assert reported.checks["collision_moves"] == len({c.move for c in contacts}) > 0
     assert "R1" in reported.header["collisions"]
     assert "do not run" in reported.header["collisions"].lower()
+    assert len(reported.confirm) == 1 and "collide" in reported.confirm[0]
+    for fmt, robot in CASES:  # every writer stops for the operator before the first motion
+        sample = with_contacts(sample_program(robot), contacts, project.program.clearance)
+        files = writer_for(fmt, robot).write(sample)
+        text = "".join(files.values())
+        if fmt in READERS:
+            before, message = READERS[fmt](files).operator_steps[-1]
+            assert before == 0 and sample.confirm[0] in message
+        else:
+            first_motion = '"setpoint"' if fmt == "json" else "movej("
+            assert text.index(sample.confirm[0]) < text.index(first_motion)
     clean = with_contacts(program, [], project.program.clearance)
     assert clean.checks["collision_moves"] == 0 and "collisions" not in clean.header
+    assert clean.confirm == ()
 
 
 @pytest.mark.parametrize("value", [True, False, "report"])

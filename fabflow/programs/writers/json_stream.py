@@ -58,6 +58,7 @@ def write_json_stream(program: Program) -> dict[str, str]:
         commands.append({"t": 0.0, "type": "axis", "name": lift.axis, "value": lift.height})
     elif lift is not None:
         commands.append({"t": 0.0, "type": "confirm", "text": lift_message(lift)})
+    commands += [{"t": 0.0, "type": "confirm", "text": m} for m in program.confirm]
     for ins in program.instructions:
         start, t_prev = t_prev, ins.time
         if isinstance(ins, Move):

@@ -96,6 +96,8 @@ def _module_text(
         src.append(_load(program.load))
         if program.lift is not None and lift is None:
             src += [f"; OPERATOR: {lift_message(program.lift)}, then press Start", "HALT"]
+        for message in program.confirm:
+            src += [f"; OPERATOR: {message}, then press Start", "HALT"]
     moves = [i for i in body if isinstance(i, Move)]
     cartesian = [m for m in moves if not m.joint]
     if cartesian:

@@ -287,12 +287,18 @@ def write_rapid(program: Program, max_moves: int | None = None) -> dict[str, str
     ]
     operator: list[str] = []
     if program.lift is not None and program.lift.axis is None:
-        head.append("    VAR num answer;")
         operator = [
             f'    TPWrite "fabflow: {lift_message(program.lift)}";',
             f'    TPReadFK answer, "Lift at {program.lift.height * 1000.0:.0f} mm?", "OK", '
             "stEmpty, stEmpty, stEmpty, stEmpty;",
         ]
+    for message in program.confirm:
+        operator += [
+            f'    TPWrite "fabflow: {message}";',
+            '    TPReadFK answer, "Continue?", "OK", stEmpty, stEmpty, stEmpty, stEmpty;',
+        ]
+    if operator:
+        head.append("    VAR num answer;")
     text = [*head, "    ConfJ \\On;", "    ConfL \\On;", *operator, *lines, "  ENDPROC"]
     return {f"{name}.mod": "\n".join([*text, "ENDMODULE"]) + "\n", **files}
 

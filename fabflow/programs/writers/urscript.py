@@ -66,6 +66,10 @@ def write_urscript(program: Program) -> dict[str, str]:
             f'  popup("fabflow: {lift_message(program.lift)}, then Continue", '
             'title="lift", blocking=True)'
         )
+    lines += [
+        f'  popup("fabflow: {message}, then Continue", title="fabflow", blocking=True)'
+        for message in program.confirm
+    ]
     previous: Move | None = None
     current: Move | None = None
     waited = since = 0.0  # seconds of dwell before the current move, since the last

@@ -86,14 +86,20 @@ def check_read_back(read: ReadProgram, program: Program, vendor: str) -> None:
         np.testing.assert_allclose(cog, cog_ref, atol=1e-6)
     # the lift: an external axis in every target, or an operator stop before any motion
     lift = program.lift
+    stops = read.operator_steps
+    # the stops for moves that still collide come after the lift's, before any motion
+    confirmed = stops[len(stops) - len(program.confirm) :]
+    assert all(c in m for (_, m), c in zip(confirmed, program.confirm, strict=True))
+    assert all(n == 0 for n, _ in stops)
+    stops = stops[: len(stops) - len(program.confirm)]
     if lift is not None and lift.axis is not None:
-        assert read.operator_steps == []
+        assert stops == []
         for motion in motions:
             assert motion.external == {lift.axis: pytest.approx(lift.height * 1000.0, abs=1e-3)}
     else:
         assert all(m.external == {} for m in motions)
     if lift is not None and lift.axis is None:
-        ((before, message),) = read.operator_steps
+        ((before, message),) = stops
         assert before == 0
         assert f"{lift.height * 1000.0:.0f} mm" in message
     # module structure: limits, exact ends, no LIN first, elements whole
