@@ -39,9 +39,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from fabflow.design.elements import Element, element_boxes
-from fabflow.programs.motions import Placement, T_base_pick_tool
+from fabflow.programs.motions import Placement
 from fabflow.project import Project
-from fabflow.tasks.targets import block_approach, element_tool_frames
+from fabflow.tasks.targets import T_base_pick_tool, block_approach, element_tool_frames
 
 PRINT_CHORD_POINTS = 8
 """Path points per box of a printed layer (the sine wall's points are ~6 mm apart)."""

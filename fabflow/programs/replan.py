@@ -29,9 +29,10 @@ from fabflow.programs.collision_model import (
 )
 from fabflow.programs.ir import Program
 from fabflow.programs.motion_checks import needless_swings, wrist_flips
-from fabflow.programs.motions import Placement, Route, T_base_pick_tool, work_package_motion
+from fabflow.programs.motions import Placement, Route, work_package_motion
 from fabflow.project import Project
 from fabflow.robots.catalog import get_robot
+from fabflow.tasks.targets import T_base_pick_tool
 
 SAFE_WIDTH = 0.5
 """Plan distance from the line magazine - place within which the structure sets the
