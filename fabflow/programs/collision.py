@@ -43,11 +43,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from fabflow.design.elements import Element
-from fabflow.programs.collision_model import Obstacles, held_box, part_of
+from fabflow.programs.collision_model import Obstacles, box_aabb, held_box, part_of
 from fabflow.programs.collision_phases import (
     Narrow,
     aabb_pairs,
-    box_aabb,
     capsule_frames,
     ranges,
 )

@@ -342,7 +342,7 @@ def safe_heights(
     tool), twice the clearance and :data:`SAFE_MARGIN`.
     """
     structure = obstacles.kinds == "structure"
-    lo, hi = _box_aabb_world(obstacles.T, obstacles.extents)
+    lo, hi = box_aabb(obstacles.T, obstacles.extents)
     centre = 0.5 * (lo[:, :2] + hi[:, :2])
     half = 0.5 * np.linalg.norm(hi[:, :2] - lo[:, :2], axis=1)
     a = np.asarray(T_world_pick, dtype=float)[:2, 3]
@@ -378,7 +378,7 @@ def tuck_heights(
     are left out.
     """
     structure = obstacles.kinds == "structure"
-    lo, hi = _box_aabb_world(obstacles.T, obstacles.extents)
+    lo, hi = box_aabb(obstacles.T, obstacles.extents)
     axis = np.asarray(T_world_base, dtype=float)[:2, 3]
     # plan distance of each box from the A1 axis
     gap = np.linalg.norm(np.maximum(np.maximum(lo[:, :2] - axis, axis - hi[:, :2]), 0.0), axis=1)
@@ -395,9 +395,10 @@ def tuck_heights(
     return out
 
 
-def _box_aabb_world(T: np.ndarray, extents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    half = 0.5 * np.einsum("kij,kj->ki", np.abs(T[:, :3, :3]), extents)
-    return T[:, :3, 3] - half, T[:, :3, 3] + half
+def box_aabb(T: np.ndarray, extents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(..., 3) lower and upper corners of the axis-aligned boxes around oriented boxes."""
+    half = 0.5 * np.einsum("...ij,...j->...i", np.abs(T[..., :3, :3]), extents)
+    return T[..., :3, 3] - half, T[..., :3, 3] + half
 
 
 SLIDE_MARGIN = 0.005
@@ -452,7 +453,10 @@ def placements(
             continue
         T_block = np.asarray(e.T_world_element, dtype=float)
         half = 0.5 * np.asarray(e.extents, dtype=float)
-        lo, hi = _local_aabbs(T_block, obstacles.T[standing], obstacles.extents[standing])
+        # the standing boxes' bounding boxes in the block's frame
+        lo, hi = box_aabb(
+            np.linalg.solve(T_block, obstacles.T[standing]), obstacles.extents[standing]
+        )
         shift = _slide(lo, hi, half, clearance)
         # what stands around the footprint (at the place and where it is lowered)
         grow = 2.0 * clearance + SLIDE_MARGIN
@@ -492,15 +496,6 @@ def _slide(lo: np.ndarray, hi: np.ndarray, half: np.ndarray, clearance: float) -
     column = _overlap(lo, hi, [shift - half[0], -half[1], -half[2]],
                       [shift + half[0], half[1], np.inf])  # fmt: skip
     return 0.0 if (path | column).any() else shift
-
-
-def _local_aabbs(
-    T_block: np.ndarray, T: np.ndarray, extents: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The boxes' bounding boxes in the block's frame, (K, 3) each."""
-    T_local = np.linalg.solve(T_block, T)
-    half = 0.5 * np.einsum("kij,kj->ki", np.abs(T_local[:, :3, :3]), extents)
-    return T_local[:, :3, 3] - half, T_local[:, :3, 3] + half
 
 
 def _overlap(lo: np.ndarray, hi: np.ndarray, a: Sequence[float], b: Sequence[float]) -> np.ndarray:

@@ -141,9 +141,3 @@ def aabb_pairs(
     overlap = np.all((a_lo[ia] <= b_hi[ib]) & (a_hi[ia] >= b_lo[ib]), axis=1)
     keep = once & overlap
     return ia[keep], ib[keep]
-
-
-def box_aabb(T: np.ndarray, extents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(..., 3) lower and upper corners of the axis-aligned boxes around oriented boxes."""
-    half = 0.5 * np.einsum("...ij,...j->...i", np.abs(T[..., :3, :3]), extents)
-    return T[..., :3, 3] - half, T[..., :3, 3] + half
