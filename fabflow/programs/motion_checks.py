@@ -180,7 +180,8 @@ def program_checks(
         ``swing_moves`` (their indices), ``avoidable_swings`` (or None),
         ``configuration_changes`` between
         consecutive targets, ``configurations`` (the distinct branches used),
-        and ``changes_inside_lin`` (linear moves whose configuration changes).
+        and ``changes_inside_lin`` (linear moves whose configuration changes) and
+        ``inside_lin_moves`` (their indices).
     """
     q = np.asarray(q, dtype=float)
     ptp = np.array([k == "ptp" for k in kinds], dtype=bool)
@@ -196,10 +197,11 @@ def program_checks(
     config = configuration_of(robot, q)
     targets = config[cartesian]
     changes = int((targets[1:] != targets[:-1]).sum()) if len(targets) > 1 else 0
-    inside = 0
+    inside = []
     for k in np.flatnonzero(~ptp[1:]) + 1:
         path = q[k - 1 : k + 1] if via_q[k] is None else np.vstack([q[k - 1], via_q[k], q[k]])
-        inside += wrist_flips(path) or config[k] != config[k - 1]
+        if wrist_flips(path) or config[k] != config[k - 1]:
+            inside.append(int(k))
     return {
         "moves": n,
         "ptp_moves": int(ptp.sum()),
@@ -208,5 +210,6 @@ def program_checks(
         "avoidable_swings": avoidable,
         "configuration_changes": changes,
         "configurations": sorted({int(c) for c in targets}),
-        "changes_inside_lin": int(inside),
+        "changes_inside_lin": len(inside),
+        "inside_lin_moves": inside,
     }

@@ -28,10 +28,8 @@ from fabflow.programs.collision_model import (
     tuck_heights,
 )
 from fabflow.programs.ir import Program
-from fabflow.programs.motion_checks import needless_swings, wrist_flips
 from fabflow.programs.motions import Placement, Route, work_package_motion
 from fabflow.project import Project
-from fabflow.robots.catalog import get_robot
 from fabflow.tasks.targets import T_base_pick_tool
 
 SAFE_WIDTH = 0.5
@@ -145,7 +143,8 @@ def replanned_program(
     candidates = candidate_routes(elements, project, T_world_base, obstacles)
     index = {e.id: j for j, e in enumerate(elements)}
     level: dict[str, int] = {}
-    tried = {e: {-1: d} for e, d in _defects(program, contacts).items() if e in candidates}
+    defects = _defects(program, contacts)
+    tried = {e: {-1: d} for e, d in defects.items() if e in candidates}
     best = (_total(program, contacts), program, contacts)
     for _ in range(REPLAN_ROUNDS):
         # a route's own linear moves through A5 = 0 send its block on to the next route
@@ -157,7 +156,6 @@ def replanned_program(
             for c in faults
             if c.element in index and index[c.element] > 0 and c.label in _TO_MAGAZINE
         } & set(candidates)
-        defects = _defects(program, contacts)
         trial = dict(level)
         for eid in hit:  # the next route; len(candidates): out of routes, none
             k = level.get(eid, -1) + 1
@@ -176,7 +174,8 @@ def replanned_program(
         program, level = compiled
         contacts = check_package(program, project, obstacles, elements)
         best = min(best, (_total(program, contacts), program, contacts), key=lambda b: b[0])
-        for eid, d in _defects(program, contacts).items():
+        defects = _defects(program, contacts)
+        for eid, d in defects.items():
             if eid in candidates and level.get(eid, -1) < len(candidates[eid]):
                 tried[eid].setdefault(level.get(eid, -1), d)
     # each block on the route where its own moves fared best, checked as a whole
@@ -193,32 +192,21 @@ def replanned_program(
 
 
 def _swings(program: Program) -> list[Contact]:
-    """The program's wide swings (:func:`fabflow.programs.motion_checks.needless_swings`),
-    as contacts of distance 0 with nothing, for the re-planning."""
-    moves = program.moves
-    if len(moves) < 2:
-        return []
-    q = np.stack([m.q for m in moves])
-    ptp = np.array([m.kind == "ptp" for m in moves[1:]], dtype=bool)
-    wide = needless_swings(get_robot(program.robot), q[:-1], q[1:]) & ptp
-    return [
-        Contact(k + 1, moves[k + 1].element, moves[k + 1].label, "arm", "swing", 0.0)
-        for k in np.flatnonzero(wide)
-    ]
+    """The program's wide swings (``Program.checks["swing_moves"]``), as contacts of
+    distance 0 with nothing, for the re-planning."""
+    return _as_contacts(program, program.checks.get("swing_moves", []), "arm", "swing")
 
 
 def _flips(program: Program) -> list[Contact]:
-    """The program's linear moves that take A5 through 0 (a configuration change the
-    controller refuses), as contacts for the re-planning."""
+    """The program's linear moves whose configuration changes, A5 through 0 (a change
+    the controller refuses; ``Program.checks["inside_lin_moves"]``), as contacts for
+    the re-planning."""
+    return _as_contacts(program, program.checks.get("inside_lin_moves", []), "wrist", "A5 = 0")
+
+
+def _as_contacts(program: Program, which: Sequence[int], body: str, what: str) -> list[Contact]:
     moves = program.moves
-    out = []
-    for k in range(1, len(moves)):
-        m = moves[k]
-        if m.kind == "lin" and not m.wrist_interpolated:
-            path = np.vstack([moves[k - 1].q, *([] if m.via_q is None else [m.via_q]), m.q])
-            if wrist_flips(path):
-                out.append(Contact(k, m.element, m.label, "wrist", "A5 = 0", 0.0))
-    return out
+    return [Contact(k, moves[k].element, moves[k].label, body, what, 0.0) for k in which]
 
 
 def _defects(program: Program, contacts: list[Contact]) -> dict[str | None, tuple[int, ...]]:
