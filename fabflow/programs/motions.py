@@ -226,20 +226,20 @@ def _block_motion(
     if tuck is not None and T_world_base is None:
         raise ValueError("a tucked route needs the station's base pose")
     low = max(pick_up[2, 3], seat_up[2, 3])
-    h_pick = h_place = max(low, route.height if route.height is not None else low)
+    height = max(low, route.height if route.height is not None else low)
     steps = []
-    if h_pick > pick_up[2, 3] + 1e-3 and tuck is not None:
+    if height > pick_up[2, 3] + 1e-3 and tuck is not None:
         # come down onto the magazine from the tucked height
         steps.append(
-            Waypoint("ptp", _raised(pick_up, h_pick), PTP_SPEED, blend, "over magazine", eid)
+            Waypoint("ptp", _raised(pick_up, height), PTP_SPEED, blend, "over magazine", eid)
         )
         steps.append(Waypoint("lin", pick_up, speed, blend, "pick approach", eid))
     else:
         steps.append(Waypoint("ptp", pick_up, PTP_SPEED, blend, "pick approach", eid))
     steps += _grip(T_pick, pick_up, speed, blend, eid)
-    if h_pick > pick_up[2, 3] + 1e-3:
-        steps.append(Waypoint("lin", _raised(pick_up, h_pick), speed, blend, "lift", eid))
-    above = _raised(seat_up, h_place)
+    if height > pick_up[2, 3] + 1e-3:
+        steps.append(Waypoint("lin", _raised(pick_up, height), speed, blend, "lift", eid))
+    above = _raised(seat_up, height)
     here = above
     if tuck is None:
         label = "travel" if _apart(above, seat_up) else "place approach"
@@ -254,7 +254,7 @@ def _block_motion(
     if _apart(here, seat_up):
         steps.append(Waypoint(kind, seat_up, vertical, blend, "place approach", eid))
     steps += placing
-    depart = _raised(place_up, h_place)
+    depart = _raised(place_up, height)
     if _apart(depart, place_up):
         steps.append(Waypoint(kind, depart, vertical, blend, "depart", eid))
     if tuck is not None:
