@@ -29,6 +29,7 @@ import contextlib
 import ctypes
 import ctypes.util
 import errno
+import functools
 import json
 import math
 import os
@@ -493,8 +494,18 @@ def json_text(data: Any, indent: int | None = 2) -> str:
     indent
         Spaces per level (``None``: one line).
     """
-    text = json.dumps(json_safe(data), indent=indent, default=_json_default, allow_nan=False)
+    encoder = _encoder(indent)
+    try:  # most data holds only finite numbers: written as is, without a converted copy
+        text = encoder.encode(data)
+    except ValueError:
+        text = encoder.encode(json_safe(data))
     return text + "\n"
+
+
+@functools.cache
+def _encoder(indent: int | None) -> json.JSONEncoder:
+    """One encoder per indent, reused (a program's stream writes thousands of lines)."""
+    return json.JSONEncoder(indent=indent, default=_json_default, allow_nan=False)
 
 
 def write_json(path: str | Path, data: Any) -> Path:

@@ -411,11 +411,10 @@ def _nearest_turn(robot: RobotModel, q: np.ndarray, q_ref: np.ndarray) -> np.nda
     """
     lo, hi = robot.joint_limits[:, 0], robot.joint_limits[:, 1]
     multi_turn = hi - lo > 2.0 * np.pi
-    ref = np.broadcast_to(q_ref, q.shape)
-    turned = q.copy()
-    turned[:, multi_turn] = ref[:, multi_turn] + wrap_angle(q[:, multi_turn] - ref[:, multi_turn])
+    turned = np.where(multi_turn, q_ref + wrap_angle(q - q_ref), q)
     outside = ((turned < lo - 1e-9) | (turned > hi + 1e-9)).any(axis=1)
     if outside.any():
+        ref = np.broadcast_to(q_ref, q.shape)
         turned[outside] = robot.nearest_turn(q[outside], ref[outside])
     return turned
 

@@ -32,6 +32,8 @@ SWING_A1_EXCESS_DEG = 30.0
 """A PTP turning A1 this much (degrees) more than the wrist centre moves about it turns around."""
 _SAME_ANGLE = 1e-4
 """Two joint values closer than this (radians, modulo a turn) are the same branch."""
+_A5_ZERO = 5e-10
+"""A5 values closer to 0 than this (radians) have no sign (at the singularity)."""
 _WRIST_FRAME = 4
 """Index in :meth:`RobotModel.frames` of the frame at the wrist centre (DH frame 4)."""
 
@@ -140,9 +142,8 @@ def avoidable_swings(
 
 def wrist_flips(q_path: np.ndarray) -> bool:
     """Whether A5 changes sign along a joint path ``(k, dof)`` (the wrist configuration flips)."""
-    a5 = np.sign(np.round(q_path[:, 4], 9))
-    a5 = a5[a5 != 0]
-    return bool(len(a5) and (a5 != a5[0]).any())
+    a5 = q_path[:, 4]
+    return bool((a5 >= _A5_ZERO).any() and (a5 <= -_A5_ZERO).any())
 
 
 def program_checks(
