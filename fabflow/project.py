@@ -229,7 +229,23 @@ class TotalStationSetup(StrictModel):
     distance_sigma_mm: PositiveFloat | None = None
     distance_ppm: NonNegativeFloat | None = None
     angle_sigma_arcsec: PositiveFloat | None = None
-    T_world_instrument: PoseSpec = PoseSpec(xyz=(-3.0, -3.0, 1.6))
+    T_world_instrument: PoseSpec | None = None
+    """Where the instrument stands (world). Given: checked against every visit and used
+    for all of them; absent: the set-ups are planned (:mod:`fabflow.localize.setups`)."""
+    tripod_height: tuple[PositiveFloat, PositiveFloat] = (1.3, 1.8)
+    """Range of trunnion heights above the ground of a planned set-up (metres)."""
+    setup_spacing: Annotated[float, Field(ge=0.1, le=5.0)] = 0.5
+    """Grid spacing of the candidate set-up positions on the site (metres)."""
+    stationing: Literal["control_points", "robot_points"] = "control_points"
+    """How each planned set-up is registered to the site: free stationing on the fixed
+    ``control_points`` (paper 001, Procedure B), or on prisms the robot holds at its last
+    visit, their world positions from its last localization (Procedure A: errors carry
+    over from set-up to set-up). The first set-up always uses the control points."""
+    control_points: dict[str, Vec3] = {}
+    """Surveyed control points (world, metres) for free stationing; default: the four
+    corners of the site, 0.3 m above the ground."""
+    control_sigma_mm: NonNegativeFloat = 1.0
+    """Standard deviation of the control points' survey, per axis (mm)."""
     procedure: Literal["three_point", "arbitrary"] = "arbitrary"
     n_points: Annotated[Count, Field(ge=3, le=50)] = 4
     observations: ExistingPath | None = None
@@ -261,6 +277,10 @@ class TotalStationSetup(StrictModel):
             )
         if (self.observations is None) != (self.robot_points is None):
             raise ValueError("'observations' and 'robot_points' must be given together")
+        if self.tripod_height[0] > self.tripod_height[1]:
+            raise ValueError("'tripod_height' must be (lowest, highest)")
+        if 0 < len(self.control_points) < 2:
+            raise ValueError("'control_points' needs at least 2 points for free stationing")
         return self
 
 
@@ -485,6 +505,18 @@ class Project(StrictModel):
                 f"{len(self.planning.headings_deg)} headings makes {n_cand:.4g} candidate "
                 f"stations, more than limits.max_candidates = {lim.max_candidates}",
             )
+        ts = self.localization.total_station
+        if ts is not None and ts.T_world_instrument is None:
+            n_setups = _grid_points(x0, x1, ts.setup_spacing) * _grid_points(
+                y0, y1, ts.setup_spacing
+            )
+            if n_setups > lim.max_candidates:
+                raise located(
+                    ("localization", "total_station", "setup_spacing"),
+                    f"a site of {x1 - x0:g} x {y1 - y0:g} m at {ts.setup_spacing:g} m spacing "
+                    f"makes {n_setups:.4g} candidate instrument positions, more than "
+                    f"limits.max_candidates = {lim.max_candidates}",
+                )
         uwb = self.localization.uwb
         if uwb is not None:
             ranges = uwb.dwell_s * uwb.rate_hz * len(uwb.tags) * len(uwb.anchors)

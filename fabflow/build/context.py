@@ -15,6 +15,7 @@ from pathlib import Path
 
 from fabflow.design.elements import Element
 from fabflow.localize.plan import VisitPoses
+from fabflow.localize.setups import InstrumentSetup
 from fabflow.preview.export import ExportResult
 from fabflow.programs.ir import Program
 from fabflow.project import Project
@@ -36,6 +37,8 @@ class BuildContext:
         paths no single station can print by their per-station pieces).
     plan
         Stations and work packages (``plan``).
+    setups
+        The total station's set-ups (``plan``; None for the other methods).
     localization
         Per work package, the estimated base pose and the true one (``localize``).
     programs
@@ -50,6 +53,7 @@ class BuildContext:
     out: Path
     elements: list[Element] | None = None
     plan: Plan | None = None
+    setups: tuple[InstrumentSetup, ...] | None = None
     localization: VisitPoses | None = None
     programs: list[Program] | None = None
     preview: ExportResult | None = None

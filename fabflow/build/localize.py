@@ -25,7 +25,7 @@ def stage_localize(ctx: BuildContext) -> None:
     project = ctx.project
     plan = ctx.need_plan()
     rng = np.random.default_rng(project.simulation.seed)
-    results = localize_plan(project, plan, ctx.need_elements(), rng)
+    results = localize_plan(project, plan, ctx.need_elements(), rng, setups=ctx.setups)
     warnings = enforce_integrity(project, plan, results)
     ctx.localization = results
     folder = ctx.out / "localization"

@@ -8,6 +8,13 @@ from pathlib import Path
 from fabflow.build.context import BuildContext
 from fabflow.design.elements import Element
 from fabflow.design.site_plan import write_site_plan
+from fabflow.localize.setups import (
+    InstrumentSetup,
+    control_points,
+    planned_setups,
+    setup_rows,
+    setups_document,
+)
 from fabflow.localize.site import site_sensors
 from fabflow.output import write_json
 from fabflow.project import Project
@@ -39,14 +46,25 @@ def plan_rows(plan: Plan) -> list[tuple[str, str]]:
 
 
 def write_plan_outputs(
-    out: Path, project: Project, elements: Sequence[Element], plan: Plan
+    out: Path,
+    project: Project,
+    elements: Sequence[Element],
+    plan: Plan,
+    setups: Sequence[InstrumentSetup] | None = None,
 ) -> None:
-    """Write ``plan.json`` and redraw ``site_plan.dxf`` with the stations into ``out``."""
+    """Write ``plan.json`` and redraw ``site_plan.dxf`` with the stations into ``out``;
+    with total station ``setups``, ``instrument_setups.json`` too, and the set-ups and
+    control points on the site plan."""
     write_json(
         out / "plan.json",
         {"fabflow_version": __version__, "frame": "world", "units": "m", **plan.to_dict()},
     )
     anchors, instrument = site_sensors(project)
+    controls = None
+    if setups is not None:
+        write_json(out / "instrument_setups.json", setups_document(project, setups))
+        instrument = {s.id: s.T_world_instrument for s in setups}
+        controls = control_points(project)
     write_site_plan(
         out / "site_plan.dxf",
         with_pieces(elements, plan.split_elements),
@@ -54,13 +72,15 @@ def write_plan_outputs(
         platform_footprint=tuple(project.robot.platform.footprint),
         anchors=anchors,
         instrument=instrument,
+        control_points=controls,
     )
 
 
 def stage_plan(ctx: BuildContext) -> None:
     """Slice the elements into work packages; write ``plan.json``, redraw the site plan.
 
-    Reads the elements; sets ``ctx.plan``. When print paths were split into
+    Reads the elements; sets ``ctx.plan`` and, for the total station, ``ctx.setups``
+    (``instrument_setups.json``). When print paths were split into
     per-station pieces, ``ctx.elements`` is replaced by the list with the pieces
     (see :mod:`fabflow.tasks.split`).
     """
@@ -68,6 +88,9 @@ def stage_plan(ctx: BuildContext) -> None:
     ctx.plan = plan
     elements = with_pieces(ctx.need_elements(), plan.split_elements)
     ctx.elements = elements
-    write_plan_outputs(ctx.out, ctx.project, elements, plan)
+    ctx.setups = planned_setups(ctx.project, plan, elements)
+    write_plan_outputs(ctx.out, ctx.project, elements, plan, ctx.setups)
     for item, value in plan_rows(plan):
+        ctx.add("plan", item, value)
+    for item, value in setup_rows(ctx.setups or ()):
         ctx.add("plan", item, value)

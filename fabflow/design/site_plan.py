@@ -43,6 +43,7 @@ _LAYERS = {
     "PLATFORMS": 4,
     "UWB_ANCHORS": 6,
     "TOTAL_STATION": 2,
+    "CONTROL_POINTS": 1,
 }
 _PART_COLOURS = (30, 140, 200, 40, 90, 170, 230)
 
@@ -94,6 +95,7 @@ def site_plan_document(
     platform_footprint: tuple[float, float] | None = None,
     anchors: Mapping[str, ArrayLike] | None = None,
     instrument: Any = None,
+    control_points: Mapping[str, ArrayLike] | None = None,
 ) -> ezdxf.document.Drawing:
     """Build the site plan as an ezdxf document (see :func:`write_site_plan`)."""
     doc = ezdxf.new("R2010", setup=True, units=ezdxf.units.MM)
@@ -166,6 +168,13 @@ def site_plan_document(
         tri = p[:2] + 120.0 * np.array([[0.0, 1.0], [-0.866, -0.5], [0.866, -0.5]])
         msp.add_lwpolyline(tri.tolist(), close=True, dxfattribs={"layer": "TOTAL_STATION"})
         _label(msp, name, p + np.array([150.0, 0.0, 0.0]), "TOTAL_STATION")
+
+    for name, xyz in (control_points or {}).items():
+        p = np.asarray(xyz, dtype=float) * MM
+        msp.add_circle(p.tolist(), radius=80.0, dxfattribs={"layer": "CONTROL_POINTS"})
+        for d in (np.array([80.0, 0.0, 0.0]), np.array([0.0, 80.0, 0.0])):
+            msp.add_line((p - d).tolist(), (p + d).tolist(), dxfattribs={"layer": "CONTROL_POINTS"})
+        _label(msp, f"{name} z={p[2] / MM:.2f}", p + 100.0, "CONTROL_POINTS")
     return doc
 
 
@@ -176,6 +185,7 @@ def write_site_plan(
     platform_footprint: tuple[float, float] | None = None,
     anchors: Mapping[str, ArrayLike] | None = None,
     instrument: Any = None,
+    control_points: Mapping[str, ArrayLike] | None = None,
 ) -> Path:
     """Write the site plan DXF (millimetres, named layers; passes ``ezdxf`` audit).
 
@@ -195,13 +205,17 @@ def write_site_plan(
     instrument
         Total-station setup(s) in the world: one ``T_world_instrument`` (4x4) or
         position (3,), an (N, 3) array, or a mapping name -> pose or position.
+    control_points
+        Surveyed control points of the total station's free stationing (world, metres).
 
     Returns
     -------
     Path
         The file written.
     """
-    doc = site_plan_document(elements, stations, platform_footprint, anchors, instrument)
+    doc = site_plan_document(
+        elements, stations, platform_footprint, anchors, instrument, control_points
+    )
     auditor = doc.audit()
     if auditor.has_errors:
         raise RuntimeError(f"site plan fails the DXF audit: {auditor.errors}")

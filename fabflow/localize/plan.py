@@ -11,12 +11,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
 from fabflow.design.elements import Element, structure_timeline
 from fabflow.errors import LocalizationError
 from fabflow.localize.methods import LOCALIZERS, LocalizeStation, localizer_arguments
+from fabflow.localize.setups import InstrumentSetup, track_for
 from fabflow.positioning.integrity import consistency_test, exact, guard_exclusion, unchecked
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project
@@ -90,6 +92,7 @@ def localize_plan(
     elements: Sequence[Element],
     rng: np.random.Generator,
     method: str | None = None,
+    setups: Sequence[InstrumentSetup] | None = None,
 ) -> VisitPoses:
     """Localize every station of a plan.
 
@@ -106,6 +109,9 @@ def localize_plan(
         Random generator for the simulated sensors and parking errors.
     method
         Override of the project's localization method.
+    setups
+        The total station's set-ups (:func:`~fabflow.localize.setups.plan_setups`,
+        planned here when needed and absent).
 
     Returns
     -------
@@ -119,6 +125,7 @@ def localize_plan(
     localize = station_localizer(project, method)
     timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
     T_platform_base = project.robot.platform.T_platform_base.matrix()
+    track = track_for(project, method, plan, elements, setups)
     results: VisitPoses = {}
     previous = None
     for wp, (built, _) in zip(plan.work_packages, timeline, strict=True):
@@ -137,14 +144,14 @@ def localize_plan(
             )
         else:
             T_planned, T_true = parked_pose(project, wp.station, rng)
-            estimate = localize(
-                project,
-                T_true,
-                rng,
-                wp.station.id,
-                built=built,
-                **localizer_arguments(project, method, wp.station),
-            )
+            extra: dict[str, Any] = localizer_arguments(project, method, wp.station)
+            if track is not None:
+                last = None
+                if previous is not None:
+                    est, T_last = results[previous.index]
+                    last = (T_last, est.T_world_base, est.covariance)
+                extra["instrument"] = track.pose_at(wp.index, rng, built, last)
+            estimate = localize(project, T_true, rng, wp.station.id, built=built, **extra)
             estimate = check_visit(project, estimate, T_planned)
         results[wp.index] = (estimate, T_true)
         previous = wp

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from fabflow.project import Project, TotalStationSetup, UwbSetup
+from fabflow.project import Project, UwbSetup
 
 
 def points_in_world(T_world_frame: np.ndarray, p_frame: np.ndarray) -> np.ndarray:
@@ -34,8 +34,8 @@ def anchors_world(setup: UwbSetup) -> tuple[list[str], np.ndarray]:
 def site_sensors(project: Project) -> tuple[dict[str, np.ndarray] | None, np.ndarray | None]:
     """UWB anchors by id (world frame, metres) and the total station's 4x4 set-up pose.
 
-    Either is ``None`` when the project has no such section (the total station's
-    default set-up is shown when it is the chosen method).
+    Either is ``None`` when the project has no such section; the set-up pose is
+    ``None`` too when it is to be planned (:mod:`fabflow.localize.setups`).
     """
     loc = project.localization
     anchors = None
@@ -43,9 +43,8 @@ def site_sensors(project: Project) -> tuple[dict[str, np.ndarray] | None, np.nda
         ids, A = anchors_world(loc.uwb)
         anchors = dict(zip(ids, A, strict=True))
     station = loc.total_station
-    if station is None and loc.method == "total_station":
-        station = TotalStationSetup()
-    instrument = None if station is None else station.T_world_instrument.matrix()
+    given = None if station is None else station.T_world_instrument
+    instrument = None if given is None else given.matrix()
     return anchors, instrument
 
 

@@ -12,28 +12,20 @@ total-station``).
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
-from fabflow.design.elements import Element, element_boxes
-from fabflow.errors import InputError, LocalizationError
+from fabflow.design.elements import Element
+from fabflow.errors import InputError
+from fabflow.localize.prism_points import instrument_for, station_points, total_station_setup
 from fabflow.localize.report import check_options
+from fabflow.localize.setups import InstrumentPose, InstrumentTrack, plan_setups
 from fabflow.positioning.integrity import ALPHA
-from fabflow.positioning.point_selection import (
-    Boxes,
-    ClearanceRules,
-    Workspace,
-    avoid_obstacles,
-    clear_mask,
-    optimal_points,
-)
 from fabflow.positioning.polar import (
-    Instrument,
     make_instrument,
     polar_covariance,
     polar_to_cartesian,
@@ -41,7 +33,7 @@ from fabflow.positioning.polar import (
 )
 from fabflow.positioning.registration import register_points
 from fabflow.positioning.result import BasePose
-from fabflow.positioning.three_point import localize_three_point, three_point_base_points
+from fabflow.positioning.three_point import localize_three_point
 from fabflow.positioning.total_station import (
     add_instrument_uncertainty,
     localize_observations,
@@ -50,55 +42,11 @@ from fabflow.positioning.total_station import (
 from fabflow.positioning.ts_io import read_observations, read_robot_points
 from fabflow.project import Project, TotalStationSetup
 from fabflow.robots.catalog import get_robot
-from fabflow.robots.prism import PrismReach, prism_points_from_joints, prism_reach
+from fabflow.robots.prism import prism_points_from_joints
 from fabflow.schema import PoseSpec
 from fabflow.sensors.total_station import simulate_polar
-from fabflow.transforms.se3 import apply_T, inv_T, make_T, perturb
-
-
-def prism_workspace(
-    model: str, T_flange_tool: np.ndarray, z_min: float
-) -> tuple[PrismReach, Workspace]:
-    """The robot's prism reach and the workspace the prism points are chosen in.
-
-    The workspace is the reach sphere about the shoulder, above ``z_min`` (base
-    frame, metres), with the robot's exact reach test; its top is capped at the
-    highest reachable point in front of the robot (5 cm margin), because the top
-    of the sphere is out of reach with the tool held down.
-    """
-    reach = prism_reach(model, T_flange_tool)
-    robot = reach.robot
-    shoulder = robot.frames(np.zeros(robot.dof))[1][:3, 3]
-    ws = Workspace(center=(0.0, 0.0, float(shoulder[2])), reach=float(robot.reach), z_min=z_min)
-    x = np.arange(0.1, ws.radius, 0.05)
-    z = np.arange(z_min, ws.center[2] + ws.radius, 0.05)
-    grid = np.stack(np.meshgrid(x, [0.0], z, indexing="ij"), axis=-1).reshape(-1, 3)
-    ok = reach.reachable(grid)
-    if not ok.any():
-        raise LocalizationError(f"{model}: no prism position above z = {z_min} m is reachable")
-    z_max = float(grid[ok, 2].max()) - 0.05
-    return reach, replace(ws, reachable=reach.reachable, z_max=z_max)
-
-
-@functools.lru_cache(maxsize=64)
-def _cached_optimal_points(n: int, workspace: Workspace) -> np.ndarray:
-    # a fixed seed: the same workspace always gets the same points
-    return optimal_points(n, replace(workspace, reachable=None), np.random.default_rng(0))
-
-
-def boxes_in_base(elements: Sequence[Element], T_world_base: np.ndarray) -> Boxes:
-    """The box-shaped elements (blocks with ``extents``) as :class:`Boxes` in the base frame."""
-    T_world_box, extents = element_boxes(elements)
-    if len(extents) == 0:
-        return Boxes.empty()
-    return Boxes(np.linalg.inv(np.asarray(T_world_base, dtype=float)) @ T_world_box, extents)
-
-
-def instrument_for(setup: TotalStationSetup) -> Instrument:
-    """The accuracy model of a project's total station setup."""
-    return make_instrument(
-        setup.instrument, setup.distance_sigma_mm, setup.distance_ppm, setup.angle_sigma_arcsec
-    )
+from fabflow.tasks.plan import Plan, Station, WorkPackage
+from fabflow.transforms.se3 import apply_T, inv_T, make_T
 
 
 def trunnion_pose(T_world_instrument: np.ndarray, instrument_height: float) -> np.ndarray:
@@ -131,6 +79,10 @@ class StationReadings:
         4x4 set-up pose of the instrument the readings were turned to the world with.
     moved, dropped
         How the chosen points were moved clear of obstacles, and which were dropped.
+    instrument_covariance
+        6x6 covariance of ``T_world_instrument``.
+    setup
+        Id of the instrument set-up.
     """
 
     points_base: np.ndarray
@@ -140,6 +92,8 @@ class StationReadings:
     T_world_instrument: np.ndarray
     moved: np.ndarray
     dropped: tuple[tuple[int, str], ...]
+    instrument_covariance: np.ndarray
+    setup: str = "T1"
 
 
 def localize_station(
@@ -148,6 +102,7 @@ def localize_station(
     rng: np.random.Generator,
     station_id: str | None = None,
     built: Sequence[Element] = (),
+    instrument: InstrumentPose | None = None,
 ) -> BasePose:
     """Simulate a total station localization of the robot base at one station.
 
@@ -156,13 +111,15 @@ def localize_station(
     and ``T_world_base``, ``rng`` and ``built`` are not.
 
     Otherwise :func:`simulate_readings` then :func:`estimate_from_readings`: the
-    prism points are chosen in the base frame (eqs 9-11 for the ``arbitrary``
-    procedure, then moved clear of ``built`` and of the line of sight; ``P1,
-    P1 + d x, P1 + d y`` for ``three_point``), reached by inverse kinematics and
-    placed by forward kinematics of the project's robot. The true prism
-    positions (plus the robot's repeatability noise) are observed from
-    ``T_world_instrument`` with the instrument's noise, and the base pose is
-    estimated and tested from the readings.
+    prism points are chosen in the base frame
+    (:func:`~fabflow.localize.prism_points.station_points`: eqs 9-11 for the
+    ``arbitrary`` procedure, moved clear of ``built`` and of the line of sight;
+    ``P1, P1 + d x, P1 + d y`` for ``three_point``), reached by inverse
+    kinematics and placed by forward kinematics of the project's robot. The true
+    prism positions (plus the robot's repeatability noise) are observed from
+    where the instrument really stands with the instrument's noise, turned into
+    the world with its registered pose, and the base pose is estimated and
+    tested from the readings, the set-up's covariance added.
 
     Parameters
     ----------
@@ -176,13 +133,17 @@ def localize_station(
         Stored in the result.
     built
         Elements already built (obstacles for the prism, the arm and the line of sight).
+    instrument
+        The instrument set-up of this visit (:class:`~fabflow.localize.setups.InstrumentTrack`).
+        Default: the project's ``T_world_instrument``, or, without one, a set-up
+        planned for this station alone.
 
     Returns
     -------
     BasePose
         Estimated pose with covariance, residuals, quality figures and integrity.
     """
-    setup = project.localization.total_station or TotalStationSetup()
+    setup = total_station_setup(project)
     if setup.observations is not None and setup.robot_points is not None:
         # measured readings were supplied: localize from them, nothing is simulated
         return localize_files(
@@ -192,8 +153,27 @@ def localize_station(
             robot_sigma=project.simulation.robot_repeatability,
             station=station_id,
         )
-    readings = simulate_readings(project, T_world_base, rng, built, station_id)
+    readings = simulate_readings(project, T_world_base, rng, built, station_id, instrument)
     return estimate_from_readings(project, readings, station_id)
+
+
+def single_station_instrument(
+    project: Project,
+    T_world_base: np.ndarray,
+    rng: np.random.Generator,
+    built: Sequence[Element] = (),
+    station_id: str | None = None,
+) -> InstrumentPose:
+    """The instrument for one station localized on its own: the project's
+    ``T_world_instrument``, or the best set-up planned for this station alone."""
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
+    T_world_platform = np.asarray(T_world_base, dtype=float) @ inv_T(T_platform_base)
+    station = Station(station_id or "S1", T_world_platform)
+    plan = Plan((WorkPackage(0, station, (), np.zeros((0, 4, 4))),))
+    setups = plan_setups(project, plan, list(built), standing=[list(built)])
+    pose = InstrumentTrack(project, setups).pose_at(0, rng, built)
+    assert pose is not None
+    return pose
 
 
 def simulate_readings(
@@ -202,66 +182,52 @@ def simulate_readings(
     rng: np.random.Generator,
     built: Sequence[Element] = (),
     station_id: str | None = None,
+    instrument: InstrumentPose | None = None,
 ) -> StationReadings:
     """The prism readings of a simulated station (see :func:`localize_station`).
 
     Raises
     ------
     LocalizationError
-        When a three-point localization point is blocked or out of reach.
+        When fewer than three prism points are clear, or no place is clear for
+        the three points of the three-point procedure.
     """
-    setup = project.localization.total_station or TotalStationSetup()
-    instrument = instrument_for(setup)
-    T_world_instrument = trunnion_pose(setup.T_world_instrument.matrix(), setup.instrument_height)
+    setup = total_station_setup(project)
+    if instrument is None:
+        instrument = single_station_instrument(project, T_world_base, rng, built, station_id)
     T_world_base = np.asarray(T_world_base, dtype=float)
-    T_base_world = inv_T(T_world_base)
-    T_flange_tool = project.robot.tool.T_flange_tool.matrix()
-    reach, ws = prism_workspace(project.robot.model, T_flange_tool, setup.z_min)
-    boxes = boxes_in_base(built, T_world_base)
-    rules = ClearanceRules(
-        tool_half_extents=setup.tool_half_extents,
-        sight_from=tuple(float(v) for v in apply_T(T_base_world, T_world_instrument[:3, 3])),
+    chosen = station_points(
+        project, T_world_base, built, sight_from=instrument.T_est[:3, 3], station_id=station_id
     )
-    moved = np.zeros(0)
-    dropped: tuple[tuple[int, str], ...] = ()
-    if setup.procedure == "three_point":
-        d = setup.three_point_step
-        c = np.asarray(ws.center)
-        p1 = c + np.array([0.55 * ws.radius - 0.5 * d, -0.5 * d, 0.0])
-        P_des = three_point_base_points(p1, d)
-        ok = clear_mask(P_des, ws, boxes, rules)
-        if not ok.all():
-            raise LocalizationError(
-                f"station {station_id}: three-point localization point P{int(np.argmin(ok)) + 1} "
-                "is blocked or out of reach; use procedure 'arbitrary'"
-            )
-    else:
-        clear = avoid_obstacles(
-            _cached_optimal_points(setup.n_points, ws), ws, boxes, rules, min_points=3
-        )
-        P_des, moved, dropped = clear.points, clear.moved, clear.dropped
-    P_base = reach.prism_points(P_des)
+    P_base = chosen.reach.prism_points(chosen.points)
     sigma_robot = project.simulation.robot_repeatability
     P_true = P_base + rng.normal(0.0, 1.0, P_base.shape) * sigma_robot
-    # the instrument really stands where its (uncertain) set-up puts it, off by a draw
-    C_setup = instrument_covariance(setup)
-    T_world_instrument_true = perturb(
-        T_world_instrument, rng.normal(0.0, 1.0, 6) * np.sqrt(np.diag(C_setup))
-    )
-    p_instr = apply_T(inv_T(T_world_instrument_true), apply_T(T_world_base, P_true))
-    hz, v, sd = simulate_polar(p_instr, instrument, rng)
+    p_instr = apply_T(inv_T(instrument.T_true), apply_T(T_world_base, P_true))
+    hz, v, sd = simulate_polar(p_instr, instrument_for(setup), rng)
     M, C = to_world(
-        T_world_instrument, polar_to_cartesian(hz, v, sd), polar_covariance(hz, v, sd, instrument)
+        instrument.T_est,
+        polar_to_cartesian(hz, v, sd),
+        polar_covariance(hz, v, sd, instrument_for(setup)),
     )
     assert C is not None
-    return StationReadings(P_base, M, C, sd, T_world_instrument, moved, dropped)
+    return StationReadings(
+        P_base,
+        M,
+        C,
+        sd,
+        instrument.T_est,
+        chosen.moved,
+        chosen.dropped,
+        instrument.covariance,
+        instrument.setup,
+    )
 
 
 def estimate_from_readings(
     project: Project, readings: StationReadings, station_id: str | None = None
 ) -> BasePose:
     """The base pose from a station's prism readings, tested (see :func:`localize_station`)."""
-    setup = project.localization.total_station or TotalStationSetup()
+    setup = total_station_setup(project)
     sigma_robot = project.simulation.robot_repeatability
     P_base, M, C = readings.points_base, readings.points_world, readings.covariances
     policy = project.localization.integrity
@@ -280,9 +246,13 @@ def estimate_from_readings(
             alpha=policy.alpha,
             point_labels=labels,
         )
-    reg = add_instrument_uncertainty(reg, readings.T_world_instrument, instrument_covariance(setup))
+    reg = add_instrument_uncertainty(
+        reg, readings.T_world_instrument, readings.instrument_covariance
+    )
     quality = {
         "procedure": setup.procedure,
+        "instrument_setup": readings.setup,
+        "T_world_instrument": readings.T_world_instrument.tolist(),
         "instrument": instrument_for(setup).name,
         "points_base": P_base.tolist(),
         "points_world": M.tolist(),
@@ -362,7 +332,8 @@ def localize_files(
     setup = TotalStationSetup()
     if project is not None and project.localization.total_station is not None:
         setup = project.localization.total_station
-    pose = setup.T_world_instrument if project is not None else PoseSpec()
+    given = setup.T_world_instrument if project is not None else None
+    pose = given if given is not None else PoseSpec()
     inst = make_instrument(
         instrument or setup.instrument,
         distance_sigma_mm if distance_sigma_mm is not None else setup.distance_sigma_mm,

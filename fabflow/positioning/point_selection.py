@@ -260,26 +260,97 @@ def boxes_overlap(centers: np.ndarray, half_extents: np.ndarray, boxes: Boxes) -
 
 def segments_hit(starts: np.ndarray, ends: np.ndarray, boxes: Boxes) -> np.ndarray:
     """Whether segments ``starts -> ends`` ((m, 3); ``starts`` may be (3,)) cross any box."""
-    ends = np.asarray(ends, dtype=float)
+    ends = np.asarray(ends, dtype=float).reshape(-1, 3)
     starts = np.broadcast_to(np.asarray(starts, dtype=float), ends.shape)
-    if len(boxes) == 0:
-        return np.zeros(ends.shape[0], dtype=bool)
+    return ~segments_clear(starts, ends, boxes)
+
+
+CLUSTER_CELL = 1.0
+"""Edge (metres) of the cells that group boxes for the coarse test of :func:`segments_clear`."""
+
+
+def _near_segments(
+    starts: np.ndarray, ends: np.ndarray, centre: np.ndarray, radius: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (segment, sphere) where the segment passes within the sphere's radius."""
+    d = ends - starts
+    t = np.clip(
+        np.einsum("skc,sc->sk", centre[None] - starts[:, None], d)
+        / np.maximum(np.einsum("sc,sc->s", d, d), 1e-12)[:, None],
+        0.0,
+        1.0,
+    )
+    closest = starts[:, None] + t[..., None] * d[:, None]
+    gap2 = np.einsum("skc,skc->sk", closest - centre[None], closest - centre[None])
+    return np.nonzero(gap2 <= (radius * radius)[None])
+
+
+def segments_clear(starts: np.ndarray, ends: np.ndarray, boxes: Boxes) -> np.ndarray:
+    """Whether each segment ``starts[i] -> ends[i]`` misses every box, ``(p,)`` bool.
+
+    A two-level test: the boxes are grouped by the :data:`CLUSTER_CELL` cell
+    their centre lies in, each group bounded by a sphere; a segment is tested
+    against the boxes' own bounding spheres only in the groups it passes, and
+    by the exact slab test only against the boxes it passes near. A site of a
+    few thousand candidate set-ups against a whole building stays cheap.
+    """
+    starts = np.asarray(starts, dtype=float).reshape(-1, 3)
+    ends = np.asarray(ends, dtype=float).reshape(-1, 3)
+    clear = np.ones(len(starts), dtype=bool)
+    if len(boxes) == 0 or len(starts) == 0:
+        return clear
+    centre = boxes.T_base_box[:, :3, 3]
+    radius = 0.5 * np.linalg.norm(boxes.extents, axis=1)
     R = boxes.T_base_box[:, :3, :3]
-    t = boxes.T_base_box[:, :3, 3]
-    p0 = np.einsum("kji,mkj->mki", R, starts[:, None, :] - t[None])
-    p1 = np.einsum("kji,mkj->mki", R, ends[:, None, :] - t[None])
-    half = 0.5 * boxes.extents[None]
-    direction = p1 - p0
-    parallel = np.abs(direction) < 1e-12
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ta = (-half - p0) / direction
-        tb = (half - p0) / direction
-    inside = np.abs(p0) <= half
-    tmin = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb))
-    tmax = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb))
-    enter = np.maximum(tmin.max(axis=-1), 0.0)
-    leave = np.minimum(tmax.min(axis=-1), 1.0)
-    return np.any(enter < leave, axis=1)
+    half = 0.5 * boxes.extents
+    _, group = np.unique(np.floor(centre / CLUSTER_CELL), axis=0, return_inverse=True)
+    group = group.ravel()
+    order = np.argsort(group, kind="stable")
+    first = np.searchsorted(group[order], np.arange(group.max() + 2))
+    g_centre = np.stack([centre[group == g].mean(axis=0) for g in range(group.max() + 1)])
+    g_radius = np.zeros(len(g_centre))
+    np.maximum.at(g_radius, group, np.linalg.norm(centre - g_centre[group], axis=1) + radius)
+    chunk = max(1, 4_000_000 // max(len(g_centre), 1))
+    for lo in range(0, len(starts), chunk):
+        s, e = starts[lo : lo + chunk], ends[lo : lo + chunk]
+        seg_g, g = _near_segments(s, e, g_centre, g_radius)
+        if len(seg_g) == 0:
+            continue
+        # every box of every group a segment passes
+        count = first[g + 1] - first[g]
+        seg = np.repeat(seg_g, count)
+        box = order[
+            np.repeat(first[g], count)
+            + np.arange(count.sum())
+            - np.repeat(np.cumsum(count) - count, count)
+        ]
+        d = e[seg] - s[seg]
+        t = np.clip(
+            np.einsum("kc,kc->k", centre[box] - s[seg], d)
+            / np.maximum(np.einsum("kc,kc->k", d, d), 1e-12),
+            0.0,
+            1.0,
+        )
+        near = np.linalg.norm(s[seg] + t[:, None] * d - centre[box], axis=1) <= radius[box]
+        seg, box = seg[near], box[near]
+        if len(seg) == 0:
+            continue
+        # the segment in the box's frame; slab test
+        p0 = np.einsum("kji,kj->ki", R[box], s[seg] - centre[box])
+        p1 = np.einsum("kji,kj->ki", R[box], e[seg] - centre[box])
+        direction = p1 - p0
+        parallel = np.abs(direction) < 1e-12
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta = (-half[box] - p0) / direction
+            tb = (half[box] - p0) / direction
+        inside = np.abs(p0) <= half[box]
+        tmin = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb))
+        tmax = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb))
+        hit = np.maximum(tmin.max(axis=1), 0.0) < np.minimum(tmax.min(axis=1), 1.0)
+        blocked = np.zeros(len(s), dtype=bool)
+        np.logical_or.at(blocked, seg, hit)
+        clear[lo : lo + chunk] = ~blocked
+    return clear
 
 
 def sphere_grid(n: int) -> np.ndarray:
@@ -429,6 +500,29 @@ def _workspace_grid(workspace: Workspace, spacing: float) -> np.ndarray:
     return grid[workspace.contains_geometry(grid)]
 
 
+def clear_workspace_points(
+    workspace: Workspace, boxes: Boxes, rules: ClearanceRules, spacing: float = 0.2
+) -> np.ndarray:
+    """``(m, 3)`` points of a ``spacing`` grid over the workspace that meet every criterion
+    (the pool :func:`avoid_obstacles` refills dropped points from)."""
+    grid = _workspace_grid(workspace, spacing)
+    return grid[check_candidates(grid, workspace, boxes, rules)[0]]
+
+
+def farthest_points(points: np.ndarray, k: int) -> np.ndarray:
+    """``min(k, m)`` of the ``(m, 3)`` points, each the farthest from those taken before
+    (the first: the farthest from their centroid); a spread subset."""
+    P = np.asarray(points, dtype=float)
+    if len(P) <= k:
+        return P
+    taken = [int(np.argmax(np.linalg.norm(P - P.mean(axis=0), axis=1)))]
+    gap = np.linalg.norm(P - P[taken[0]], axis=1)
+    for _ in range(k - 1):
+        taken.append(int(np.argmax(gap)))
+        gap = np.minimum(gap, np.linalg.norm(P - P[taken[-1]], axis=1))
+    return P[taken]
+
+
 def _most_spread(candidates: np.ndarray, chosen: np.ndarray) -> np.ndarray:
     """The candidate that, added to ``chosen``, gives the largest eq 10 objective."""
     n = len(chosen) + 1
@@ -511,9 +605,7 @@ def avoid_obstacles(
             dropped.append((i, f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}): rejected by {reason}"))
     if dropped:
         # refill the dropped points from anywhere in the workspace, most spread first
-        grid = _workspace_grid(workspace, spacing=0.2)
-        ok, _ = check_candidates(grid, workspace, boxes, rules)
-        pool = grid[ok]
+        pool = clear_workspace_points(workspace, boxes, rules)
         for i, _why in dropped:
             chosen = np.asarray(found).reshape(-1, 3)
             if len(chosen):

@@ -16,6 +16,7 @@ import trimesh
 import viser
 
 from fabflow.errors import InputError
+from fabflow.localize.setups import control_points
 from fabflow.preview.model import STATION_PALETTE, PreviewModel
 from fabflow.project import Project, TotalStationSetup
 from fabflow.transforms.so3 import quat_from_matrix
@@ -317,6 +318,19 @@ class PreviewScene:
             "/arm/tool/unreachable", text="target not reachable", visible=False
         )
 
+    def _instrument_setups(self, project: Project) -> list[tuple[str, np.ndarray]]:
+        """The total station's set-ups to draw: the project's given one, else those the
+        localized visits were measured from (id, 4x4 pose)."""
+        loc = project.localization
+        if loc.total_station is not None and loc.total_station.T_world_instrument is not None:
+            return [("T1", loc.total_station.T_world_instrument.matrix())]
+        seen: dict[str, np.ndarray] = {}
+        for pose in self.model.localization.values():
+            q = pose.quality
+            if "instrument_setup" in q and "T_world_instrument" in q:
+                seen.setdefault(str(q["instrument_setup"]), np.asarray(q["T_world_instrument"]))
+        return list(seen.items())
+
     def _add_localization(self, project: Project) -> None:
         scene = self.server.scene
         loc = project.localization
@@ -337,26 +351,37 @@ class PreviewScene:
             )
             for name, pos in zip(names, p, strict=True):
                 scene.add_label(f"/localization/uwb_labels/{name}", text=name, position=tuple(pos))
-        if loc.method == "total_station" or loc.total_station is not None:
-            ts = loc.total_station or TotalStationSetup()
-            T = ts.T_world_instrument.matrix()
+        setups = self._instrument_setups(project)
+        for name, T in setups:
+            node = f"/localization/total_station/{name}"
             scene.add_frame(
-                "/localization/total_station",
+                node,
                 axes_length=0.3,
                 axes_radius=0.01,
                 wxyz=tuple(_wxyz(T)),
                 position=tuple(T[:3, 3]),
             )
             scene.add_cylinder(
-                "/localization/total_station/tripod",
+                f"{node}/tripod",
                 radius=0.03,
                 height=float(T[2, 3]),
                 color=(240, 200, 0),
                 position=(0.0, 0.0, -float(T[2, 3]) / 2),
             )
-            scene.add_label(
-                "/localization/total_station/label", text=f"total station ({ts.instrument})"
-            )
+            instrument = (loc.total_station or TotalStationSetup()).instrument
+            scene.add_label(f"{node}/label", text=f"{name}: total station ({instrument})")
+        ts = loc.total_station
+        if setups and (ts is None or ts.T_world_instrument is None):
+            for name, xyz in control_points(project).items():
+                scene.add_icosphere(
+                    f"/localization/control_points/{name}",
+                    radius=0.05,
+                    color=(240, 120, 0),
+                    position=tuple(float(v) for v in xyz),
+                )
+                scene.add_label(
+                    f"/localization/control_points/{name}/label", text=f"control point {name}"
+                )
         if loc.icp is not None and loc.icp.map is not None:
             pts = _load_points(loc.icp.map)
             if pts.size:

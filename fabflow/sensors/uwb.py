@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fabflow.errors import InputError
+from fabflow.positioning.point_selection import Boxes, segments_clear
 
 
 @dataclass(frozen=True)
@@ -236,28 +237,10 @@ def segments_occluded(
     np.ndarray
         (m,) boolean.
     """
-    starts = np.asarray(starts, dtype=float)
-    ends = np.asarray(ends, dtype=float)
     if len(T_world_boxes) == 0:
-        return np.zeros(starts.shape[0], dtype=bool)
-    R = T_world_boxes[:, :3, :3]
-    t = T_world_boxes[:, :3, 3]
-    # segment end points in every box frame: (m, k, 3)
-    p0 = np.einsum("kji,mkj->mki", R, starts[:, None, :] - t[None])
-    p1 = np.einsum("kji,mkj->mki", R, ends[:, None, :] - t[None])
-    half = 0.5 * np.asarray(extents, dtype=float)[None]
-    dirv = p1 - p0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / dirv
-        ta = (-half - p0) * inv
-        tb = (half - p0) * inv
-    parallel = np.abs(dirv) < 1e-12
-    inside_slab = np.abs(p0) <= half
-    tmin = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(ta, tb))
-    tmax = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(ta, tb))
-    enter = np.maximum(tmin.max(axis=-1), 0.0)
-    leave = np.minimum(tmax.min(axis=-1), 1.0)
-    return np.any(enter < leave, axis=1)
+        return np.zeros(np.shape(starts)[0], dtype=bool)
+    boxes = Boxes(np.asarray(T_world_boxes, dtype=float), np.asarray(extents, dtype=float))
+    return ~segments_clear(starts, ends, boxes)
 
 
 # ---------------------------------------------------------------- trajectories

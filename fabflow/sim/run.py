@@ -35,6 +35,7 @@ from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
 from fabflow.localize.methods import localizer_arguments
 from fabflow.localize.plan import LocalizeStation, check_visit, parked_pose, station_localizer
+from fabflow.localize.setups import InstrumentSetup, InstrumentTrack, planned_setups
 from fabflow.positioning.result import BasePose
 from fabflow.project import LOCALIZATION_METHODS, Project
 from fabflow.tasks.plan import Plan, Station
@@ -82,6 +83,9 @@ class Study:
     visit_covariance
         (V, 6, 6) base pose covariance per visit used by the ``"covariance"`` fidelity
         (axes the method does not observe set to zero); ``None`` for ``"sensors"``.
+    setups
+        The total station's set-ups (planned once, :mod:`fabflow.localize.setups`);
+        ``None`` for the other methods.
     """
 
     project: Project
@@ -93,6 +97,7 @@ class Study:
     built_before: tuple[tuple[Element, ...], ...]
     fidelity: Fidelity = "sensors"
     visit_covariance: np.ndarray | None = None
+    setups: tuple[InstrumentSetup, ...] | None = None
 
     @property
     def n_elements(self) -> int:
@@ -192,6 +197,7 @@ def prepare_study(
         T_world_element=T if ids else np.zeros((0, 4, 4)),
         stations=tuple(wp.station for wp in plan.work_packages),
         built_before=tuple(built_before),
+        setups=planned_setups(project, plan, elements, method),
     )
     if fidelity == "sensors":
         return study
@@ -216,13 +222,17 @@ def calibrate_covariance(study: Study, n: int) -> np.ndarray:
     out = np.empty((study.n_visits, 6, 6))
     for v, station in enumerate(study.stations):
         T_planned = station.T_world_base(T_platform_base)
-        extra = localizer_arguments(study.project, study.method, station)
-        covs = [
-            localize(
-                study.project, T_planned, rng, station.id, study.built_before[v], **extra
-            ).covariance
-            for _ in range(n)
-        ]
+        covs = []
+        # a set-up registered on the robot's prisms sees it at its planned previous pose
+        T_before = study.stations[max(v - 1, 0)].T_world_base(T_platform_base)
+        previous = (T_before, T_before, np.zeros((6, 6)))
+        for _ in range(n):
+            extra = _localizer_extra(study, v, rng, study_track(study), previous)
+            covs.append(
+                localize(
+                    study.project, T_planned, rng, station.id, study.built_before[v], **extra
+                ).covariance
+            )
         C = np.mean(covs, axis=0)
         unobserved = np.sqrt(np.clip(np.diag(C), 0.0, None)) >= UNOBSERVED_SIGMA
         C[unobserved, :] = 0.0
@@ -293,6 +303,28 @@ STATUSES: tuple[str, ...] = ("ok", "excluded", "failed", "untested")
 fidelity, whose drawn poses are not the result of a solve."""
 
 
+def study_track(study: Study) -> InstrumentTrack | None:
+    """A fresh instrument track for one run (the total station with simulated sensors)."""
+    if study.setups is None or not study.project.simulation.sensor_noise:
+        return None
+    return InstrumentTrack(study.project, study.setups)
+
+
+def _localizer_extra(
+    study: Study,
+    v: int,
+    rng: np.random.Generator,
+    track: InstrumentTrack | None,
+    previous: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+) -> dict[str, Any]:
+    """Keyword arguments of the localizer at visit ``v``: the method's, and the
+    instrument set-up standing then (registered when it is put up)."""
+    extra: dict[str, Any] = localizer_arguments(study.project, study.method, study.stations[v])
+    if track is not None:
+        extra["instrument"] = track.pose_at(v, rng, study.built_before[v], previous)
+    return extra
+
+
 def study_localizer(study: Study) -> LocalizeStation:
     """The method's ``localize_station``, or an exact one without sensor noise."""
     return station_localizer(study.project, study.method)
@@ -333,17 +365,19 @@ def simulate_run(
     cov = np.empty((V, 6, 6))
     estimates: list[BasePose] = []
     status = np.full(V, STATUSES.index("untested"), dtype=np.int8)
+    track = study_track(study)
     for v, station in enumerate(study.stations):
         T_planned, T_true[v] = parked_pose(study.project, station, rng)
         if study.visit_covariance is not None:
             continue
+        previous = None if v == 0 else (T_true[v - 1], T_est[v - 1], cov[v - 1])
         estimate = localize(
             study.project,
             T_true[v],
             rng,
             station.id,
             built=study.built_before[v],
-            **localizer_arguments(study.project, study.method, station),
+            **_localizer_extra(study, v, rng, track, previous),
         )
         estimate = check_visit(study.project, estimate, T_planned)
         assert estimate.integrity is not None

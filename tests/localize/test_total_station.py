@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from fabflow.design.elements import Element
-from fabflow.localize.total_station import boxes_in_base, localize_station
+from fabflow.localize.prism_points import boxes_in_base
+from fabflow.localize.total_station import localize_station
 from fabflow.positioning.point_selection import (
     boxes_overlap,
 )

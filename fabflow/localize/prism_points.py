@@ -1,0 +1,203 @@
+"""Where the robot holds the prism at a station, in its base frame (paper 001, eqs 9-11).
+
+The ``arbitrary`` procedure spreads ``n_points`` over the robot's workspace
+(:func:`fabflow.positioning.point_selection.optimal_points`) and moves those
+that are blocked by the structure, by the arm's own path or, when the
+instrument's position is known, by the line of sight
+(:func:`~fabflow.positioning.point_selection.avoid_obstacles`). The
+``three_point`` procedure holds ``P1, P1 + d x, P1 + d y``; ``P1`` is moved as
+a whole to the nearest place where all three are clear. The set-up planner
+(:mod:`fabflow.localize.setups`) and the localization
+(:mod:`fabflow.localize.total_station`) both choose the points here, so the
+points a set-up is planned for are the points the robot then shows it.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from fabflow.design.elements import Element, element_boxes
+from fabflow.errors import LocalizationError
+from fabflow.positioning.point_selection import (
+    Boxes,
+    ClearanceRules,
+    Workspace,
+    avoid_obstacles,
+    clear_mask,
+    clear_workspace_points,
+    farthest_points,
+    optimal_points,
+)
+from fabflow.positioning.polar import Instrument, make_instrument
+from fabflow.positioning.three_point import three_point_base_points
+from fabflow.project import Project, TotalStationSetup
+from fabflow.robots.prism import PrismReach, prism_reach
+from fabflow.transforms.se3 import apply_T, inv_T
+
+THREE_POINT_SEARCH_SPACING = 0.1
+"""Grid spacing (metres) of the search for a clear ``P1`` of the three-point procedure."""
+
+
+def prism_workspace(
+    model: str, T_flange_tool: np.ndarray, z_min: float
+) -> tuple[PrismReach, Workspace]:
+    """The robot's prism reach and the workspace the prism points are chosen in.
+
+    The workspace is the reach sphere about the shoulder, above ``z_min`` (base
+    frame, metres), with the robot's exact reach test; its top is capped at the
+    highest reachable point in front of the robot (5 cm margin), because the top
+    of the sphere is out of reach with the tool held down.
+    """
+    reach = prism_reach(model, T_flange_tool)
+    robot = reach.robot
+    shoulder = robot.frames(np.zeros(robot.dof))[1][:3, 3]
+    ws = Workspace(center=(0.0, 0.0, float(shoulder[2])), reach=float(robot.reach), z_min=z_min)
+    x = np.arange(0.1, ws.radius, 0.05)
+    z = np.arange(z_min, ws.center[2] + ws.radius, 0.05)
+    grid = np.stack(np.meshgrid(x, [0.0], z, indexing="ij"), axis=-1).reshape(-1, 3)
+    ok = reach.reachable(grid)
+    if not ok.any():
+        raise LocalizationError(f"{model}: no prism position above z = {z_min} m is reachable")
+    z_max = float(grid[ok, 2].max()) - 0.05
+    return reach, replace(ws, reachable=reach.reachable, z_max=z_max)
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_optimal_points(n: int, workspace: Workspace) -> np.ndarray:
+    # a fixed seed: the same workspace always gets the same points
+    return optimal_points(n, replace(workspace, reachable=None), np.random.default_rng(0))
+
+
+def boxes_in_base(elements: Sequence[Element], T_world_base: np.ndarray) -> Boxes:
+    """The box-shaped elements (blocks with ``extents``) as :class:`Boxes` in the base frame."""
+    T_world_box, extents = element_boxes(elements)
+    if len(extents) == 0:
+        return Boxes.empty()
+    return Boxes(np.linalg.inv(np.asarray(T_world_base, dtype=float)) @ T_world_box, extents)
+
+
+def instrument_for(setup: TotalStationSetup) -> Instrument:
+    """The accuracy model of a project's total station setup."""
+    return make_instrument(
+        setup.instrument, setup.distance_sigma_mm, setup.distance_ppm, setup.angle_sigma_arcsec
+    )
+
+
+def total_station_setup(project: Project) -> TotalStationSetup:
+    """The project's total station section, or the defaults."""
+    return project.localization.total_station or TotalStationSetup()
+
+
+@dataclass(frozen=True)
+class StationPoints:
+    """The prism points of one station.
+
+    Attributes
+    ----------
+    reach
+        The robot's prism reach (inverse kinematics of the prism positions).
+    points
+        ``(n, 3)`` desired prism positions in the base frame (metres).
+    moved
+        How far each was moved clear of obstacles (metres).
+    dropped
+        Desired points with no clear replacement, with the reason.
+    spare
+        ``(k, 3)`` other clear points, most spread first (base frame): where
+        blocked points may go when a line of sight is tested later.
+    """
+
+    reach: PrismReach
+    points: np.ndarray
+    moved: np.ndarray
+    dropped: tuple[tuple[int, str], ...]
+    spare: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+
+def station_points(
+    project: Project,
+    T_world_base: np.ndarray,
+    built: Sequence[Element] = (),
+    sight_from: np.ndarray | None = None,
+    station_id: str | None = None,
+    spare: int = 0,
+) -> StationPoints:
+    """The prism points the robot shows at a station (see the module docstring).
+
+    Parameters
+    ----------
+    project
+        The project (``localization.total_station``, the robot and its tool).
+    T_world_base
+        4x4 pose of the robot base (world, metres).
+    built
+        The structure standing (obstacles for the prism, the arm and the sight).
+    sight_from
+        ``(3,)`` instrument trunnion in the world: the lines of sight must be
+        clear too. ``None``: not tested (the set-up planner tests them itself).
+    station_id
+        For messages.
+    spare
+        How many spare clear points to return besides (``StationPoints.spare``).
+
+    Raises
+    ------
+    LocalizationError
+        When fewer than three clear points are found (naming the criterion that
+        blocked them), or no clear place for the three points of ``three_point``.
+    """
+    setup = total_station_setup(project)
+    T_world_base = np.asarray(T_world_base, dtype=float)
+    T_flange_tool = project.robot.tool.T_flange_tool.matrix()
+    reach, ws = prism_workspace(project.robot.model, T_flange_tool, setup.z_min)
+    boxes = boxes_in_base(built, T_world_base)
+    sight = None
+    if sight_from is not None:
+        local = apply_T(inv_T(T_world_base), np.asarray(sight_from, dtype=float))
+        sight = tuple(float(v) for v in local)
+    rules = ClearanceRules(tool_half_extents=setup.tool_half_extents, sight_from=sight)
+    if setup.procedure == "three_point":
+        points = _three_point_points(ws, boxes, rules, setup.three_point_step, station_id)
+        return StationPoints(reach, points, np.zeros(3), ())
+    clear = avoid_obstacles(
+        _cached_optimal_points(setup.n_points, ws), ws, boxes, rules, min_points=3
+    )
+    pool = np.zeros((0, 3))
+    if spare:
+        pool = farthest_points(clear_workspace_points(ws, boxes, rules), spare)
+    return StationPoints(reach, clear.points, clear.moved, clear.dropped, pool)
+
+
+def _three_point_points(
+    ws: Workspace, boxes: Boxes, rules: ClearanceRules, d: float, station_id: str | None
+) -> np.ndarray:
+    """``P1, P1 + d x, P1 + d y`` with ``P1`` at its default place, or at the nearest
+    place on a grid of :data:`THREE_POINT_SEARCH_SPACING` where all three are clear."""
+    c = np.asarray(ws.center)
+    p1 = c + np.array([0.55 * ws.radius - 0.5 * d, -0.5 * d, 0.0])
+    P = three_point_base_points(p1, d)
+    if clear_mask(P, ws, boxes, rules).all():
+        return P
+    r = ws.radius
+    axes = [np.arange(c[k] - r, c[k] + r + 1e-9, THREE_POINT_SEARCH_SPACING) for k in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    sets = grid[:, None, :] + np.array([[0.0, 0.0, 0.0], [d, 0.0, 0.0], [0.0, d, 0.0]])
+    inside = ws.contains_geometry(sets).all(axis=1)
+    sets = sets[inside]
+    sets = sets[np.argsort(np.linalg.norm(sets[:, 0] - p1, axis=1), kind="stable")]
+    # the nearest sets first, in chunks: the reach test solves inverse kinematics
+    for start in range(0, len(sets), 256):
+        chunk = sets[start : start + 256]
+        ok = clear_mask(chunk.reshape(-1, 3), ws, boxes, rules).reshape(-1, 3).all(axis=1)
+        if ok.any():
+            return chunk[int(np.argmax(ok))]
+    raise LocalizationError(
+        f"station {station_id}: no place where the three-point localization points P1, "
+        f"P1 + {d:g} m x and P1 + {d:g} m y are all clear of the structure and in reach "
+        "(and in sight of the instrument); use localization.total_station.procedure "
+        "'arbitrary' or a smaller three_point_step"
+    )

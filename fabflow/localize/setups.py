@@ -1,0 +1,622 @@
+"""Total station set-ups for a whole build: where the instrument stands, and when it moves.
+
+A robotic total station must see the prism the robot holds at every station,
+through the structure as built at that visit. As the walls rise, one set-up
+stops seeing into the building and the instrument moves, as in paper 001.
+
+:func:`plan_setups` scores candidate positions on a grid over the site
+(``setup_spacing``, at the lowest, middle and highest ``tripod_height``, clear of
+the structure, the obstacles and the platform's parking places) against every
+work package's prism points (:func:`fabflow.localize.prism_points.station_points`,
+the points of eqs 9-11): a candidate covers a package when it sees every point
+through the structure standing then, none closer than :data:`MIN_SIGHT`. In
+build order, it keeps the set-up that covers the longest run of packages from
+the first one not yet covered (the greedy choice is optimal for covering a
+sequence with runs), the smallest predicted base position sigma among equals.
+Each new set-up must also be registrable where it stands: on at least
+:data:`MIN_CONTROL_POINTS` visible control points (free stationing, Procedure B
+of paper 001), or, with ``stationing: robot_points`` (Procedure A), on the
+prisms the robot holds at its last station of the set-up before.
+
+:class:`InstrumentTrack` then follows the set-ups through a (simulated) build
+and registers each one when it is put up (:func:`register_setup`): the
+registered pose and its covariance, not the true one, turn every later reading
+into the world, so a set-up's error is shared by all its visits, and with
+Procedure A it is inherited by the next set-up.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any, Literal
+
+import numpy as np
+
+from fabflow.design.elements import Element, element_boxes, structure_timeline
+from fabflow.errors import LocalizationError
+from fabflow.localize.prism_points import instrument_for, station_points, total_station_setup
+from fabflow.positioning.point_selection import Boxes, segments_clear
+from fabflow.positioning.polar import (
+    cartesian_to_polar,
+    polar_covariance,
+    polar_to_cartesian,
+)
+from fabflow.positioning.rigid_fit import register_leveled
+from fabflow.positioning.total_station import setup_covariance
+from fabflow.project import Project
+from fabflow.sensors.total_station import simulate_polar
+from fabflow.tasks.plan import Plan
+from fabflow.transforms.se3 import compose_covariance, inv_T, make_T
+
+MIN_SIGHT = 2.0
+"""Closest a sighted prism or control point may be to the instrument (metres): the
+telescope's focus, and a tripod out of the arm's way."""
+TRIPOD_CLEARANCE = 0.5
+"""Distance (metres) a planned tripod keeps from the structure, obstacles and parking places."""
+MIN_CONTROL_POINTS = 3
+"""Control points a free stationing sights: two fix a levelled set-up, the third checks it."""
+CONTROL_HEIGHT = 0.3
+"""Height of the default control points above the ground (metres)."""
+
+Registration = Literal["given", "control_points", "robot_points"]
+
+
+@dataclass(frozen=True, eq=False)
+class InstrumentSetup:
+    """One planned (or given) place of the instrument.
+
+    Attributes
+    ----------
+    id
+        ``"T1"``, ``"T2"``, ... in build order.
+    T_world_instrument
+        4x4 pose of the trunnion (world, metres; levelled, Hz zero along world y).
+    packages
+        Work package indices it localizes, in build order.
+    registration
+        ``"given"`` (the project's pose), ``"control_points"`` or ``"robot_points"``.
+    control_points
+        Ids of the control points it sights for free stationing.
+    predicted_sigma
+        Largest predicted base position sigma (XY, metres) over its packages.
+    """
+
+    id: str
+    T_world_instrument: np.ndarray
+    packages: tuple[int, ...]
+    registration: Registration
+    control_points: tuple[str, ...]
+    predicted_sigma: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-compatible data."""
+        return {
+            "id": self.id,
+            "position": np.asarray(self.T_world_instrument[:3, 3], dtype=float).tolist(),
+            "packages": [k + 1 for k in self.packages],
+            "registration": self.registration,
+            "control_points": list(self.control_points),
+            "predicted_sigma_xy_mm": 1000.0 * self.predicted_sigma,
+        }
+
+
+@dataclass(frozen=True)
+class InstrumentPose:
+    """Where the instrument stands at a visit and what is known of it.
+
+    Attributes
+    ----------
+    T_true
+        4x4 pose it really has (trunnion, world).
+    T_est
+        4x4 pose its registration gives; readings are turned into the world with it.
+    covariance
+        6x6 covariance of ``T_est`` (fabflow's convention).
+    setup
+        Id of the set-up.
+    """
+
+    T_true: np.ndarray
+    T_est: np.ndarray
+    covariance: np.ndarray
+    setup: str
+
+
+def control_points(project: Project) -> dict[str, np.ndarray]:
+    """The control points by id (world, metres): the project's, or the site's corners."""
+    given = total_station_setup(project).control_points
+    if given:
+        return {k: np.asarray(v, dtype=float) for k, v in given.items()}
+    (x0, y0), (x1, y1) = project.site.extent_min, project.site.extent_max
+    corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    return {
+        f"CP{i + 1}": np.array([x, y, CONTROL_HEIGHT], dtype=float)
+        for i, (x, y) in enumerate(corners)
+    }
+
+
+def sight_clear(eyes: np.ndarray, targets: np.ndarray, boxes: Boxes) -> np.ndarray:
+    """Whether each eye sees each target past the boxes, ``(m, n)`` bool.
+
+    Parameters
+    ----------
+    eyes
+        ``(m, 3)`` instrument positions (world, metres).
+    targets
+        ``(n, 3)`` sighted points.
+    boxes
+        Obstacles (world frame).
+    """
+    eyes = np.asarray(eyes, dtype=float).reshape(-1, 3)
+    targets = np.asarray(targets, dtype=float).reshape(-1, 3)
+    m, n = len(eyes), len(targets)
+    return segments_clear(np.repeat(eyes, n, axis=0), np.tile(targets, (m, 1)), boxes).reshape(m, n)
+
+
+def _world_boxes(elements: Sequence[Element]) -> Boxes:
+    T, extents = element_boxes(elements)
+    return Boxes(T, extents) if len(extents) else Boxes.empty()
+
+
+def candidate_positions(project: Project, elements: Sequence[Element], plan: Plan) -> np.ndarray:
+    """``(m, 3)`` candidate trunnion positions (world, metres) for planned set-ups.
+
+    A grid of ``setup_spacing`` over the site at the lowest, middle and highest
+    ``tripod_height``, without the points within :data:`TRIPOD_CLEARANCE` of an
+    element's plan footprint, an obstacle or a platform parked at any station
+    (its footprint plus ``safety_margin``).
+    """
+    setup = total_station_setup(project)
+    (x0, y0), (x1, y1) = project.site.extent_min, project.site.extent_max
+    s = setup.setup_spacing
+    xs = np.arange(x0 + 0.5 * s, x1, s)
+    ys = np.arange(y0 + 0.5 * s, y1, s)
+    xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+    keep = np.ones(len(xy), dtype=bool)
+    T_box, extents = element_boxes(elements)
+    if len(extents):
+        # each box's plan footprint as an axis-aligned rectangle (its bounding box)
+        corner = np.abs(T_box[:, :2, :3]) @ (0.5 * extents)[..., None]
+        lo = T_box[:, :2, 3] - corner[..., 0] - TRIPOD_CLEARANCE
+        hi = T_box[:, :2, 3] + corner[..., 0] + TRIPOD_CLEARANCE
+        for start in range(0, len(xy), 4096):
+            p = xy[start : start + 4096, None, :]
+            keep[start : start + 4096] &= ~((p >= lo[None]) & (p <= hi[None])).all(axis=2).any(1)
+    for obstacle in project.site.obstacles:
+        if obstacle.box is not None:
+            lo, hi = np.asarray(obstacle.box.min[:2]), np.asarray(obstacle.box.max[:2])
+        else:
+            assert obstacle.polygon is not None
+            pts = np.asarray(obstacle.polygon.points, dtype=float)
+            lo, hi = pts.min(axis=0), pts.max(axis=0)
+        keep &= ~((xy >= lo - TRIPOD_CLEARANCE) & (xy <= hi + TRIPOD_CLEARANCE)).all(axis=1)
+    pf = project.robot.platform
+    margin = pf.safety_margin + TRIPOD_CLEARANCE
+    half = 0.5 * np.asarray(pf.footprint, dtype=float) + margin
+    for station in plan.stations:
+        T = np.asarray(station.T_world_platform, dtype=float)
+        local = (xy - T[:2, 3]) @ T[:2, :2]
+        keep &= ~(np.abs(local) <= half).all(axis=1)
+    xy = xy[keep]
+    lo_h, hi_h = setup.tripod_height
+    heights = np.unique([lo_h, 0.5 * (lo_h + hi_h), hi_h])
+    ground = 0.0
+    return np.concatenate([np.column_stack([xy, np.full(len(xy), ground + h)]) for h in heights])
+
+
+def predicted_sigma(
+    eyes: np.ndarray,
+    points_world: np.ndarray,
+    T_world_base: np.ndarray,
+    project: Project,
+    used: np.ndarray | None = None,
+) -> np.ndarray:
+    """Predicted XY position sigma of the base (metres) registered from each eye, ``(m,)``.
+
+    The readings' first-order covariance (:func:`~fabflow.positioning.polar.polar_covariance`)
+    plus the robot's repeatability, through the linearised 6-DOF registration
+    ``p_world = Exp(r) R p_base + t + d``. ``used``: ``(m, n)`` which points each
+    eye measures (default all); infinity where they do not fix the pose.
+    """
+    instrument = instrument_for(total_station_setup(project))
+    local = points_world[None] - eyes[:, None]
+    hz, v, sd = cartesian_to_polar(local)
+    C = polar_covariance(hz, v, sd, instrument) + np.eye(3) * (
+        project.simulation.robot_repeatability**2 + 1e-12
+    )
+    arm = points_world - np.asarray(T_world_base, dtype=float)[:3, 3]
+    J = np.zeros((len(arm), 3, 6))
+    J[:, :, :3] = np.eye(3)
+    J[:, 0, 4], J[:, 0, 5] = -arm[:, 2], arm[:, 1]
+    J[:, 1, 3], J[:, 1, 5] = arm[:, 2], -arm[:, 0]
+    J[:, 2, 3], J[:, 2, 4] = -arm[:, 1], arm[:, 0]
+    W = np.linalg.inv(C)
+    if used is not None:
+        W = W * np.asarray(used, dtype=float)[..., None, None]
+    info = (np.swapaxes(J, 1, 2)[None] @ (W @ J[None])).sum(axis=1)
+    sigma = np.full(len(eyes), np.inf)
+    fixed = np.linalg.cond(info) < 1e12
+    cov = np.linalg.inv(info[fixed])
+    sigma[fixed] = np.sqrt(cov[:, 0, 0] + cov[:, 1, 1])
+    return sigma
+
+
+SPARE_POINTS = 16
+"""Spare clear prism positions per package that a set-up may sight instead of blocked ones."""
+SIGMA_SHARE = 0.1
+"""A set-up covers a package when its predicted base XY sigma is within this share of
+``tolerances.position``."""
+
+
+@dataclass(frozen=True)
+class _Package:
+    """What a set-up must see at one work package."""
+
+    points: np.ndarray  # (n, 3) prism points, world
+    spare: np.ndarray  # (k, 3) other clear prism positions, most spread first, world
+    T_world_base: np.ndarray
+    boxes: Boxes  # the structure standing, world
+
+
+def _packages(
+    project: Project, plan: Plan, standing: Sequence[Sequence[Element]]
+) -> list[_Package]:
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
+    out = []
+    for wp, built in zip(plan.work_packages, standing, strict=True):
+        T = wp.station.T_world_base(T_platform_base)
+        spare = 0 if total_station_setup(project).procedure == "three_point" else SPARE_POINTS
+        pts = station_points(project, T, built, station_id=wp.station.id, spare=spare)
+        world = pts.points @ T[:3, :3].T + T[:3, 3]
+        pool = pts.spare @ T[:3, :3].T + T[:3, 3]
+        out.append(_Package(world, pool, T, _world_boxes(built)))
+    return out
+
+
+def _visible(eyes: np.ndarray, points: np.ndarray, boxes: Boxes) -> np.ndarray:
+    """``(m, n)`` which points each eye sees, none closer than :data:`MIN_SIGHT`."""
+    visible = np.linalg.norm(points[None] - eyes[:, None], axis=-1) >= MIN_SIGHT
+    rows, cols = np.nonzero(visible)
+    visible[rows, cols] = segments_clear(eyes[rows], points[cols], boxes)
+    return visible
+
+
+def _sighted(eyes: np.ndarray, package: _Package) -> tuple[np.ndarray, np.ndarray]:
+    """Which points each eye measures, ``(m, n + k)`` over the package's points then its
+    spare ones: the visible points, blocked ones replaced by visible spare points, most
+    spread first."""
+    n = len(package.points)
+    used = np.zeros((len(eyes), n + len(package.spare)), dtype=bool)
+    used[:, :n] = _visible(eyes, package.points, package.boxes)
+    missing = n - used[:, :n].sum(axis=1)
+    short = np.flatnonzero(missing > 0)
+    if len(short) and len(package.spare):
+        spare = _visible(eyes[short], package.spare, package.boxes)
+        used[short, n:] = spare & (np.cumsum(spare, axis=1) <= missing[short, None])
+    return used, np.concatenate([package.points, package.spare])
+
+
+def _sigma(eyes: np.ndarray, package: _Package, project: Project) -> np.ndarray:
+    """``(m,)`` predicted base XY sigma from each eye with the points it measures (metres;
+    infinity with fewer than three)."""
+    used, points = _sighted(eyes, package)
+    sigma = np.full(len(eyes), np.inf)
+    ok = used.sum(axis=1) >= 3
+    if ok.any():
+        sigma[ok] = predicted_sigma(eyes[ok], points, package.T_world_base, project, used[ok])
+    return sigma
+
+
+def _covers(eyes: np.ndarray, package: _Package, project: Project) -> np.ndarray:
+    """``(m,)`` which eyes localize the package: at least three points measured, the
+    predicted XY sigma within :data:`SIGMA_SHARE` of the position tolerance."""
+    return _sigma(eyes, package, project) <= SIGMA_SHARE * project.tolerances.position
+
+
+def _sees_controls(
+    eyes: np.ndarray, controls: np.ndarray, boxes: Boxes
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(m,)`` whether each eye sights enough control points, and ``(m, k)`` which."""
+    far = np.linalg.norm(controls[None] - eyes[:, None], axis=-1) >= MIN_SIGHT
+    seen = far & sight_clear(eyes, controls, boxes)
+    return seen.sum(axis=1) >= min(MIN_CONTROL_POINTS, len(controls)), seen
+
+
+def plan_setups(
+    project: Project,
+    plan: Plan,
+    elements: Sequence[Element],
+    standing: Sequence[Sequence[Element]] | None = None,
+) -> tuple[InstrumentSetup, ...]:
+    """The instrument set-ups of a build (see the module docstring).
+
+    With ``localization.total_station.T_world_instrument`` given, one set-up
+    there, checked against every package.
+
+    Parameters
+    ----------
+    project, plan, elements
+        The project, its plan and all its elements (world frame).
+    standing
+        Per work package, the structure standing when it starts (default: the
+        plan's timeline, :func:`~fabflow.design.elements.structure_timeline`).
+
+    Raises
+    ------
+    LocalizationError
+        Naming the first work package and station no set-up sees, and the
+        field to change.
+    """
+    setup = total_station_setup(project)
+    if standing is None:
+        timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
+        standing = [built for built, _ in timeline]
+    packages = _packages(project, plan, standing)
+    ids = [wp.station.id for wp in plan.work_packages]
+    if not packages:
+        return ()
+    if setup.T_world_instrument is not None:
+        T = setup.T_world_instrument.matrix().copy()
+        T[:3, 3] += T[:3, 2] * setup.instrument_height
+        eye = T[None, :3, 3]
+        for k, package in enumerate(packages):
+            if not _covers(eye, package, project)[0]:
+                raise LocalizationError(
+                    f"the total station at localization.total_station.T_world_instrument does "
+                    f"not see the prism points of work package {k + 1} (station {ids[k]}) "
+                    "through the structure built by then, or stands closer than "
+                    f"{MIN_SIGHT:g} m to them; remove T_world_instrument to have the set-ups "
+                    "planned, or move it"
+                )
+        sigma = max(float(_sigma(eye, p, project)[0]) for p in packages)
+        return (InstrumentSetup("T1", T, tuple(range(len(packages))), "given", (), sigma),)
+
+    eyes = candidate_positions(project, elements, plan)
+    controls = control_points(project)
+    control_ids = list(controls)
+    control_xyz = np.stack([controls[k] for k in control_ids])
+    if len(eyes) == 0:
+        raise LocalizationError(
+            "no place on the site for the total station's tripod: every candidate lies on "
+            "the structure, an obstacle or a parking place; enlarge site.extent_min/max"
+        )
+    limit = SIGMA_SHARE * project.tolerances.position
+    out: list[InstrumentSetup] = []
+    i = 0
+    while i < len(packages):
+        registration_on_robot = setup.stationing == "robot_points" and bool(out)
+        if registration_on_robot:
+            allowed = _covers(eyes, packages[i - 1], project)
+            why = f"sees the robot's prisms at work package {i} (station {ids[i - 1]})"
+        else:
+            allowed, _ = _sees_controls(eyes, control_xyz, packages[i].boxes)
+            why = f"sights {MIN_CONTROL_POINTS} control points"
+        alive = np.flatnonzero(allowed)
+        worst = np.zeros(len(alive))  # the largest predicted sigma over the run so far
+        end = i
+        while end < len(packages) and len(alive):
+            sigma = _sigma(eyes[alive], packages[end], project)
+            ok = sigma <= limit
+            if not ok.any():
+                break
+            alive, worst, end = alive[ok], np.maximum(worst[ok], sigma[ok]), end + 1
+        if end == i and registration_on_robot and len(out[-1].packages) > 1:
+            # hand over one package earlier: the set-up before ends sooner
+            last = out.pop()
+            out.append(replace(last, packages=last.packages[:-1]))
+            i -= 1
+            continue
+        if end == i:
+            raise LocalizationError(
+                f"no total station set-up on the site sees the prism points of work package "
+                f"{i + 1} (station {ids[i]}) through the structure built by then and {why}"
+                + (
+                    "; use stationing 'control_points' (free stationing on fixed points)"
+                    if registration_on_robot
+                    else "; raise localization.total_station.tripod_height, give more "
+                    "control_points, or use fewer n_points"
+                )
+            )
+        run = range(i, end)
+        best = int(alive[int(np.argmin(worst))])
+        T = make_T(np.eye(3), eyes[best])
+        registration: Registration = "control_points"
+        sighted: tuple[str, ...] = ()
+        if setup.stationing == "robot_points" and out:
+            registration = "robot_points"
+        else:
+            _, seen = _sees_controls(eyes[best][None], control_xyz, packages[i].boxes)
+            sighted = tuple(k for k, s in zip(control_ids, seen[0], strict=True) if s)
+        out.append(
+            InstrumentSetup(
+                f"T{len(out) + 1}", T, tuple(run), registration, sighted, float(worst.min())
+            )
+        )
+        i = end
+    return tuple(out)
+
+
+def register_setup(
+    project: Project,
+    setup: InstrumentSetup,
+    rng: np.random.Generator,
+    survey_error: dict[str, np.ndarray],
+    previous: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    built: Sequence[Element] = (),
+) -> InstrumentPose:
+    """Simulate registering a set-up where it stands; its estimated pose and covariance.
+
+    - ``given``: the project's pose with its ``setup_sigma_mm/arcsec`` (the
+      instrument really stands off by a draw of that covariance).
+    - ``control_points``: free stationing. The levelled instrument measures the
+      control points it sights (instrument noise); their surveyed coordinates
+      are off by ``survey_error`` (drawn once per build); the levelled 4-DOF fit
+      (:func:`~fabflow.positioning.rigid_fit.register_leveled`) and its
+      first-order covariance.
+    - ``robot_points``: the robot, still at its last station (true base
+      ``previous[0]``, estimate ``previous[1]`` with covariance ``previous[2]``),
+      holds prisms the new set-up measures; their world positions come from the
+      robot's estimate, so the estimate's error and covariance carry over.
+
+    Parameters
+    ----------
+    survey_error
+        Per control point id, its survey error (world, metres).
+    built
+        The structure standing (for the robot's prism points).
+    """
+    ts = total_station_setup(project)
+    instrument = instrument_for(ts)
+    T_true = np.asarray(setup.T_world_instrument, dtype=float)
+    if setup.registration == "given":
+        C = setup_covariance(ts.setup_sigma_mm, ts.setup_sigma_arcsec)
+        delta = rng.normal(0.0, 1.0, 6) * np.sqrt(np.diag(C))
+        T_actual = T_true.copy()
+        T_actual[:3, 3] += delta[:3]
+        c, s = np.cos(delta[5]), np.sin(delta[5])
+        T_actual[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T_true[:3, :3]
+        return InstrumentPose(T_actual, T_true, C, setup.id)
+    if setup.registration == "control_points":
+        controls = control_points(project)
+        true_world = np.stack([controls[k] for k in setup.control_points])
+        known_world = true_world + np.stack([survey_error[k] for k in setup.control_points])
+        extra = np.eye(3) * (ts.control_sigma_mm * 1e-3) ** 2
+        transfer = np.zeros((6, 6))
+    else:
+        assert previous is not None
+        T_base_true, T_base_est, C_base = previous
+        pts = station_points(project, T_base_true, built, sight_from=T_true[:3, 3])
+        P = pts.points
+        noise = rng.normal(0.0, 1.0, P.shape) * project.simulation.robot_repeatability
+        true_world = (P + noise) @ T_base_true[:3, :3].T + T_base_true[:3, 3]
+        known_world = P @ T_base_est[:3, :3].T + T_base_est[:3, 3]
+        extra = np.eye(3) * project.simulation.robot_repeatability**2
+        # the known points share the base estimate's error: the new set-up inherits it
+        T_base_instrument = inv_T(T_base_est) @ T_true
+        transfer = compose_covariance(T_base_est, C_base, T_base_instrument, None)
+    local_true = (true_world - T_true[:3, 3]) @ T_true[:3, :3]
+    hz, v, sd = simulate_polar(local_true, instrument, rng)
+    local = polar_to_cartesian(hz, v, sd)
+    C_local = polar_covariance(hz, v, sd, instrument)
+    W = np.linalg.inv(C_local + extra)
+    R, t = register_leveled(local, known_world, np.trace(W, axis1=1, axis2=2))
+    T_est = make_T(R, t)
+    rotated = local @ R.T
+    J = np.zeros((len(local), 3, 4))
+    J[:, :, :3] = np.eye(3)
+    J[:, 0, 3], J[:, 1, 3] = -rotated[:, 1], rotated[:, 0]
+    cov4 = np.linalg.inv(np.einsum("nai,nab,nbj->ij", J, W, J))
+    C = np.zeros((6, 6))
+    sel = [0, 1, 2, 5]
+    C[np.ix_(sel, sel)] = cov4
+    C[np.ix_(sel, sel)] += transfer[np.ix_(sel, sel)]
+    return InstrumentPose(T_true, T_est, 0.5 * (C + C.T), setup.id)
+
+
+class InstrumentTrack:
+    """The instrument through one (simulated) build: each set-up registered when put up.
+
+    Holds the state a build carries from visit to visit: the survey error of
+    the control points (drawn once), the set-up standing and its registration.
+    """
+
+    def __init__(self, project: Project, setups: Sequence[InstrumentSetup]) -> None:
+        self.project = project
+        self.by_package = {k: s for s in setups for k in s.packages}
+        self._current: InstrumentSetup | None = None
+        self._pose: InstrumentPose | None = None
+        self._survey: dict[str, np.ndarray] | None = None
+
+    def pose_at(
+        self,
+        package: int,
+        rng: np.random.Generator,
+        built: Sequence[Element] = (),
+        previous: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    ) -> InstrumentPose | None:
+        """The instrument at work package ``package`` (``None`` when no set-up covers it).
+
+        ``previous``: the robot's true base pose, its estimate and covariance at
+        the last localized package (for a set-up registered on robot points).
+        """
+        setup = self.by_package.get(package)
+        if setup is None:
+            return None
+        if setup is not self._current:
+            if self._survey is None:
+                sigma = total_station_setup(self.project).control_sigma_mm * 1e-3
+                self._survey = {k: rng.normal(0.0, sigma, 3) for k in control_points(self.project)}
+            self._pose = register_setup(
+                self.project, setup, rng, self._survey, previous=previous, built=built
+            )
+            self._current = setup
+        return self._pose
+
+
+def planned_setups(
+    project: Project, plan: Plan, elements: Sequence[Element], method: str | None = None
+) -> tuple[InstrumentSetup, ...] | None:
+    """The set-ups of a project localized by total station from simulated readings (given
+    or planned, :func:`plan_setups`); ``None`` for the other methods and for measured
+    readings. ``method``: instead of the project's."""
+    method = method or project.localization.method
+    if method != "total_station" or total_station_setup(project).observations is not None:
+        return None
+    return plan_setups(project, plan, elements)
+
+
+def setups_document(project: Project, setups: Sequence[InstrumentSetup]) -> dict[str, Any]:
+    """``instrument_setups.json``: the set-ups in build order and the control points."""
+    ts = total_station_setup(project)
+    return {
+        "frame": "world",
+        "units": "m",
+        "stationing": ts.stationing,
+        "control_points": {k: v.tolist() for k, v in control_points(project).items()},
+        "setups": [s.to_dict() for s in setups],
+    }
+
+
+def track_for(
+    project: Project,
+    method: str,
+    plan: Plan,
+    elements: Sequence[Element],
+    setups: Sequence[InstrumentSetup] | None = None,
+) -> InstrumentTrack | None:
+    """The instrument track of a simulated build with ``method``, or ``None`` when the
+    method is not the total station, the sensors are exact, or readings are measured.
+
+    ``setups``: the plan's set-ups when already planned (:func:`plan_setups` otherwise).
+    """
+    ts = total_station_setup(project)
+    if method != "total_station" or not project.simulation.sensor_noise:
+        return None
+    if ts.observations is not None:
+        return None
+    return InstrumentTrack(
+        project, plan_setups(project, plan, elements) if setups is None else setups
+    )
+
+
+def setup_rows(setups: Sequence[InstrumentSetup]) -> list[tuple[str, str]]:
+    """Build summary rows: how many set-ups, and when and where the instrument moves
+    (none without set-ups)."""
+    if not setups:
+        return []
+    rows = [("total station set-ups", str(len(setups)))]
+    for s in setups:
+        x, y, z = s.T_world_instrument[:3, 3]
+        first, last = s.packages[0] + 1, s.packages[-1] + 1
+        via = {"given": "as given", "control_points": "on " + ", ".join(s.control_points)}.get(
+            s.registration, "on the robot's prisms"
+        )
+        rows.append(
+            (
+                f"set-up {s.id}",
+                f"packages {first}-{last}: at ({x:.2f}, {y:.2f}), trunnion {z:.2f} m, "
+                f"registered {via}; predicted XY sigma {1000 * s.predicted_sigma:.1f} mm",
+            )
+        )
+    return rows
