@@ -155,7 +155,7 @@ def plan(
     """Slice a project into per-station work packages: OUT/plan.json and OUT/site_plan.dxf."""
     from fabflow.build.plan import plan_rows, write_plan_outputs
     from fabflow.design.generate import generate_elements
-    from fabflow.localize.setups import planned_setups, setup_rows
+    from fabflow.localize.layout import site_layout
     from fabflow.output import atomic_output_dir
     from fabflow.project import load_project
     from fabflow.tasks.planner import make_plan
@@ -165,9 +165,9 @@ def plan(
     with console.status("planning"), atomic_output_dir(out) as staging:
         elements = generate_elements(p.elements, p.path, p.limits)
         result = make_plan(p, elements)
-        setups = planned_setups(p, result, with_pieces(elements, result.split_elements))
-        write_plan_outputs(staging, p, elements, result, setups)
-    rows = plan_rows(result) + setup_rows(setups or ())
+        layout = site_layout(p, result, with_pieces(elements, result.split_elements))
+        write_plan_outputs(staging, p, elements, result, layout)
+    rows = plan_rows(result) + layout.rows(result)
     print_summary([("plan", i, v) for i, v in rows], title=f"fabflow plan: {p.name}")
     console.print(f"[green]wrote[/] {Path(out).resolve() / 'plan.json'}")
 

@@ -195,7 +195,19 @@ class Robot(StrictModel):
 class UwbSetup(StrictModel):
     """Ultra-wideband ranging: anchors in the UWB frame and the ranging model."""
 
-    anchors: Annotated[dict[str, Vec3], Field(min_length=3)]
+    anchors: dict[str, Vec3] = {}
+    """Anchor positions in the UWB frame (metres). Given: checked against every
+    station; absent: planned (:mod:`fabflow.localize.anchors`)."""
+    anchor_count: Annotated[int, Field(ge=3, le=32)] | None = None
+    """How many anchors to plan (default: the fewest that reach ``target_sigma``)."""
+    anchor_height: tuple[PositiveFloat, PositiveFloat] = (1.0, 3.2)
+    """Range of the planned anchors' heights above the ground (metres)."""
+    anchor_spacing: Annotated[float, Field(ge=0.25, le=10.0)] = 1.0
+    """Grid spacing of the candidate anchor positions on the site (metres)."""
+    target_sigma: PositiveFloat | None = None
+    """Largest predicted XY position sigma of a tag at any station (metres; the
+    Cramer-Rao bound of one ranging epoch with the anchors in sight); default
+    2 x ``sigma`` (a horizontal dilution of precision of 2)."""
     T_world_uwb: PoseSpec = PoseSpec()
     estimator: Literal["ls", "wls", "wls-t", "eskf"] = "wls-t"
     sigma: PositiveFloat = 0.05
@@ -219,6 +231,10 @@ class UwbSetup(StrictModel):
         unknown = sorted(set(self.calibration) - set(self.anchors))
         if unknown:
             raise ValueError(f"'calibration' names unknown anchors {unknown}")
+        if 0 < len(self.anchors) < 3:
+            raise ValueError("'anchors' needs at least 3 anchors (or none, to have them planned)")
+        if self.anchor_height[0] > self.anchor_height[1]:
+            raise ValueError("'anchor_height' must be (lowest, highest)")
         return self
 
 
@@ -343,7 +359,9 @@ class Localization(StrictModel):
     @model_validator(mode="after")
     def _setup_present(self) -> Localization:
         if self.method == "uwb" and self.uwb is None:
-            raise ValueError("method 'uwb' needs a 'uwb' section with the anchor positions")
+            raise ValueError(
+                "method 'uwb' needs a 'uwb' section (its anchors are planned when it names none)"
+            )
         return self
 
     def setup(self) -> UwbSetup | TotalStationSetup | IcpSetup:
@@ -518,6 +536,17 @@ class Project(StrictModel):
                     f"limits.max_candidates = {lim.max_candidates}",
                 )
         uwb = self.localization.uwb
+        if uwb is not None and not uwb.anchors:
+            n_anchors = _grid_points(x0, x1, uwb.anchor_spacing) * _grid_points(
+                y0, y1, uwb.anchor_spacing
+            )
+            if n_anchors > lim.max_candidates:
+                raise located(
+                    ("localization", "uwb", "anchor_spacing"),
+                    f"a site of {x1 - x0:g} x {y1 - y0:g} m at {uwb.anchor_spacing:g} m spacing "
+                    f"makes {n_anchors:.4g} candidate anchor positions, more than "
+                    f"limits.max_candidates = {lim.max_candidates}",
+                )
         if uwb is not None:
             ranges = uwb.dwell_s * uwb.rate_hz * len(uwb.tags) * len(uwb.anchors)
             imu = uwb.dwell_s * uwb.imu_rate_hz

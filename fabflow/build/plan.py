@@ -8,13 +8,8 @@ from pathlib import Path
 from fabflow.build.context import BuildContext
 from fabflow.design.elements import Element
 from fabflow.design.site_plan import write_site_plan
-from fabflow.localize.setups import (
-    InstrumentSetup,
-    control_points,
-    planned_setups,
-    setup_rows,
-    setups_document,
-)
+from fabflow.localize.layout import SiteLayout, site_layout
+from fabflow.localize.setups import control_points
 from fabflow.localize.site import site_sensors
 from fabflow.output import write_json
 from fabflow.project import Project
@@ -50,20 +45,22 @@ def write_plan_outputs(
     project: Project,
     elements: Sequence[Element],
     plan: Plan,
-    setups: Sequence[InstrumentSetup] | None = None,
+    layout: SiteLayout | None = None,
 ) -> None:
     """Write ``plan.json`` and redraw ``site_plan.dxf`` with the stations into ``out``;
-    with total station ``setups``, ``instrument_setups.json`` too, and the set-ups and
-    control points on the site plan."""
+    with the localization's ``layout``, its files too (``instrument_setups.json``,
+    ``uwb_anchors.json``) and its set-ups, control points and anchors on the site plan."""
     write_json(
         out / "plan.json",
         {"fabflow_version": __version__, "frame": "world", "units": "m", **plan.to_dict()},
     )
+    if layout is not None:
+        project = layout.project
+        layout.write(out, plan)
     anchors, instrument = site_sensors(project)
     controls = None
-    if setups is not None:
-        write_json(out / "instrument_setups.json", setups_document(project, setups))
-        instrument = {s.id: s.T_world_instrument for s in setups}
+    if layout is not None and layout.setups is not None:
+        instrument = {s.id: s.T_world_instrument for s in layout.setups}
         controls = control_points(project)
     write_site_plan(
         out / "site_plan.dxf",
@@ -79,8 +76,9 @@ def write_plan_outputs(
 def stage_plan(ctx: BuildContext) -> None:
     """Slice the elements into work packages; write ``plan.json``, redraw the site plan.
 
-    Reads the elements; sets ``ctx.plan`` and, for the total station, ``ctx.setups``
-    (``instrument_setups.json``). When print paths were split into
+    Reads the elements; sets ``ctx.plan``, and the localization's layout
+    (:func:`~fabflow.localize.layout.site_layout`): ``ctx.setups`` for the total
+    station, ``ctx.project`` with its planned UWB anchors. When print paths were split into
     per-station pieces, ``ctx.elements`` is replaced by the list with the pieces
     (see :mod:`fabflow.tasks.split`).
     """
@@ -88,9 +86,9 @@ def stage_plan(ctx: BuildContext) -> None:
     ctx.plan = plan
     elements = with_pieces(ctx.need_elements(), plan.split_elements)
     ctx.elements = elements
-    ctx.setups = planned_setups(ctx.project, plan, elements)
-    write_plan_outputs(ctx.out, ctx.project, elements, plan, ctx.setups)
-    for item, value in plan_rows(plan):
-        ctx.add("plan", item, value)
-    for item, value in setup_rows(ctx.setups or ()):
+    layout = site_layout(ctx.project, plan, elements)
+    ctx.project = layout.project
+    ctx.setups = layout.setups
+    write_plan_outputs(ctx.out, ctx.project, elements, plan, layout)
+    for item, value in plan_rows(plan) + layout.rows(plan):
         ctx.add("plan", item, value)

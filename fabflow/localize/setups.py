@@ -36,6 +36,7 @@ import numpy as np
 from fabflow.design.elements import Element, element_boxes, structure_timeline
 from fabflow.errors import LocalizationError
 from fabflow.localize.prism_points import instrument_for, station_points, total_station_setup
+from fabflow.localize.site import free_ground
 from fabflow.positioning.point_selection import Boxes, segments_clear
 from fabflow.positioning.polar import (
     cartesian_to_polar,
@@ -160,49 +161,14 @@ def _world_boxes(elements: Sequence[Element]) -> Boxes:
 
 
 def candidate_positions(project: Project, elements: Sequence[Element], plan: Plan) -> np.ndarray:
-    """``(m, 3)`` candidate trunnion positions (world, metres) for planned set-ups.
-
-    A grid of ``setup_spacing`` over the site at the lowest, middle and highest
-    ``tripod_height``, without the points within :data:`TRIPOD_CLEARANCE` of an
-    element's plan footprint, an obstacle or a platform parked at any station
-    (its footprint plus ``safety_margin``).
-    """
+    """``(m, 3)`` candidate trunnion positions (world, metres) for planned set-ups: the
+    free ground (:func:`~fabflow.localize.site.free_ground`, ``setup_spacing``) at the
+    lowest, middle and highest ``tripod_height``."""
     setup = total_station_setup(project)
-    (x0, y0), (x1, y1) = project.site.extent_min, project.site.extent_max
-    s = setup.setup_spacing
-    xs = np.arange(x0 + 0.5 * s, x1, s)
-    ys = np.arange(y0 + 0.5 * s, y1, s)
-    xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
-    keep = np.ones(len(xy), dtype=bool)
-    T_box, extents = element_boxes(elements)
-    if len(extents):
-        # each box's plan footprint as an axis-aligned rectangle (its bounding box)
-        corner = np.abs(T_box[:, :2, :3]) @ (0.5 * extents)[..., None]
-        lo = T_box[:, :2, 3] - corner[..., 0] - TRIPOD_CLEARANCE
-        hi = T_box[:, :2, 3] + corner[..., 0] + TRIPOD_CLEARANCE
-        for start in range(0, len(xy), 4096):
-            p = xy[start : start + 4096, None, :]
-            keep[start : start + 4096] &= ~((p >= lo[None]) & (p <= hi[None])).all(axis=2).any(1)
-    for obstacle in project.site.obstacles:
-        if obstacle.box is not None:
-            lo, hi = np.asarray(obstacle.box.min[:2]), np.asarray(obstacle.box.max[:2])
-        else:
-            assert obstacle.polygon is not None
-            pts = np.asarray(obstacle.polygon.points, dtype=float)
-            lo, hi = pts.min(axis=0), pts.max(axis=0)
-        keep &= ~((xy >= lo - TRIPOD_CLEARANCE) & (xy <= hi + TRIPOD_CLEARANCE)).all(axis=1)
-    pf = project.robot.platform
-    margin = pf.safety_margin + TRIPOD_CLEARANCE
-    half = 0.5 * np.asarray(pf.footprint, dtype=float) + margin
-    for station in plan.stations:
-        T = np.asarray(station.T_world_platform, dtype=float)
-        local = (xy - T[:2, 3]) @ T[:2, :2]
-        keep &= ~(np.abs(local) <= half).all(axis=1)
-    xy = xy[keep]
+    xy = free_ground(project, elements, plan, setup.setup_spacing, TRIPOD_CLEARANCE)
     lo_h, hi_h = setup.tripod_height
     heights = np.unique([lo_h, 0.5 * (lo_h + hi_h), hi_h])
-    ground = 0.0
-    return np.concatenate([np.column_stack([xy, np.full(len(xy), ground + h)]) for h in heights])
+    return np.concatenate([np.column_stack([xy, np.full(len(xy), h)]) for h in heights])
 
 
 def predicted_sigma(

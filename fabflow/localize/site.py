@@ -7,11 +7,14 @@ them on the site plan; the localization methods measure against them.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
+from fabflow.design.elements import Element, element_boxes
 from fabflow.project import Project, UwbSetup
+from fabflow.tasks.plan import Plan
 
 
 def points_in_world(T_world_frame: np.ndarray, p_frame: np.ndarray) -> np.ndarray:
@@ -27,7 +30,7 @@ def points_in_world(T_world_frame: np.ndarray, p_frame: np.ndarray) -> np.ndarra
 def anchors_world(setup: UwbSetup) -> tuple[list[str], np.ndarray]:
     """Anchor ids and their ``(n, 3)`` positions in the world (metres, ``T_world_uwb`` applied)."""
     ids = list(setup.anchors)
-    A = np.array([setup.anchors[k] for k in ids], dtype=float)
+    A = np.array([setup.anchors[k] for k in ids], dtype=float).reshape(-1, 3)
     return ids, points_in_world(setup.T_world_uwb.matrix(), A)
 
 
@@ -39,7 +42,7 @@ def site_sensors(project: Project) -> tuple[dict[str, np.ndarray] | None, np.nda
     """
     loc = project.localization
     anchors = None
-    if loc.uwb is not None:
+    if loc.uwb is not None and loc.uwb.anchors:
         ids, A = anchors_world(loc.uwb)
         anchors = dict(zip(ids, A, strict=True))
     station = loc.total_station
@@ -65,3 +68,48 @@ def site_obstacles(project: Project) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
         if o.polygon is not None
     )
     return boxes, prisms
+
+
+def free_ground(
+    project: Project,
+    elements: Sequence[Element],
+    plan: Plan,
+    spacing: float,
+    clearance: float,
+) -> np.ndarray:
+    """``(m, 2)`` points of a ``spacing`` grid over the site (world, metres) where a tripod
+    or an anchor pole may stand for the whole build.
+
+    Left out: points within ``clearance`` of an element's plan footprint (its
+    bounding rectangle), of an obstacle, or of the platform parked at any station
+    (its footprint plus ``safety_margin``). The ground is at z = 0.
+    """
+    (x0, y0), (x1, y1) = project.site.extent_min, project.site.extent_max
+    xs = np.arange(x0 + 0.5 * spacing, x1, spacing)
+    ys = np.arange(y0 + 0.5 * spacing, y1, spacing)
+    xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+    keep = np.ones(len(xy), dtype=bool)
+    T_box, extents = element_boxes(elements)
+    if len(extents):
+        corner = (np.abs(T_box[:, :2, :3]) @ (0.5 * extents)[..., None])[..., 0]
+        lo = T_box[:, :2, 3] - corner - clearance
+        hi = T_box[:, :2, 3] + corner + clearance
+        for start in range(0, len(xy), 4096):
+            p = xy[start : start + 4096, None, :]
+            inside = ((p >= lo[None]) & (p <= hi[None])).all(axis=2).any(axis=1)
+            keep[start : start + 4096] &= ~inside
+    for obstacle in project.site.obstacles:
+        if obstacle.box is not None:
+            lo2, hi2 = np.asarray(obstacle.box.min[:2]), np.asarray(obstacle.box.max[:2])
+        else:
+            assert obstacle.polygon is not None
+            pts = np.asarray(obstacle.polygon.points, dtype=float)
+            lo2, hi2 = pts.min(axis=0), pts.max(axis=0)
+        keep &= ~((xy >= lo2 - clearance) & (xy <= hi2 + clearance)).all(axis=1)
+    pf = project.robot.platform
+    half = 0.5 * np.asarray(pf.footprint, dtype=float) + pf.safety_margin + clearance
+    for station in plan.stations:
+        T = np.asarray(station.T_world_platform, dtype=float)
+        local = (xy - T[:2, 3]) @ T[:2, :2]
+        keep &= ~(np.abs(local) <= half).all(axis=1)
+    return xy[keep]

@@ -33,9 +33,10 @@ import numpy as np
 from fabflow.design.elements import Element, structure_timeline
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
+from fabflow.localize.layout import site_layout
 from fabflow.localize.methods import localizer_arguments
 from fabflow.localize.plan import LocalizeStation, check_visit, parked_pose, station_localizer
-from fabflow.localize.setups import InstrumentSetup, InstrumentTrack, planned_setups
+from fabflow.localize.setups import InstrumentSetup, InstrumentTrack
 from fabflow.positioning.result import BasePose
 from fabflow.project import LOCALIZATION_METHODS, Project
 from fabflow.tasks.plan import Plan, Station
@@ -170,7 +171,8 @@ def prepare_study(
         )
     if method == "uwb" and project.localization.uwb is None:
         raise InputError(
-            "method 'uwb' needs a 'localization.uwb' section with the anchor positions",
+            "method 'uwb' needs a 'localization.uwb' section (its anchors are planned when "
+            "it names none)",
             project.path,
             "localization.uwb",
         )
@@ -179,6 +181,8 @@ def prepare_study(
     if plan is None:
         plan = plan_project(project, elements)
     elements = with_pieces(elements, plan.split_elements)
+    layout = site_layout(project, plan, elements, method)
+    project = layout.project
     by_id = {e.id: e for e in elements}
     timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
     ids: list[str] = []
@@ -197,7 +201,7 @@ def prepare_study(
         T_world_element=T if ids else np.zeros((0, 4, 4)),
         stations=tuple(wp.station for wp in plan.work_packages),
         built_before=tuple(built_before),
-        setups=planned_setups(project, plan, elements, method),
+        setups=layout.setups,
     )
     if fidelity == "sensors":
         return study

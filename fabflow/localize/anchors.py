@@ -1,0 +1,363 @@
+"""UWB anchor layouts: every station must be located within its tolerance from the anchors.
+
+At every work package the platform's tags (``uwb.tags``) range to the anchors
+for ``dwell_s`` seconds. Through the structure standing then a range is not in
+sight, and half of such ranges carry an NLOS excess (the simulator's model,
+:class:`fabflow.sensors.uwb.UwbErrorModel`), rejected as outliers. The
+predicted XY sigma of the platform (its tags' centre) is the Cramer-Rao bound
+of its ``x, y, z, yaw`` from the clean ranges of a dwell, with each anchor's
+calibration bias (``calibration_sigma``) shared by all its ranges
+(:func:`_information`). A station is covered when that sigma is within
+``target_sigma``, by default a third of ``tolerances.position`` (the position
+error stays within the tolerance at three sigma).
+
+:func:`check_anchors` tests a given layout and :func:`coverage_error` names the
+first station it does not cover and what to change. :func:`plan_anchors`
+places anchors on free ground (a grid of ``anchor_spacing`` at the lowest,
+middle and highest ``anchor_height``): greedily, each time the candidate that
+most lowers the sum over packages of the bounded sigma, until every station is
+covered and at least :data:`MIN_PLANNED` stand (or ``anchor_count`` are
+placed). :func:`layout_anchors` does the one or the other and returns the
+project with its anchors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from fabflow.design.elements import Element, element_boxes, structure_timeline
+from fabflow.errors import LocalizationError
+from fabflow.localize.site import anchors_world, free_ground, points_in_world
+from fabflow.positioning.point_selection import Boxes, segments_clear
+from fabflow.project import Project
+from fabflow.robots import platform
+from fabflow.sensors.uwb import UwbErrorModel
+from fabflow.tasks.plan import Plan
+from fabflow.transforms.se3 import inv_T
+
+TOLERANCE_SIGMAS = 3.0
+"""Default ``target_sigma``: the position tolerance over this many sigmas."""
+ANCHOR_CLEARANCE = 0.5
+"""Distance (metres) a planned anchor keeps from the structure, obstacles and parking places."""
+MAX_PLANNED = 32
+"""Most anchors :func:`plan_anchors` places."""
+MIN_PLANNED = 4
+"""Fewest anchors :func:`plan_anchors` places: with three, a faulty anchor leaves no
+redundancy to detect it (the integrity tests exclude one anchor at a time)."""
+_CAP = 10.0
+"""Sigmas are bounded at this many targets in the planner's score (an uncovered tag)."""
+
+
+@dataclass(frozen=True)
+class AnchorCoverage:
+    """How well an anchor layout serves every work package.
+
+    Attributes
+    ----------
+    anchor_ids
+        The anchors, in order.
+    anchors
+        ``(n, 3)`` their positions (world, metres).
+    in_sight
+        ``(P, T)`` anchors each tag sees past the structure at each package.
+    sigma
+        ``(P,)`` predicted XY sigma of the platform at each package (metres;
+        infinity when the ranges do not fix it).
+    sigma_in_sight
+        ``(P,)`` the same from the ranges in sight alone.
+    target
+        The target sigma (metres).
+    planned
+        Whether the layout was planned (else given and checked).
+    """
+
+    anchor_ids: tuple[str, ...]
+    anchors: np.ndarray
+    in_sight: np.ndarray
+    sigma: np.ndarray
+    sigma_in_sight: np.ndarray
+    target: float
+    planned: bool
+
+    @property
+    def covered(self) -> np.ndarray:
+        """``(P,)`` packages whose predicted sigma is within the target (a planned layout:
+        from the ranges in sight alone)."""
+        return (self.sigma_in_sight if self.planned else self.sigma) <= self.target
+
+    @property
+    def through_structure(self) -> np.ndarray:
+        """``(P,)`` packages that reach the target only with ranges through the structure."""
+        return self.covered & (self.sigma_in_sight > self.target)
+
+    def to_dict(self, stations: Sequence[str]) -> dict[str, Any]:
+        """Plain JSON-compatible data (``uwb_anchors.json``)."""
+        return {
+            "frame": "world",
+            "units": "m",
+            "planned": self.planned,
+            "target_sigma_xy_m": self.target,
+            "anchors": {k: p.tolist() for k, p in zip(self.anchor_ids, self.anchors, strict=True)},
+            "packages": [
+                {
+                    "package": k + 1,
+                    "station": stations[k],
+                    "anchors_in_sight_per_tag": self.in_sight[k].tolist(),
+                    "sigma_xy_m": _finite(self.sigma[k]),
+                    "sigma_xy_in_sight_m": _finite(self.sigma_in_sight[k]),
+                }
+                for k in range(len(self.sigma))
+            ],
+        }
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+def target_sigma(project: Project) -> float:
+    """``uwb.target_sigma``, or ``tolerances.position`` / :data:`TOLERANCE_SIGMAS` (metres)."""
+    setup = project.localization.uwb
+    assert setup is not None
+    if setup.target_sigma is not None:
+        return setup.target_sigma
+    return project.tolerances.position / TOLERANCE_SIGMAS
+
+
+def package_tags(project: Project, plan: Plan) -> np.ndarray:
+    """``(P, T, 3)`` tag positions at each work package (world, metres), placed from the
+    package's base pose as :func:`fabflow.localize.uwb.simulate_station` places them."""
+    setup = project.localization.uwb
+    assert setup is not None
+    L = np.asarray(setup.tags, dtype=float)
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
+    out = []
+    for wp in plan.work_packages:
+        T_base = wp.station.T_world_base(T_platform_base)
+        T_platform = platform.T_world_platform_of(T_base, 0.0, T_platform_base)
+        out.append(points_in_world(T_platform, L))
+    return np.asarray(out).reshape(len(plan.work_packages), len(L), 3)
+
+
+def _information(
+    project: Project,
+    tags: np.ndarray,
+    anchors: np.ndarray,
+    standing: Sequence[Sequence[Element]],
+    in_sight_only: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per package, tag and anchor whether the range is in sight ``(P, T, A)``; per
+    package and anchor the Fisher information its ranges give on the platform's
+    ``x, y, z, yaw`` over one dwell ``(P, A, 4, 4)``.
+
+    Each range has the simulator's distance-dependent noise; of the
+    ``dwell_s * rate_hz`` rounds, the share without an NLOS excess counts
+    (``nlos_prob`` in sight, ``nlos_prob_occluded`` through the structure: the
+    excess ranges are rejected as outliers). The calibration leaves each anchor a
+    bias of ``calibration_sigma`` shared by all its ranges, which no dwell
+    averages away: an anchor's block of the range covariance is
+    ``diag(sigma^2 / n) + calibration_sigma^2``.
+    """
+    setup = project.localization.uwb
+    assert setup is not None
+    P, T = tags.shape[:2]
+    A = len(anchors)
+    sight = np.zeros((P, T, A), dtype=bool)
+    for k, built in enumerate(standing):
+        T_box, extents = element_boxes(built)
+        boxes = Boxes(T_box, extents) if len(extents) else Boxes.empty()
+        starts = np.repeat(tags[k], A, axis=0)
+        ends = np.tile(anchors, (T, 1))
+        sight[k] = segments_clear(starts, ends, boxes).reshape(T, A)
+    model = UwbErrorModel(sigma_1m=setup.sigma)
+    diff = tags[:, :, None, :] - anchors[None, None]  # (P, T, A, 3)
+    dist = np.linalg.norm(diff, axis=-1)
+    u = diff / np.maximum(dist, 1e-9)[..., None]
+    rounds = max(1.0, setup.dwell_s * setup.rate_hz)
+    clean = rounds * (1.0 - np.where(sight, model.nlos_prob, model.nlos_prob_occluded))
+    var = model.sigma(dist) ** 2 / np.maximum(clean, 1.0)  # (P, T, A)
+    if in_sight_only:
+        var = np.where(sight, var, 1e12)
+    # d range / d (x, y, z, yaw): the tag's lever turns with the platform's heading
+    lever = tags - tags.mean(axis=1, keepdims=True)
+    J = np.zeros((P, T, A, 4))
+    J[..., :3] = u
+    J[..., 3] = u[..., 0] * -lever[:, :, None, 1] + u[..., 1] * lever[:, :, None, 0]
+    Jt = np.moveaxis(J, 1, 2)  # (P, A, T, 4)
+    cov = np.zeros((P, A, T, T))
+    cov[...] = setup.calibration_sigma**2
+    cov += np.moveaxis(var, 1, 2)[..., None] * np.eye(T)
+    info = np.swapaxes(Jt, -1, -2) @ np.linalg.solve(cov, Jt)
+    return sight, info
+
+
+def _sigma_xy(info: np.ndarray) -> np.ndarray:
+    """XY sigma (metres) of the tags' centre from summed ``(..., 4, 4)`` information on
+    ``x, y, z, yaw``; infinity where singular."""
+    flat = info.reshape(-1, 4, 4)
+    out = np.full(len(flat), np.inf)
+    ev = np.linalg.eigvalsh(flat)
+    ok = ev[:, 0] > 1e-9 * np.maximum(ev[:, -1], 1e-300)
+    C = np.linalg.inv(flat[ok])
+    out[ok] = np.sqrt(C[:, 0, 0] + C[:, 1, 1])
+    return out.reshape(info.shape[:-2])
+
+
+def _standing(plan: Plan, elements: Sequence[Element]) -> list[list[Element]]:
+    timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
+    return [list(built) for built, _ in timeline]
+
+
+def check_anchors(
+    project: Project,
+    plan: Plan,
+    elements: Sequence[Element],
+    anchors: np.ndarray | None = None,
+    planned: bool = False,
+) -> AnchorCoverage:
+    """The coverage of the project's anchors (or ``anchors``, world) at every work package."""
+    setup = project.localization.uwb
+    assert setup is not None
+    if anchors is None:
+        ids, anchors = anchors_world(setup)
+    else:
+        ids = [f"A{i + 1}" for i in range(len(anchors))]
+    tags = package_tags(project, plan)
+    standing = _standing(plan, elements)
+    sight, info = _information(project, tags, anchors, standing)
+    _, info_in_sight = _information(project, tags, anchors, standing, in_sight_only=True)
+    return AnchorCoverage(
+        tuple(ids),
+        np.asarray(anchors, dtype=float),
+        sight.sum(axis=2),
+        _sigma_xy(info.sum(axis=1)),
+        _sigma_xy(info_in_sight.sum(axis=1)),
+        target_sigma(project),
+        planned,
+    )
+
+
+def coverage_error(coverage: AnchorCoverage, plan: Plan) -> str | None:
+    """A message naming the first work package the layout does not cover, or None."""
+    bad = np.flatnonzero(~coverage.covered)
+    if len(bad) == 0:
+        return None
+    k = int(bad[0])
+    station = plan.work_packages[k].station.id
+    sigma = (coverage.sigma_in_sight if coverage.planned else coverage.sigma)[k]
+    shown = f"{1000 * sigma:.1f} mm" if np.isfinite(sigma) else "undetermined"
+    fix = (
+        "raise localization.uwb.anchor_count or anchor_height, or give the anchors"
+        if coverage.planned
+        else "add or move anchors in localization.uwb.anchors, or remove them to have them planned"
+    )
+    seen = ", ".join(str(int(v)) for v in coverage.in_sight[k])
+    return (
+        f"UWB anchors do not cover station {station} (work package {k + 1}; {len(bad)} "
+        f"package(s) in all): predicted XY sigma {shown}, target "
+        f"{1000 * coverage.target:.1f} mm (localization.uwb.target_sigma); anchors in sight "
+        f"past the structure per tag: {seen}; {fix}"
+    )
+
+
+def plan_anchors(project: Project, plan: Plan, elements: Sequence[Element]) -> np.ndarray:
+    """``(n, 3)`` planned anchor positions (world, metres); see the module docstring.
+
+    Raises
+    ------
+    LocalizationError
+        When no free ground is left for anchors.
+    """
+    setup = project.localization.uwb
+    assert setup is not None
+    xy = free_ground(project, elements, plan, setup.anchor_spacing, ANCHOR_CLEARANCE)
+    if len(xy) == 0:
+        raise LocalizationError(
+            "no free ground on the site for UWB anchors: enlarge site.extent_min/max"
+        )
+    lo, hi = setup.anchor_height
+    heights = np.unique([lo, 0.5 * (lo + hi), hi])
+    cands = np.concatenate([np.column_stack([xy, np.full(len(xy), h)]) for h in heights])
+    tags = package_tags(project, plan)
+    _, info = _information(project, tags, cands, _standing(plan, elements), in_sight_only=True)
+    target = target_sigma(project)
+    limit = setup.anchor_count or MAX_PLANNED
+    chosen: list[int] = []
+    total = np.zeros((info.shape[0], 4, 4))
+    free = np.ones(len(cands), dtype=bool)
+    while len(chosen) < limit:
+        idx = np.flatnonzero(free)
+        sigma = _sigma_xy(total[None] + np.moveaxis(info[:, idx], 1, 0))  # (C, P)
+        score = np.minimum(sigma, _CAP * target).sum(axis=1)
+        best = int(idx[int(np.argmin(score))])
+        chosen.append(best)
+        free[best] = False
+        total += info[:, best]
+        enough = len(chosen) >= MIN_PLANNED
+        if setup.anchor_count is None and enough and (_sigma_xy(total) <= target).all():
+            break
+    return cands[chosen]
+
+
+def layout_anchors(
+    project: Project, plan: Plan, elements: Sequence[Element]
+) -> tuple[Project, AnchorCoverage]:
+    """The project with its UWB anchors (planned when it names none) and their coverage.
+
+    Raises
+    ------
+    LocalizationError
+        When the anchors, given or planned, leave a station uncovered
+        (:func:`coverage_error`).
+    """
+    setup = project.localization.uwb
+    assert setup is not None
+    if setup.anchors:
+        coverage = check_anchors(project, plan, elements)
+    else:
+        world = plan_anchors(project, plan, elements)
+        coverage = check_anchors(project, plan, elements, world, planned=True)
+        local = points_in_world(inv_T(setup.T_world_uwb.matrix()), world)
+        anchors = {
+            k: tuple(float(v) for v in p) for k, p in zip(coverage.anchor_ids, local, strict=True)
+        }
+        uwb = setup.model_copy(update={"anchors": anchors})
+        project = project.model_copy(
+            update={"localization": project.localization.model_copy(update={"uwb": uwb})}
+        )
+    message = coverage_error(coverage, plan)
+    if message is not None:
+        raise LocalizationError(message)
+    return project, coverage
+
+
+def anchor_rows(coverage: AnchorCoverage, plan: Plan) -> list[tuple[str, str]]:
+    """Build summary rows: the layout, and its worst station."""
+    sigma = coverage.sigma_in_sight if coverage.planned else coverage.sigma
+    k = int(np.argmax(sigma))
+    how = "planned" if coverage.planned else "given, checked"
+    rows = [
+        ("UWB anchors", f"{len(coverage.anchor_ids)} ({how})"),
+        (
+            "UWB predicted XY sigma (max)",
+            f"{1000 * sigma[k]:.1f} mm at station {plan.work_packages[k].station.id} "
+            f"(target {1000 * coverage.target:.1f} mm; fewest anchors in sight of a tag: "
+            f"{int(coverage.in_sight.min())})",
+        ),
+    ]
+    nlos = np.flatnonzero(coverage.through_structure)
+    if len(nlos):
+        rows.append(
+            (
+                "UWB through the structure",
+                f"{len(nlos)} of {len(sigma)} packages (first: {nlos[0] + 1}, station "
+                f"{plan.work_packages[nlos[0]].station.id}) reach the target only with "
+                "ranges through the structure (NLOS, biased): more anchors in sight make "
+                "them safer (remove the anchors to have them planned)",
+            )
+        )
+    return rows
