@@ -205,8 +205,8 @@ class UwbSetup(StrictModel):
     anchor_spacing: Annotated[float, Field(ge=0.25, le=10.0)] = 1.0
     """Grid spacing of the candidate anchor positions on the site (metres)."""
     target_sigma: PositiveFloat | None = None
-    """Largest predicted XY position sigma of a tag at any station (metres; the
-    Cramer-Rao bound of one ranging epoch with the anchors in sight); default
+    """Largest predicted XY sigma of the platform at any station (metres; the
+    Cramer-Rao bound of one ranging epoch, :mod:`fabflow.localize.anchors`); default
     2 x ``sigma`` (a horizontal dilution of precision of 2)."""
     T_world_uwb: PoseSpec = PoseSpec()
     estimator: Literal["ls", "wls", "wls-t", "eskf"] = "wls-t"

@@ -1,24 +1,25 @@
-"""UWB anchor layouts: every station must be located within its tolerance from the anchors.
+"""UWB anchor layouts: every station must see anchors around it, in good geometry.
 
-At every work package the platform's tags (``uwb.tags``) range to the anchors
-for ``dwell_s`` seconds. Through the structure standing then a range is not in
-sight, and half of such ranges carry an NLOS excess (the simulator's model,
-:class:`fabflow.sensors.uwb.UwbErrorModel`), rejected as outliers. The
+At every work package the platform's tags (``uwb.tags``) range to the anchors.
+Through the structure standing then a range is not in sight, and half of such
+ranges carry an NLOS excess (the simulator's model,
+:class:`fabflow.sensors.uwb.UwbErrorModel`) and are rejected as outliers. The
 predicted XY sigma of the platform (its tags' centre) is the Cramer-Rao bound
-of its ``x, y, z, yaw`` from the clean ranges of a dwell, with each anchor's
-calibration bias (``calibration_sigma``) shared by all its ranges
-(:func:`_information`). A station is covered when that sigma is within
-``target_sigma``, by default a third of ``tolerances.position`` (the position
-error stays within the tolerance at three sigma).
+of its ``x, y, z, yaw`` from one ranging epoch of all its tags, each range
+weighted by the chance that it is clean (:func:`_information`): a geometry
+figure, as the dilution of precision of satellite positioning is, which a
+dwell then averages down. A station is covered when it is within
+``target_sigma``, by default :data:`DEFAULT_HDOP` times the range sigma.
 
 :func:`check_anchors` tests a given layout and :func:`coverage_error` names the
 first station it does not cover and what to change. :func:`plan_anchors`
 places anchors on free ground (a grid of ``anchor_spacing`` at the lowest,
-middle and highest ``anchor_height``): greedily, each time the candidate that
-most lowers the sum over packages of the bounded sigma, until every station is
-covered and at least :data:`MIN_PLANNED` stand (or ``anchor_count`` are
-placed). :func:`layout_anchors` does the one or the other and returns the
-project with its anchors.
+middle and highest ``anchor_height``) counting the ranges in sight alone:
+greedily, each time the candidate that most lowers the sum over packages of
+the bounded sigma, until every station is covered and at least
+:data:`MIN_PLANNED` stand (or ``anchor_count`` are placed).
+:func:`layout_anchors` does the one or the other and returns the project with
+its anchors.
 """
 
 from __future__ import annotations
@@ -39,8 +40,9 @@ from fabflow.sensors.uwb import UwbErrorModel
 from fabflow.tasks.plan import Plan
 from fabflow.transforms.se3 import inv_T
 
-TOLERANCE_SIGMAS = 3.0
-"""Default ``target_sigma``: the position tolerance over this many sigmas."""
+DEFAULT_HDOP = 2.0
+"""Default ``target_sigma`` in range sigmas (a horizontal dilution of precision of 2,
+a common bound of good geometry in satellite and radio positioning)."""
 ANCHOR_CLEARANCE = 0.5
 """Distance (metres) a planned anchor keeps from the structure, obstacles and parking places."""
 MAX_PLANNED = 32
@@ -120,12 +122,10 @@ def _finite(value: float) -> float | None:
 
 
 def target_sigma(project: Project) -> float:
-    """``uwb.target_sigma``, or ``tolerances.position`` / :data:`TOLERANCE_SIGMAS` (metres)."""
+    """``uwb.target_sigma``, or :data:`DEFAULT_HDOP` x ``uwb.sigma`` (metres)."""
     setup = project.localization.uwb
     assert setup is not None
-    if setup.target_sigma is not None:
-        return setup.target_sigma
-    return project.tolerances.position / TOLERANCE_SIGMAS
+    return DEFAULT_HDOP * setup.sigma if setup.target_sigma is None else setup.target_sigma
 
 
 def package_tags(project: Project, plan: Plan) -> np.ndarray:
@@ -151,16 +151,13 @@ def _information(
     in_sight_only: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per package, tag and anchor whether the range is in sight ``(P, T, A)``; per
-    package and anchor the Fisher information its ranges give on the platform's
-    ``x, y, z, yaw`` over one dwell ``(P, A, 4, 4)``.
+    package and anchor the expected Fisher information of one epoch of its ranges on
+    the platform's ``x, y, z, yaw`` ``(P, A, 4, 4)``.
 
-    Each range has the simulator's distance-dependent noise; of the
-    ``dwell_s * rate_hz`` rounds, the share without an NLOS excess counts
-    (``nlos_prob`` in sight, ``nlos_prob_occluded`` through the structure: the
-    excess ranges are rejected as outliers). The calibration leaves each anchor a
-    bias of ``calibration_sigma`` shared by all its ranges, which no dwell
-    averages away: an anchor's block of the range covariance is
-    ``diag(sigma^2 / n) + calibration_sigma^2``.
+    Each range has the simulator's distance-dependent noise and counts with the
+    chance it carries no NLOS excess (``1 - nlos_prob`` in sight, ``1 -
+    nlos_prob_occluded`` through the structure, nothing there with
+    ``in_sight_only``).
     """
     setup = project.localization.uwb
     assert setup is not None
@@ -177,21 +174,16 @@ def _information(
     diff = tags[:, :, None, :] - anchors[None, None]  # (P, T, A, 3)
     dist = np.linalg.norm(diff, axis=-1)
     u = diff / np.maximum(dist, 1e-9)[..., None]
-    rounds = max(1.0, setup.dwell_s * setup.rate_hz)
-    clean = rounds * (1.0 - np.where(sight, model.nlos_prob, model.nlos_prob_occluded))
-    var = model.sigma(dist) ** 2 / np.maximum(clean, 1.0)  # (P, T, A)
+    clean = 1.0 - np.where(sight, model.nlos_prob, model.nlos_prob_occluded)
     if in_sight_only:
-        var = np.where(sight, var, 1e12)
+        clean = np.where(sight, clean, 0.0)
+    weight = clean / model.sigma(dist) ** 2  # (P, T, A)
     # d range / d (x, y, z, yaw): the tag's lever turns with the platform's heading
     lever = tags - tags.mean(axis=1, keepdims=True)
     J = np.zeros((P, T, A, 4))
     J[..., :3] = u
     J[..., 3] = u[..., 0] * -lever[:, :, None, 1] + u[..., 1] * lever[:, :, None, 0]
-    Jt = np.moveaxis(J, 1, 2)  # (P, A, T, 4)
-    cov = np.zeros((P, A, T, T))
-    cov[...] = setup.calibration_sigma**2
-    cov += np.moveaxis(var, 1, 2)[..., None] * np.eye(T)
-    info = np.swapaxes(Jt, -1, -2) @ np.linalg.solve(cov, Jt)
+    info = np.einsum("ptai,pta,ptaj->paij", J, weight, J)
     return sight, info
 
 

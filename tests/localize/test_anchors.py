@@ -1,0 +1,75 @@
+"""UWB anchor layouts: given ones checked at every work package, missing ones planned."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import PROJECTS
+
+from fabflow.design.elements import element_boxes
+from fabflow.design.generate import generate_elements
+from fabflow.errors import LocalizationError
+from fabflow.localize.anchors import (
+    ANCHOR_CLEARANCE,
+    MIN_PLANNED,
+    check_anchors,
+    layout_anchors,
+    target_sigma,
+)
+from fabflow.localize.site import anchors_world
+from fabflow.project import load_project
+from fabflow.tasks.planner import plan_project
+
+
+@pytest.fixture(scope="module")
+def cabin():
+    project = load_project(PROJECTS / "cabin")
+    elements = generate_elements(project.elements, project.path)
+    return project, elements, plan_project(project, elements)
+
+
+def _with_anchors(project, anchors):
+    uwb = project.localization.uwb.model_copy(update={"anchors": anchors})
+    return project.model_copy(
+        update={"localization": project.localization.model_copy(update={"uwb": uwb})}
+    )
+
+
+def test_the_papers_anchors_are_checked(cabin) -> None:
+    project, elements, plan = cabin
+    same, coverage = layout_anchors(project, plan, elements)
+    assert same is project and not coverage.planned
+    assert coverage.covered.all()
+    assert coverage.sigma.max() <= target_sigma(project)
+    # the walls block most of them from inside the finished cabin: reported, not hidden
+    assert coverage.through_structure.any()
+    assert coverage.in_sight.min() < 3
+
+
+def test_missing_anchors_are_planned_in_sight(cabin) -> None:
+    project, elements, plan = cabin
+    planned, coverage = layout_anchors(_with_anchors(project, {}), plan, elements)
+    assert coverage.planned and len(coverage.anchor_ids) >= MIN_PLANNED
+    assert (coverage.sigma_in_sight <= coverage.target).all()
+    # the project now names them, in the UWB frame: the world positions come back
+    ids, world = anchors_world(planned.localization.uwb)
+    assert ids == list(coverage.anchor_ids)
+    assert np.allclose(world, coverage.anchors)
+    # off the structure (its plan footprint plus the clearance)
+    T_box, extents = element_boxes(elements)
+    corner = (np.abs(T_box[:, :2, :3]) @ (0.5 * extents)[..., None])[..., 0]
+    lo, hi = T_box[:, :2, 3] - corner, T_box[:, :2, 3] + corner
+    xy = world[:, None, :2]
+    near = ((xy >= lo - ANCHOR_CLEARANCE + 1e-9) & (xy <= hi + ANCHOR_CLEARANCE - 1e-9)).all(2)
+    assert not near.any()
+    # checked again as given, the planned layout covers every package
+    again = check_anchors(planned, plan, elements)
+    assert again.covered.all()
+
+
+def test_a_layout_that_cannot_locate_names_the_station_and_the_field(cabin) -> None:
+    project, elements, plan = cabin
+    # three anchors in a short row, far away: the geometry fixes nothing across it
+    bad = {"A1": (20.0, 0.0, 1.0), "A2": (20.5, 0.0, 1.0), "A3": (21.0, 0.0, 1.0)}
+    with pytest.raises(LocalizationError, match=r"station S\d.*localization.uwb.anchors"):
+        layout_anchors(_with_anchors(project, bad), plan, elements)
