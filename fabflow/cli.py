@@ -505,6 +505,14 @@ def simulate(
             "surrogate calibrated per visit).",
         ),
     ] = "sensors",
+    stationing: Annotated[
+        str | None,
+        typer.Option(
+            help="Total station set-ups registered on control_points (Procedure B), "
+            "robot_points (Procedure A), or both, comma-separated: one study each "
+            "(default: the project's).",
+        ),
+    ] = None,
 ) -> None:
     """Monte Carlo tolerance study: N simulated construction runs per localization method."""
     from contextlib import nullcontext
@@ -514,7 +522,14 @@ def simulate(
     from fabflow.output import atomic_output_dir
     from fabflow.project import load_project
     from fabflow.sim.monte_carlo import dask_client
-    from fabflow.sim.report import check_runs_completed, parse_methods, simulate_project
+    from fabflow.sim.report import (
+        SETUP_DRIFT_COLUMNS,
+        SETUP_DRIFT_TITLE,
+        check_runs_completed,
+        parse_methods,
+        setup_drift_rows,
+        simulate_project,
+    )
 
     p = load_project(project)
     chosen = parse_methods(methods) if methods else [p.localization.method]
@@ -545,6 +560,7 @@ def simulate(
             progress=lambda n: bar.advance(tasks["current"], n),
             plots=plots,
             fidelity=fidelity,  # type: ignore[arg-type]  # checked by prepare_study
+            stationings=stationing.split(",") if stationing else None,
         )
     table = Table(title=f"fabflow simulate: {p.name}, {n_runs} runs ({fidelity})")
     for name in ("method", "runs ok/failed", "RMSE mm", "p95 mm", "max mm", "within tol"):
@@ -565,6 +581,14 @@ def simulate(
             f"{r['visits_failed']} / {r['silently_wrong']}",
         )
     console.print(table)
+    drift = setup_drift_rows(rows)
+    if drift:
+        table = Table(title=SETUP_DRIFT_TITLE)
+        for name in SETUP_DRIFT_COLUMNS:
+            table.add_column(name, justify="left" if name[0].isalpha() else "right")
+        for row in drift:
+            table.add_row(*row)
+        console.print(table)
     failed = sum(r["runs_failed"] for r in rows)
     if failed:
         console.print(f"[yellow]{failed} run(s) failed: see runs.csv and summary.json[/]")

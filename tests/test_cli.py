@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import ezdxf
 import pytest
 from helpers import PROJECTS, ROOT
 
@@ -76,6 +77,22 @@ def test_build_example_projects(cli, tmp_path, name) -> None:
     summary = json.loads((out / "summary.json").read_text())
     assert {"stage": "project", "item": "name", "value": name} in summary
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_the_village_plans_where_its_localization_stands(cli, tmp_path) -> None:
+    out = tmp_path / "village"
+    result = cli("plan", str(PROJECTS / "village"), "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    plan = json.loads((out / "plan.json").read_text())
+    layout = json.loads((out / "instrument_setups.json").read_text())
+    covered = [k for s in layout["setups"] for k in range(s["packages"][0], s["packages"][1] + 1)]
+    assert covered == list(range(1, len(plan["work_packages"]) + 1))
+    assert len(layout["setups"]) > 1  # the instrument moves as the village grows
+    assert "set-up T2" in result.stdout
+    doc = ezdxf.readfile(out / "site_plan.dxf")
+    texts = {e.dxf.text.split()[0] for e in doc.modelspace().query("TEXT")}
+    assert {s["id"] for s in layout["setups"]} <= texts
+    assert set(layout["control_points"]) <= texts
 
 
 def test_atomic_output_keeps_previous_result_on_failure(tmp_path, monkeypatch) -> None:

@@ -46,7 +46,7 @@ BAD_CASES = [
     ("missing_path.yaml", "line 4: elements[0].print_path.dxf", "does not exist"),
     ("bad_yaml.yaml", "line 4", "YAML does not parse"),
     ("bad_choice.yaml", "line 3: localization.method", "'uwb', 'total_station' or 'icp'"),
-    ("uwb_without_anchors.yaml", "localization", "anchor positions"),
+    ("uwb_without_section.yaml", "localization", "needs a 'uwb' section"),
 ]
 
 

@@ -16,8 +16,12 @@ first station it does not cover and what to change. :func:`plan_anchors`
 places anchors on free ground (a grid of ``anchor_spacing`` at the lowest,
 middle and highest ``anchor_height``) counting the ranges in sight alone:
 greedily, each time the candidate that most lowers the sum over packages of
-the bounded sigma, until every station is covered and at least
-:data:`MIN_PLANNED` stand (or ``anchor_count`` are placed).
+what their sigma misses of the target (under a weak prior, so that a package
+seeing too few anchors counts),
+until every station is covered and at least :data:`MIN_PLANNED` stand (or
+``anchor_count`` are placed), starting from an anchor beyond each corner of the
+stations' bounding rectangle (a station must stand inside the anchors' hull in
+plan, as the UWB fix requires).
 :func:`layout_anchors` does the one or the other and returns the project with
 its anchors.
 """
@@ -33,7 +37,9 @@ import numpy as np
 from fabflow.design.elements import Element, element_boxes, structure_timeline
 from fabflow.errors import LocalizationError
 from fabflow.localize.site import anchors_world, free_ground, points_in_world
-from fabflow.positioning.point_selection import Boxes, segments_clear
+from fabflow.positioning.boxes import Boxes, segments_clear
+from fabflow.positioning.uwb import anchor_geometry_problem
+from fabflow.positioning.uwb_platform import COVERAGE_MARGIN, outside_hull
 from fabflow.project import Project
 from fabflow.robots import platform
 from fabflow.sensors.uwb import UwbErrorModel
@@ -50,8 +56,8 @@ MAX_PLANNED = 32
 MIN_PLANNED = 4
 """Fewest anchors :func:`plan_anchors` places: with three, a faulty anchor leaves no
 redundancy to detect it (the integrity tests exclude one anchor at a time)."""
-_CAP = 10.0
-"""Sigmas are bounded at this many targets in the planner's score (an uncovered tag)."""
+_PRIOR_SIGMA = 10.0
+"""Weak prior (metres, radians) on the platform's ``x, y, z, yaw`` in the planner's score."""
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,12 @@ class AnchorCoverage:
         The target sigma (metres).
     planned
         Whether the layout was planned (else given and checked).
+    in_sight_possible
+        ``(P,)`` for a planned layout: the packages any anchors on the site could
+        cover in sight (deep inside a finished building, no place can).
+    outside
+        ``(P,)`` how far the tags' centre stands outside the anchors' convex hull in
+        plan (metres): beyond ``COVERAGE_MARGIN`` the UWB fix fails its tests.
     """
 
     anchor_ids: tuple[str, ...]
@@ -84,12 +96,28 @@ class AnchorCoverage:
     sigma_in_sight: np.ndarray
     target: float
     planned: bool
+    in_sight_possible: np.ndarray | None = None
+    outside: np.ndarray | None = None
+
+    @property
+    def judged(self) -> np.ndarray:
+        """``(P,)`` the sigma each package is judged by: a planned layout must reach the
+        target with ranges in sight alone, where any anchor on the site could."""
+        if not self.planned:
+            return self.sigma
+        possible = self.in_sight_possible
+        if possible is None:
+            possible = np.ones(len(self.sigma), dtype=bool)
+        return np.where(possible, self.sigma_in_sight, self.sigma)
 
     @property
     def covered(self) -> np.ndarray:
-        """``(P,)`` packages whose predicted sigma is within the target (a planned layout:
-        from the ranges in sight alone)."""
-        return (self.sigma_in_sight if self.planned else self.sigma) <= self.target
+        """``(P,)`` packages whose judged sigma is within the target, inside the anchors'
+        plan hull (within :data:`~fabflow.positioning.uwb_platform.COVERAGE_MARGIN`)."""
+        inside = np.ones(len(self.sigma), dtype=bool)
+        if self.outside is not None:
+            inside = self.outside <= COVERAGE_MARGIN
+        return (self.judged <= self.target) & inside
 
     @property
     def through_structure(self) -> np.ndarray:
@@ -143,16 +171,32 @@ def package_tags(project: Project, plan: Plan) -> np.ndarray:
     return np.asarray(out).reshape(len(plan.work_packages), len(L), 3)
 
 
+def _sight(
+    tags: np.ndarray, anchors: np.ndarray, standing: Sequence[Sequence[Element]]
+) -> np.ndarray:
+    """``(P, T, A)`` whether each tag sees each anchor past the structure standing at
+    each package."""
+    P, T = tags.shape[:2]
+    A = len(anchors)
+    sight = np.zeros((P, T, A), dtype=bool)
+    for k, built in enumerate(standing):
+        T_box, extents = element_boxes(built)
+        boxes = Boxes(T_box, extents) if len(extents) else Boxes.empty()
+        starts = np.repeat(tags[k], A, axis=0)
+        ends = np.tile(anchors, (T, 1))
+        sight[k] = segments_clear(starts, ends, boxes).reshape(T, A)
+    return sight
+
+
 def _information(
     project: Project,
     tags: np.ndarray,
     anchors: np.ndarray,
-    standing: Sequence[Sequence[Element]],
+    sight: np.ndarray,
     in_sight_only: bool = False,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per package, tag and anchor whether the range is in sight ``(P, T, A)``; per
-    package and anchor the expected Fisher information of one epoch of its ranges on
-    the platform's ``x, y, z, yaw`` ``(P, A, 4, 4)``.
+) -> np.ndarray:
+    """Per package and anchor the expected Fisher information of one epoch of its
+    ranges on the platform's ``x, y, z, yaw``, ``(P, A, 4, 4)``.
 
     Each range has the simulator's distance-dependent noise and counts with the
     chance it carries no NLOS excess (``1 - nlos_prob`` in sight, ``1 -
@@ -163,13 +207,6 @@ def _information(
     assert setup is not None
     P, T = tags.shape[:2]
     A = len(anchors)
-    sight = np.zeros((P, T, A), dtype=bool)
-    for k, built in enumerate(standing):
-        T_box, extents = element_boxes(built)
-        boxes = Boxes(T_box, extents) if len(extents) else Boxes.empty()
-        starts = np.repeat(tags[k], A, axis=0)
-        ends = np.tile(anchors, (T, 1))
-        sight[k] = segments_clear(starts, ends, boxes).reshape(T, A)
     model = UwbErrorModel(sigma_1m=setup.sigma)
     diff = tags[:, :, None, :] - anchors[None, None]  # (P, T, A, 3)
     dist = np.linalg.norm(diff, axis=-1)
@@ -183,8 +220,7 @@ def _information(
     J = np.zeros((P, T, A, 4))
     J[..., :3] = u
     J[..., 3] = u[..., 0] * -lever[:, :, None, 1] + u[..., 1] * lever[:, :, None, 0]
-    info = np.einsum("ptai,pta,ptaj->paij", J, weight, J)
-    return sight, info
+    return np.einsum("ptai,pta,ptaj->paij", J, weight, J)
 
 
 def _sigma_xy(info: np.ndarray) -> np.ndarray:
@@ -210,8 +246,13 @@ def check_anchors(
     elements: Sequence[Element],
     anchors: np.ndarray | None = None,
     planned: bool = False,
+    in_sight_possible: np.ndarray | None = None,
 ) -> AnchorCoverage:
-    """The coverage of the project's anchors (or ``anchors``, world) at every work package."""
+    """The coverage of the project's anchors (or ``anchors``, world) at every work package.
+
+    ``planned``: the layout was planned; ``in_sight_possible``: ``(P,)`` the packages
+    the planner could cover with ranges in sight (see :class:`AnchorCoverage`).
+    """
     setup = project.localization.uwb
     assert setup is not None
     if anchors is None:
@@ -219,9 +260,10 @@ def check_anchors(
     else:
         ids = [f"A{i + 1}" for i in range(len(anchors))]
     tags = package_tags(project, plan)
-    standing = _standing(plan, elements)
-    sight, info = _information(project, tags, anchors, standing)
-    _, info_in_sight = _information(project, tags, anchors, standing, in_sight_only=True)
+    sight = _sight(tags, anchors, _standing(plan, elements))
+    info = _information(project, tags, anchors, sight)
+    info_in_sight = _information(project, tags, anchors, sight, in_sight_only=True)
+    outside = outside_hull(np.asarray(anchors)[:, :2], tags.mean(axis=1)[:, :2])
     return AnchorCoverage(
         tuple(ids),
         np.asarray(anchors, dtype=float),
@@ -230,6 +272,8 @@ def check_anchors(
         _sigma_xy(info_in_sight.sum(axis=1)),
         target_sigma(project),
         planned,
+        in_sight_possible,
+        outside,
     )
 
 
@@ -240,7 +284,7 @@ def coverage_error(coverage: AnchorCoverage, plan: Plan) -> str | None:
         return None
     k = int(bad[0])
     station = plan.work_packages[k].station.id
-    sigma = (coverage.sigma_in_sight if coverage.planned else coverage.sigma)[k]
+    sigma = coverage.judged[k]
     shown = f"{1000 * sigma:.1f} mm" if np.isfinite(sigma) else "undetermined"
     fix = (
         "raise localization.uwb.anchor_count or anchor_height, or give the anchors"
@@ -248,6 +292,13 @@ def coverage_error(coverage: AnchorCoverage, plan: Plan) -> str | None:
         else "add or move anchors in localization.uwb.anchors, or remove them to have them planned"
     )
     seen = ", ".join(str(int(v)) for v in coverage.in_sight[k])
+    out = 0.0 if coverage.outside is None else float(coverage.outside[k])
+    if out > COVERAGE_MARGIN:
+        return (
+            f"UWB anchors do not cover station {station} (work package {k + 1}; {len(bad)} "
+            f"package(s) in all): the platform stands {out:.1f} m outside the anchors' "
+            f"convex hull in plan (at most {COVERAGE_MARGIN:g} m); {fix}"
+        )
     return (
         f"UWB anchors do not cover station {station} (work package {k + 1}; {len(bad)} "
         f"package(s) in all): predicted XY sigma {shown}, target "
@@ -256,8 +307,13 @@ def coverage_error(coverage: AnchorCoverage, plan: Plan) -> str | None:
     )
 
 
-def plan_anchors(project: Project, plan: Plan, elements: Sequence[Element]) -> np.ndarray:
-    """``(n, 3)`` planned anchor positions (world, metres); see the module docstring.
+def plan_anchors(
+    project: Project, plan: Plan, elements: Sequence[Element]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Planned anchor positions ``(n, 3)`` (world, metres), and ``(P,)`` the packages any
+    candidate layout could cover in sight; see the module docstring. A package no
+    anchor on the site sees well enough is planned for with its ranges through the
+    structure counted as in :func:`check_anchors`.
 
     Raises
     ------
@@ -275,24 +331,60 @@ def plan_anchors(project: Project, plan: Plan, elements: Sequence[Element]) -> n
     heights = np.unique([lo, 0.5 * (lo + hi), hi])
     cands = np.concatenate([np.column_stack([xy, np.full(len(xy), h)]) for h in heights])
     tags = package_tags(project, plan)
-    _, info = _information(project, tags, cands, _standing(plan, elements), in_sight_only=True)
+    sight = _sight(tags, cands, _standing(plan, elements))
+    in_sight = _information(project, tags, cands, sight, in_sight_only=True)
     target = target_sigma(project)
+    possible = _sigma_xy(in_sight.sum(axis=1)) <= target
+    info = in_sight
+    if not possible.all():
+        mixed = _information(project, tags, cands, sight)
+        info = np.where(possible[:, None, None, None], in_sight, mixed)
     limit = setup.anchor_count or MAX_PLANNED
-    chosen: list[int] = []
-    total = np.zeros((info.shape[0], 4, 4))
+    chosen = _corner_anchors(cands, tags.mean(axis=1)[:, :2])[:limit]
+    # a weak prior keeps the score finite while a package sees too few anchors, so
+    # every anchor that helps an uncovered package lowers it
+    total = np.zeros((info.shape[0], 4, 4)) + np.eye(4) / _PRIOR_SIGMA**2
     free = np.ones(len(cands), dtype=bool)
+    for best in chosen:
+        free[best] = False
+        total += info[:, best]
     while len(chosen) < limit:
         idx = np.flatnonzero(free)
-        sigma = _sigma_xy(total[None] + np.moveaxis(info[:, idx], 1, 0))  # (C, P)
-        score = np.minimum(sigma, _CAP * target).sum(axis=1)
+        C = np.linalg.inv(total[None] + np.moveaxis(info[:, idx], 1, 0))  # (C, P, 4, 4)
+        sigma = np.sqrt(C[..., 0, 0] + C[..., 1, 1])
+        # what is still missing where the target is not met; among equals the sum
+        score = np.maximum(sigma - target, 0.0).sum(axis=1) + 1e-3 * sigma.sum(axis=1)
         best = int(idx[int(np.argmin(score))])
         chosen.append(best)
         free[best] = False
         total += info[:, best]
         enough = len(chosen) >= MIN_PLANNED
-        if setup.anchor_count is None and enough and (_sigma_xy(total) <= target).all():
+        covered = _sigma_xy(total - np.eye(4) / _PRIOR_SIGMA**2) <= target
+        if setup.anchor_count is None and enough and covered.all():
             break
-    return cands[chosen]
+    return cands[chosen], possible
+
+
+def _corner_anchors(cands: np.ndarray, stations_xy: np.ndarray) -> list[int]:
+    """Candidates that put every station inside the anchors' plan hull: for each corner
+    of the stations' bounding rectangle, the candidate nearest it beyond it, at the
+    highest and the lowest height in turn (the UWB fix fails a platform outside the
+    hull, and anchors in one plane)."""
+    lo, hi = stations_xy.min(axis=0), stations_xy.max(axis=0)
+    top = cands[:, 2] >= cands[:, 2].max() - 1e-9
+    bottom = cands[:, 2] <= cands[:, 2].min() + 1e-9
+    out: list[int] = []
+    # diagonal corners high, the other two low: the anchors must not lie in one plane
+    for sx, sy, level in ((-1, -1, top), (1, -1, bottom), (1, 1, top), (-1, 1, bottom)):
+        corner = np.array([hi[0] if sx > 0 else lo[0], hi[1] if sy > 0 else lo[1]])
+        side = (sx * (cands[:, 0] - corner[0]) >= 0) & (sy * (cands[:, 1] - corner[1]) >= 0)
+        beyond = level & side
+        if beyond.any():
+            idx = np.flatnonzero(beyond)
+            k = int(idx[np.argmin(np.linalg.norm(cands[idx, :2] - corner, axis=1))])
+            if k not in out:
+                out.append(k)
+    return out
 
 
 def layout_anchors(
@@ -311,8 +403,8 @@ def layout_anchors(
     if setup.anchors:
         coverage = check_anchors(project, plan, elements)
     else:
-        world = plan_anchors(project, plan, elements)
-        coverage = check_anchors(project, plan, elements, world, planned=True)
+        world, possible = plan_anchors(project, plan, elements)
+        coverage = check_anchors(project, plan, elements, world, True, possible)
         local = points_in_world(inv_T(setup.T_world_uwb.matrix()), world)
         anchors = {
             k: tuple(float(v) for v in p) for k, p in zip(coverage.anchor_ids, local, strict=True)
@@ -321,7 +413,7 @@ def layout_anchors(
         project = project.model_copy(
             update={"localization": project.localization.model_copy(update={"uwb": uwb})}
         )
-    message = coverage_error(coverage, plan)
+    message = anchor_geometry_problem(coverage.anchors) or coverage_error(coverage, plan)
     if message is not None:
         raise LocalizationError(message)
     return project, coverage
@@ -329,7 +421,7 @@ def layout_anchors(
 
 def anchor_rows(coverage: AnchorCoverage, plan: Plan) -> list[tuple[str, str]]:
     """Build summary rows: the layout, and its worst station."""
-    sigma = coverage.sigma_in_sight if coverage.planned else coverage.sigma
+    sigma = coverage.judged
     k = int(np.argmax(sigma))
     how = "planned" if coverage.planned else "given, checked"
     rows = [

@@ -68,6 +68,8 @@ def site_layout(
     """
     method = method or project.localization.method
     anchors = None
+    if not plan.work_packages:  # nothing to localize
+        return SiteLayout(project, None, None)
     if method == "uwb" and project.localization.uwb is not None:
         project, anchors = layout_anchors(project, plan, elements)
     return SiteLayout(project, planned_setups(project, plan, elements, method), anchors)

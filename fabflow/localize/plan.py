@@ -18,7 +18,8 @@ import numpy as np
 from fabflow.design.elements import Element, structure_timeline
 from fabflow.errors import LocalizationError
 from fabflow.localize.methods import LOCALIZERS, LocalizeStation, localizer_arguments
-from fabflow.localize.setups import InstrumentSetup, track_for
+from fabflow.localize.setups import InstrumentSetup
+from fabflow.localize.stationing import track_for
 from fabflow.positioning.integrity import consistency_test, exact, guard_exclusion, unchecked
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project

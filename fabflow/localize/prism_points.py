@@ -22,8 +22,8 @@ import numpy as np
 
 from fabflow.design.elements import Element, element_boxes
 from fabflow.errors import LocalizationError
+from fabflow.positioning.boxes import Boxes
 from fabflow.positioning.point_selection import (
-    Boxes,
     ClearanceRules,
     Workspace,
     avoid_obstacles,
@@ -31,6 +31,7 @@ from fabflow.positioning.point_selection import (
     clear_workspace_points,
     farthest_points,
     optimal_points,
+    reachable_workspace_grid,
 )
 from fabflow.positioning.polar import Instrument, make_instrument
 from fabflow.positioning.three_point import three_point_base_points
@@ -64,6 +65,28 @@ def prism_workspace(
         raise LocalizationError(f"{model}: no prism position above z = {z_min} m is reachable")
     z_max = float(grid[ok, 2].max()) - 0.05
     return reach, replace(ws, reachable=reach.reachable, z_max=z_max)
+
+
+@functools.lru_cache(maxsize=16)
+def _robot_workspace(
+    model: str, tool: bytes, z_min: float
+) -> tuple[PrismReach, Workspace, np.ndarray]:
+    """:func:`prism_workspace` and its reachable pool grid, once per robot, tool and
+    ``z_min`` (``tool``: the 4x4 TCP's bytes)."""
+    reach, ws = prism_workspace(model, np.frombuffer(tool).reshape(4, 4), z_min)
+    return reach, ws, reachable_workspace_grid(ws)
+
+
+def boxes_near_base(boxes_world: Boxes, T_world_base: np.ndarray, radius: float) -> Boxes:
+    """The world boxes whose bounding spheres come within ``radius`` of the base, in the
+    base frame (the rest cannot touch a prism, the arm or a sight line's last metres)."""
+    if len(boxes_world) == 0:
+        return Boxes.empty()
+    T = np.asarray(T_world_base, dtype=float)
+    centre = boxes_world.T_base_box[:, :3, 3]
+    size = 0.5 * np.linalg.norm(boxes_world.extents, axis=1)
+    near = np.linalg.norm(centre - T[:3, 3], axis=1) <= radius + size
+    return Boxes(inv_T(T) @ boxes_world.T_base_box[near], boxes_world.extents[near])
 
 
 @functools.lru_cache(maxsize=64)
@@ -125,6 +148,7 @@ def station_points(
     sight_from: np.ndarray | None = None,
     station_id: str | None = None,
     spare: int = 0,
+    boxes_world: Boxes | None = None,
 ) -> StationPoints:
     """The prism points the robot shows at a station (see the module docstring).
 
@@ -143,6 +167,8 @@ def station_points(
         For messages.
     spare
         How many spare clear points to return besides (``StationPoints.spare``).
+    boxes_world
+        ``built`` as world boxes when already computed (a planner's whole build).
 
     Raises
     ------
@@ -152,9 +178,16 @@ def station_points(
     """
     setup = total_station_setup(project)
     T_world_base = np.asarray(T_world_base, dtype=float)
-    T_flange_tool = project.robot.tool.T_flange_tool.matrix()
-    reach, ws = prism_workspace(project.robot.model, T_flange_tool, setup.z_min)
-    boxes = boxes_in_base(built, T_world_base)
+    T_flange_tool = np.ascontiguousarray(project.robot.tool.T_flange_tool.matrix(), dtype=float)
+    reach, ws, pool_grid = _robot_workspace(
+        project.robot.model, T_flange_tool.tobytes(), float(setup.z_min)
+    )
+    if boxes_world is None:
+        T_box, extents = element_boxes(built)
+        boxes_world = Boxes(T_box, extents) if len(extents) else Boxes.empty()
+    # a blocked sight line is tested against every box; the rest only near the robot
+    radius = np.inf if sight_from is not None else float(np.linalg.norm(ws.center)) + ws.reach
+    boxes = boxes_near_base(boxes_world, T_world_base, radius)
     sight = None
     if sight_from is not None:
         local = apply_T(inv_T(T_world_base), np.asarray(sight_from, dtype=float))
@@ -168,7 +201,9 @@ def station_points(
     )
     pool = np.zeros((0, 3))
     if spare:
-        pool = farthest_points(clear_workspace_points(ws, boxes, rules), spare)
+        pool = farthest_points(
+            clear_workspace_points(ws, boxes, rules, reachable_grid=pool_grid), spare
+        )
     return StationPoints(reach, clear.points, clear.moved, clear.dropped, pool)
 
 

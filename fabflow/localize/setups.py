@@ -18,11 +18,7 @@ Each new set-up must also be registrable where it stands: on at least
 of paper 001), or, with ``stationing: robot_points`` (Procedure A), on the
 prisms the robot holds at its last station of the set-up before.
 
-:class:`InstrumentTrack` then follows the set-ups through a (simulated) build
-and registers each one when it is put up (:func:`register_setup`): the
-registered pose and its covariance, not the true one, turn every later reading
-into the world, so a set-up's error is shared by all its visits, and with
-Procedure A it is inherited by the next set-up.
+:mod:`fabflow.localize.stationing` registers each set-up when it is put up.
 """
 
 from __future__ import annotations
@@ -37,18 +33,14 @@ from fabflow.design.elements import Element, element_boxes, structure_timeline
 from fabflow.errors import LocalizationError
 from fabflow.localize.prism_points import instrument_for, station_points, total_station_setup
 from fabflow.localize.site import free_ground
-from fabflow.positioning.point_selection import Boxes, segments_clear
+from fabflow.positioning.boxes import Boxes, segments_clear
 from fabflow.positioning.polar import (
     cartesian_to_polar,
     polar_covariance,
-    polar_to_cartesian,
 )
-from fabflow.positioning.rigid_fit import register_leveled
-from fabflow.positioning.total_station import setup_covariance
 from fabflow.project import Project
-from fabflow.sensors.total_station import simulate_polar
 from fabflow.tasks.plan import Plan
-from fabflow.transforms.se3 import compose_covariance, inv_T, make_T
+from fabflow.transforms.se3 import make_T
 
 MIN_SIGHT = 2.0
 """Closest a sighted prism or control point may be to the instrument (metres): the
@@ -57,6 +49,11 @@ TRIPOD_CLEARANCE = 0.5
 """Distance (metres) a planned tripod keeps from the structure, obstacles and parking places."""
 MIN_CONTROL_POINTS = 3
 """Control points a free stationing sights: two fix a levelled set-up, the third checks it."""
+MAX_POSITIONS = 1200
+"""Most grid positions a site is searched on for set-ups (the spacing grows beyond)."""
+FOLLOWED = 64
+"""Candidates followed through a run of packages: after its first package, those with
+the smallest predicted sigma (the run of the best of them is kept)."""
 CONTROL_HEIGHT = 0.3
 """Height of the default control points above the ground (metres)."""
 
@@ -102,28 +99,6 @@ class InstrumentSetup:
         }
 
 
-@dataclass(frozen=True)
-class InstrumentPose:
-    """Where the instrument stands at a visit and what is known of it.
-
-    Attributes
-    ----------
-    T_true
-        4x4 pose it really has (trunnion, world).
-    T_est
-        4x4 pose its registration gives; readings are turned into the world with it.
-    covariance
-        6x6 covariance of ``T_est`` (fabflow's convention).
-    setup
-        Id of the set-up.
-    """
-
-    T_true: np.ndarray
-    T_est: np.ndarray
-    covariance: np.ndarray
-    setup: str
-
-
 def control_points(project: Project) -> dict[str, np.ndarray]:
     """The control points by id (world, metres): the project's, or the site's corners."""
     given = total_station_setup(project).control_points
@@ -162,10 +137,13 @@ def _world_boxes(elements: Sequence[Element]) -> Boxes:
 
 def candidate_positions(project: Project, elements: Sequence[Element], plan: Plan) -> np.ndarray:
     """``(m, 3)`` candidate trunnion positions (world, metres) for planned set-ups: the
-    free ground (:func:`~fabflow.localize.site.free_ground`, ``setup_spacing``) at the
-    lowest, middle and highest ``tripod_height``."""
+    free ground (:func:`~fabflow.localize.site.free_ground`, ``setup_spacing``, or
+    coarser on a site so large it would hold more than :data:`MAX_POSITIONS` grid
+    points) at the lowest, middle and highest ``tripod_height``."""
     setup = total_station_setup(project)
-    xy = free_ground(project, elements, plan, setup.setup_spacing, TRIPOD_CLEARANCE)
+    (x0, y0), (x1, y1) = project.site.extent_min, project.site.extent_max
+    spacing = max(setup.setup_spacing, float(np.sqrt((x1 - x0) * (y1 - y0) / MAX_POSITIONS)))
+    xy = free_ground(project, elements, plan, spacing, TRIPOD_CLEARANCE)
     lo_h, hi_h = setup.tripod_height
     heights = np.unique([lo_h, 0.5 * (lo_h + hi_h), hi_h])
     return np.concatenate([np.column_stack([xy, np.full(len(xy), h)]) for h in heights])
@@ -229,14 +207,27 @@ def _packages(
     project: Project, plan: Plan, standing: Sequence[Sequence[Element]]
 ) -> list[_Package]:
     T_platform_base = project.robot.platform.T_platform_base.matrix()
+    spare = 0 if total_station_setup(project).procedure == "three_point" else SPARE_POINTS
+    # every element's box once; each package's standing structure is a selection
+    everything = {e.id: e for built in standing for e in built}
+    ids = list(everything)
+    row = {k: i for i, k in enumerate(ids)}
+    T_box, extents = element_boxes([everything[k] for k in ids])
+    boxed = np.full(len(ids), -1)
+    has_box = [everything[k].extents is not None for k in ids]
+    boxed[np.flatnonzero(has_box)] = np.arange(len(extents))
     out = []
     for wp, built in zip(plan.work_packages, standing, strict=True):
+        sel = boxed[[row[e.id] for e in built]] if built else np.zeros(0, dtype=int)
+        sel = sel[sel >= 0]
+        boxes = Boxes(T_box[sel], extents[sel]) if len(sel) else Boxes.empty()
         T = wp.station.T_world_base(T_platform_base)
-        spare = 0 if total_station_setup(project).procedure == "three_point" else SPARE_POINTS
-        pts = station_points(project, T, built, station_id=wp.station.id, spare=spare)
+        pts = station_points(
+            project, T, built, station_id=wp.station.id, spare=spare, boxes_world=boxes
+        )
         world = pts.points @ T[:3, :3].T + T[:3, 3]
         pool = pts.spare @ T[:3, :3].T + T[:3, 3]
-        out.append(_Package(world, pool, T, _world_boxes(built)))
+        out.append(_Package(world, pool, T, boxes))
     return out
 
 
@@ -287,6 +278,28 @@ def _sees_controls(
     far = np.linalg.norm(controls[None] - eyes[:, None], axis=-1) >= MIN_SIGHT
     seen = far & sight_clear(eyes, controls, boxes)
     return seen.sum(axis=1) >= min(MIN_CONTROL_POINTS, len(controls)), seen
+
+
+def _earlier_handover(
+    eyes: np.ndarray,
+    packages: Sequence[_Package],
+    previous: Sequence[int],
+    i: int,
+    project: Project,
+) -> int | None:
+    """The latest package ``j`` of the previous set-up's run (not its first) where a new
+    set-up could take over on the robot's prisms: it sees package ``j - 1``'s and covers
+    packages ``j`` to ``i``; None when there is none."""
+    for j in range(i - 1, previous[0], -1):
+        ok = _covers(eyes, packages[j - 1], project)
+        for k in range(j, i + 1):
+            if not ok.any():
+                break
+            idx = np.flatnonzero(ok)
+            ok[idx] = _covers(eyes[idx], packages[k], project)
+        if ok.any():
+            return j
+    return None
 
 
 def plan_setups(
@@ -367,12 +380,16 @@ def plan_setups(
             if not ok.any():
                 break
             alive, worst, end = alive[ok], np.maximum(worst[ok], sigma[ok]), end + 1
-        if end == i and registration_on_robot and len(out[-1].packages) > 1:
-            # hand over one package earlier: the set-up before ends sooner
-            last = out.pop()
-            out.append(replace(last, packages=last.packages[:-1]))
-            i -= 1
-            continue
+            keep = np.argsort(worst, kind="stable")[:FOLLOWED]
+            alive, worst = alive[keep], worst[keep]
+        if end == i and registration_on_robot:
+            handover = _earlier_handover(eyes, packages, out[-1].packages, i, project)
+            if handover is not None:
+                # the set-up before ends sooner, where a new one sees both sides
+                last = out.pop()
+                out.append(replace(last, packages=tuple(range(last.packages[0], handover))))
+                i = handover
+                continue
         if end == i:
             raise LocalizationError(
                 f"no total station set-up on the site sees the prism points of work package "
@@ -403,123 +420,6 @@ def plan_setups(
     return tuple(out)
 
 
-def register_setup(
-    project: Project,
-    setup: InstrumentSetup,
-    rng: np.random.Generator,
-    survey_error: dict[str, np.ndarray],
-    previous: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-    built: Sequence[Element] = (),
-) -> InstrumentPose:
-    """Simulate registering a set-up where it stands; its estimated pose and covariance.
-
-    - ``given``: the project's pose with its ``setup_sigma_mm/arcsec`` (the
-      instrument really stands off by a draw of that covariance).
-    - ``control_points``: free stationing. The levelled instrument measures the
-      control points it sights (instrument noise); their surveyed coordinates
-      are off by ``survey_error`` (drawn once per build); the levelled 4-DOF fit
-      (:func:`~fabflow.positioning.rigid_fit.register_leveled`) and its
-      first-order covariance.
-    - ``robot_points``: the robot, still at its last station (true base
-      ``previous[0]``, estimate ``previous[1]`` with covariance ``previous[2]``),
-      holds prisms the new set-up measures; their world positions come from the
-      robot's estimate, so the estimate's error and covariance carry over.
-
-    Parameters
-    ----------
-    survey_error
-        Per control point id, its survey error (world, metres).
-    built
-        The structure standing (for the robot's prism points).
-    """
-    ts = total_station_setup(project)
-    instrument = instrument_for(ts)
-    T_true = np.asarray(setup.T_world_instrument, dtype=float)
-    if setup.registration == "given":
-        C = setup_covariance(ts.setup_sigma_mm, ts.setup_sigma_arcsec)
-        delta = rng.normal(0.0, 1.0, 6) * np.sqrt(np.diag(C))
-        T_actual = T_true.copy()
-        T_actual[:3, 3] += delta[:3]
-        c, s = np.cos(delta[5]), np.sin(delta[5])
-        T_actual[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T_true[:3, :3]
-        return InstrumentPose(T_actual, T_true, C, setup.id)
-    if setup.registration == "control_points":
-        controls = control_points(project)
-        true_world = np.stack([controls[k] for k in setup.control_points])
-        known_world = true_world + np.stack([survey_error[k] for k in setup.control_points])
-        extra = np.eye(3) * (ts.control_sigma_mm * 1e-3) ** 2
-        transfer = np.zeros((6, 6))
-    else:
-        assert previous is not None
-        T_base_true, T_base_est, C_base = previous
-        pts = station_points(project, T_base_true, built, sight_from=T_true[:3, 3])
-        P = pts.points
-        noise = rng.normal(0.0, 1.0, P.shape) * project.simulation.robot_repeatability
-        true_world = (P + noise) @ T_base_true[:3, :3].T + T_base_true[:3, 3]
-        known_world = P @ T_base_est[:3, :3].T + T_base_est[:3, 3]
-        extra = np.eye(3) * project.simulation.robot_repeatability**2
-        # the known points share the base estimate's error: the new set-up inherits it
-        T_base_instrument = inv_T(T_base_est) @ T_true
-        transfer = compose_covariance(T_base_est, C_base, T_base_instrument, None)
-    local_true = (true_world - T_true[:3, 3]) @ T_true[:3, :3]
-    hz, v, sd = simulate_polar(local_true, instrument, rng)
-    local = polar_to_cartesian(hz, v, sd)
-    C_local = polar_covariance(hz, v, sd, instrument)
-    W = np.linalg.inv(C_local + extra)
-    R, t = register_leveled(local, known_world, np.trace(W, axis1=1, axis2=2))
-    T_est = make_T(R, t)
-    rotated = local @ R.T
-    J = np.zeros((len(local), 3, 4))
-    J[:, :, :3] = np.eye(3)
-    J[:, 0, 3], J[:, 1, 3] = -rotated[:, 1], rotated[:, 0]
-    cov4 = np.linalg.inv(np.einsum("nai,nab,nbj->ij", J, W, J))
-    C = np.zeros((6, 6))
-    sel = [0, 1, 2, 5]
-    C[np.ix_(sel, sel)] = cov4
-    C[np.ix_(sel, sel)] += transfer[np.ix_(sel, sel)]
-    return InstrumentPose(T_true, T_est, 0.5 * (C + C.T), setup.id)
-
-
-class InstrumentTrack:
-    """The instrument through one (simulated) build: each set-up registered when put up.
-
-    Holds the state a build carries from visit to visit: the survey error of
-    the control points (drawn once), the set-up standing and its registration.
-    """
-
-    def __init__(self, project: Project, setups: Sequence[InstrumentSetup]) -> None:
-        self.project = project
-        self.by_package = {k: s for s in setups for k in s.packages}
-        self._current: InstrumentSetup | None = None
-        self._pose: InstrumentPose | None = None
-        self._survey: dict[str, np.ndarray] | None = None
-
-    def pose_at(
-        self,
-        package: int,
-        rng: np.random.Generator,
-        built: Sequence[Element] = (),
-        previous: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-    ) -> InstrumentPose | None:
-        """The instrument at work package ``package`` (``None`` when no set-up covers it).
-
-        ``previous``: the robot's true base pose, its estimate and covariance at
-        the last localized package (for a set-up registered on robot points).
-        """
-        setup = self.by_package.get(package)
-        if setup is None:
-            return None
-        if setup is not self._current:
-            if self._survey is None:
-                sigma = total_station_setup(self.project).control_sigma_mm * 1e-3
-                self._survey = {k: rng.normal(0.0, sigma, 3) for k in control_points(self.project)}
-            self._pose = register_setup(
-                self.project, setup, rng, self._survey, previous=previous, built=built
-            )
-            self._current = setup
-        return self._pose
-
-
 def planned_setups(
     project: Project, plan: Plan, elements: Sequence[Element], method: str | None = None
 ) -> tuple[InstrumentSetup, ...] | None:
@@ -542,28 +442,6 @@ def setups_document(project: Project, setups: Sequence[InstrumentSetup]) -> dict
         "control_points": {k: v.tolist() for k, v in control_points(project).items()},
         "setups": [s.to_dict() for s in setups],
     }
-
-
-def track_for(
-    project: Project,
-    method: str,
-    plan: Plan,
-    elements: Sequence[Element],
-    setups: Sequence[InstrumentSetup] | None = None,
-) -> InstrumentTrack | None:
-    """The instrument track of a simulated build with ``method``, or ``None`` when the
-    method is not the total station, the sensors are exact, or readings are measured.
-
-    ``setups``: the plan's set-ups when already planned (:func:`plan_setups` otherwise).
-    """
-    ts = total_station_setup(project)
-    if method != "total_station" or not project.simulation.sensor_noise:
-        return None
-    if ts.observations is not None:
-        return None
-    return InstrumentTrack(
-        project, plan_setups(project, plan, elements) if setups is None else setups
-    )
 
 
 def setup_rows(setups: Sequence[InstrumentSetup]) -> list[tuple[str, str]]:

@@ -23,7 +23,8 @@ from fabflow.design.elements import Element
 from fabflow.errors import InputError
 from fabflow.localize.prism_points import instrument_for, station_points, total_station_setup
 from fabflow.localize.report import check_options
-from fabflow.localize.setups import InstrumentPose, InstrumentTrack, plan_setups
+from fabflow.localize.setups import plan_setups
+from fabflow.localize.stationing import InstrumentPose, InstrumentTrack
 from fabflow.positioning.integrity import ALPHA
 from fabflow.positioning.polar import (
     make_instrument,

@@ -162,6 +162,8 @@ def _out_of_bounds(
     out = [(loc, f"{v} is not finite") for loc, v in floats if not math.isfinite(v)]
     if out:
         return out  # a text such as 'nan' the model read as a number
+    if not setup.anchors:
+        out.append((("anchors",), "names no anchors: measured ranges need the surveyed anchors"))
     if len(setup.anchors) > MAX_ANCHORS:
         out.append((("anchors",), f"{len(setup.anchors)} anchors, more than {MAX_ANCHORS}"))
     if len(setup.tags) > MAX_TAGS:

@@ -26,6 +26,7 @@ import numpy as np
 from scipy import optimize
 
 from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.boxes import Boxes, boxes_overlap, segments_hit
 
 
 @dataclass(frozen=True)
@@ -200,159 +201,6 @@ def sample_workspace(workspace: Workspace, n: int, rng: np.random.Generator) -> 
 # ------------------------------------------------------------ obstacle avoidance
 
 
-@dataclass(frozen=True, eq=False)
-class Boxes:
-    """Oriented boxes (the structure built so far) in the base frame.
-
-    Attributes
-    ----------
-    T_base_box
-        ``(k, 4, 4)`` box centre frames.
-    extents
-        ``(k, 3)`` full side lengths along the box axes (metres).
-    """
-
-    T_base_box: np.ndarray
-    extents: np.ndarray
-
-    @classmethod
-    def empty(cls) -> Boxes:
-        """No obstacles."""
-        return cls(np.zeros((0, 4, 4)), np.zeros((0, 3)))
-
-    def __len__(self) -> int:
-        return int(self.extents.shape[0])
-
-
-def boxes_overlap(centers: np.ndarray, half_extents: np.ndarray, boxes: Boxes) -> np.ndarray:
-    """Whether axis-aligned boxes at ``centers`` overlap any oriented box (separating axes).
-
-    Parameters
-    ----------
-    centers
-        ``(m, 3)`` centres of the axis-aligned (base frame) boxes.
-    half_extents
-        ``(3,)`` half side lengths of those boxes.
-    boxes
-        The oriented obstacles.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(m,)`` boolean.
-    """
-    m = centers.shape[0]
-    if len(boxes) == 0:
-        return np.zeros(m, dtype=bool)
-    R = boxes.T_base_box[:, :3, :3]
-    eb = 0.5 * boxes.extents
-    ha = np.asarray(half_extents, dtype=float)
-    A = np.broadcast_to(np.eye(3), R.shape)
-    B = np.swapaxes(R, 1, 2)  # rows: box axes in the base frame
-    cross = np.cross(A[:, :, None, :], B[:, None, :, :]).reshape(-1, 9, 3)
-    axes = np.concatenate([A, B, cross], axis=1)  # (k, 15, 3)
-    rA = np.abs(axes) @ ha  # (k, 15)
-    rB = np.einsum("kab,kb->ka", np.abs(np.einsum("kai,kbi->kab", axes, B)), eb)
-    d = boxes.T_base_box[None, :, :3, 3] - centers[:, None, :]  # (m, k, 3)
-    sep = np.abs(np.einsum("mki,kai->mka", d, axes)) > (rA + rB)[None] + 1e-12
-    return np.any(~np.any(sep, axis=2), axis=1)
-
-
-def segments_hit(starts: np.ndarray, ends: np.ndarray, boxes: Boxes) -> np.ndarray:
-    """Whether segments ``starts -> ends`` ((m, 3); ``starts`` may be (3,)) cross any box."""
-    ends = np.asarray(ends, dtype=float).reshape(-1, 3)
-    starts = np.broadcast_to(np.asarray(starts, dtype=float), ends.shape)
-    return ~segments_clear(starts, ends, boxes)
-
-
-CLUSTER_CELL = 1.0
-"""Edge (metres) of the cells that group boxes for the coarse test of :func:`segments_clear`."""
-
-
-def _near_segments(
-    starts: np.ndarray, ends: np.ndarray, centre: np.ndarray, radius: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs (segment, sphere) where the segment passes within the sphere's radius."""
-    d = ends - starts
-    t = np.clip(
-        np.einsum("skc,sc->sk", centre[None] - starts[:, None], d)
-        / np.maximum(np.einsum("sc,sc->s", d, d), 1e-12)[:, None],
-        0.0,
-        1.0,
-    )
-    closest = starts[:, None] + t[..., None] * d[:, None]
-    gap2 = np.einsum("skc,skc->sk", closest - centre[None], closest - centre[None])
-    return np.nonzero(gap2 <= (radius * radius)[None])
-
-
-def segments_clear(starts: np.ndarray, ends: np.ndarray, boxes: Boxes) -> np.ndarray:
-    """Whether each segment ``starts[i] -> ends[i]`` misses every box, ``(p,)`` bool.
-
-    A two-level test: the boxes are grouped by the :data:`CLUSTER_CELL` cell
-    their centre lies in, each group bounded by a sphere; a segment is tested
-    against the boxes' own bounding spheres only in the groups it passes, and
-    by the exact slab test only against the boxes it passes near. A site of a
-    few thousand candidate set-ups against a whole building stays cheap.
-    """
-    starts = np.asarray(starts, dtype=float).reshape(-1, 3)
-    ends = np.asarray(ends, dtype=float).reshape(-1, 3)
-    clear = np.ones(len(starts), dtype=bool)
-    if len(boxes) == 0 or len(starts) == 0:
-        return clear
-    centre = boxes.T_base_box[:, :3, 3]
-    radius = 0.5 * np.linalg.norm(boxes.extents, axis=1)
-    R = boxes.T_base_box[:, :3, :3]
-    half = 0.5 * boxes.extents
-    _, group = np.unique(np.floor(centre / CLUSTER_CELL), axis=0, return_inverse=True)
-    group = group.ravel()
-    order = np.argsort(group, kind="stable")
-    first = np.searchsorted(group[order], np.arange(group.max() + 2))
-    g_centre = np.stack([centre[group == g].mean(axis=0) for g in range(group.max() + 1)])
-    g_radius = np.zeros(len(g_centre))
-    np.maximum.at(g_radius, group, np.linalg.norm(centre - g_centre[group], axis=1) + radius)
-    chunk = max(1, 4_000_000 // max(len(g_centre), 1))
-    for lo in range(0, len(starts), chunk):
-        s, e = starts[lo : lo + chunk], ends[lo : lo + chunk]
-        seg_g, g = _near_segments(s, e, g_centre, g_radius)
-        if len(seg_g) == 0:
-            continue
-        # every box of every group a segment passes
-        count = first[g + 1] - first[g]
-        seg = np.repeat(seg_g, count)
-        box = order[
-            np.repeat(first[g], count)
-            + np.arange(count.sum())
-            - np.repeat(np.cumsum(count) - count, count)
-        ]
-        d = e[seg] - s[seg]
-        t = np.clip(
-            np.einsum("kc,kc->k", centre[box] - s[seg], d)
-            / np.maximum(np.einsum("kc,kc->k", d, d), 1e-12),
-            0.0,
-            1.0,
-        )
-        near = np.linalg.norm(s[seg] + t[:, None] * d - centre[box], axis=1) <= radius[box]
-        seg, box = seg[near], box[near]
-        if len(seg) == 0:
-            continue
-        # the segment in the box's frame; slab test
-        p0 = np.einsum("kji,kj->ki", R[box], s[seg] - centre[box])
-        p1 = np.einsum("kji,kj->ki", R[box], e[seg] - centre[box])
-        direction = p1 - p0
-        parallel = np.abs(direction) < 1e-12
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ta = (-half[box] - p0) / direction
-            tb = (half[box] - p0) / direction
-        inside = np.abs(p0) <= half[box]
-        tmin = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb))
-        tmax = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb))
-        hit = np.maximum(tmin.max(axis=1), 0.0) < np.minimum(tmax.min(axis=1), 1.0)
-        blocked = np.zeros(len(s), dtype=bool)
-        np.logical_or.at(blocked, seg, hit)
-        clear[lo : lo + chunk] = ~blocked
-    return clear
-
-
 def sphere_grid(n: int) -> np.ndarray:
     """``(n, 3)`` nearly equally spaced unit vectors (Fibonacci lattice)."""
     k = np.arange(n) + 0.5
@@ -501,12 +349,29 @@ def _workspace_grid(workspace: Workspace, spacing: float) -> np.ndarray:
 
 
 def clear_workspace_points(
-    workspace: Workspace, boxes: Boxes, rules: ClearanceRules, spacing: float = 0.2
+    workspace: Workspace,
+    boxes: Boxes,
+    rules: ClearanceRules,
+    spacing: float = 0.2,
+    reachable_grid: np.ndarray | None = None,
 ) -> np.ndarray:
     """``(m, 3)`` points of a ``spacing`` grid over the workspace that meet every criterion
-    (the pool :func:`avoid_obstacles` refills dropped points from)."""
+    (the pool :func:`avoid_obstacles` refills dropped points from).
+
+    ``reachable_grid``: the grid points that pass the workspace's reach test, when
+    already known (the reach does not change from station to station).
+    """
+    if reachable_grid is not None:
+        free = replace(workspace, reachable=None)
+        return reachable_grid[check_candidates(reachable_grid, free, boxes, rules)[0]]
     grid = _workspace_grid(workspace, spacing)
     return grid[check_candidates(grid, workspace, boxes, rules)[0]]
+
+
+def reachable_workspace_grid(workspace: Workspace, spacing: float = 0.2) -> np.ndarray:
+    """``(m, 3)`` points of a ``spacing`` grid over the workspace that pass its reach test."""
+    grid = _workspace_grid(workspace, spacing)
+    return grid[workspace.contains(grid)]
 
 
 def farthest_points(points: np.ndarray, k: int) -> np.ndarray:

@@ -410,19 +410,27 @@ def _geometry(A: np.ndarray, state: np.ndarray) -> dict[str, float]:
     u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
     info = u.T @ u
     pdop = float(np.sqrt(np.trace(np.linalg.pinv(info))))
-    xy = A[:, :2]
-    outside = 0.0
-    if len(xy) >= 3 and np.linalg.matrix_rank(xy - xy.mean(axis=0)) == 2:
-        hull = ConvexHull(xy)
-        eq = hull.equations
-        dist = eq[:, :2] @ p[:2] + eq[:, 2]
-        if np.any(dist > 0):
-            v = xy[hull.vertices]
-            a, b = v, np.roll(v, -1, axis=0)
-            ab = b - a
-            tt = np.clip(np.einsum("ij,ij->i", p[:2] - a, ab) / np.einsum("ij,ij->i", ab, ab), 0, 1)
-            outside = float(np.min(np.linalg.norm(a + tt[:, None] * ab - p[:2], axis=1)))
+    outside = float(outside_hull(A[:, :2], p[None, :2])[0])
     return {"pdop": pdop, "outside_coverage_m": outside}
+
+
+def outside_hull(anchors_xy: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
+    """How far (metres) each plan point ``(m, 2)`` lies outside the convex hull of the
+    anchors ``(n, 2)``: 0 inside; 0 for all when the anchors span no area."""
+    xy = np.asarray(anchors_xy, dtype=float)
+    p = np.asarray(points_xy, dtype=float).reshape(-1, 2)
+    outside = np.zeros(len(p))
+    if len(xy) < 3 or np.linalg.matrix_rank(xy - xy.mean(axis=0)) < 2:
+        return outside
+    hull = ConvexHull(xy)
+    out = (p @ hull.equations[:, :2].T + hull.equations[:, 2]).max(axis=1) > 0
+    if out.any():
+        v = xy[hull.vertices]
+        a, ab = v, np.roll(v, -1, axis=0) - v
+        q = p[out][:, None, :]
+        t = np.clip(np.einsum("mij,ij->mi", q - a, ab) / np.einsum("ij,ij->i", ab, ab), 0, 1)
+        outside[out] = np.linalg.norm(a + t[..., None] * ab - q, axis=2).min(axis=1)
+    return outside
 
 
 def platform_to_base_covariance(

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fabflow.errors import InputError
-from fabflow.positioning.point_selection import Boxes, segments_clear
+from fabflow.positioning.boxes import Boxes, segments_clear
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from fabflow.localize.plan import check_visit, parking_covariance
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.scan_matching import transform_map
 from fabflow.project import Project, TotalStationSetup
+from fabflow.schema import PoseSpec
 from fabflow.transforms.se3 import make_T, perturb, pose_error
 from fabflow.transforms.so3 import exp_so3
 
@@ -90,17 +91,27 @@ class FaultOutcome:
     median_error_m: float
 
 
+STUDY_INSTRUMENT = PoseSpec(xyz=(-3.0, -3.0, 1.6))
+"""Where the fault study's total station stands when the project plans its set-ups: one
+fixed geometry for every drawn station (the figures of docs/integrity.md were measured
+there; a set-up planned per station would change with each draw)."""
+
+
 def with_method(project: Project, method: str, n_points: int | None = None) -> Project:
     """The project localized by ``method`` (its other setup sections unchanged).
 
-    ``n_points`` sets the number of prism points of a total station setup.
+    ``n_points`` sets the number of prism points of a total station setup; a total
+    station without a given set-up stands at :data:`STUDY_INSTRUMENT`.
     """
     loc = project.localization.model_copy(update={"method": method})
-    if n_points is not None:
+    if method == "total_station":
         setup = loc.total_station or TotalStationSetup()
-        loc = loc.model_copy(
-            update={"total_station": setup.model_copy(update={"n_points": n_points})}
-        )
+        update: dict[str, object] = {}
+        if n_points is not None:
+            update["n_points"] = n_points
+        if setup.T_world_instrument is None:
+            update["T_world_instrument"] = STUDY_INSTRUMENT
+        loc = loc.model_copy(update={"total_station": setup.model_copy(update=update)})
     return project.model_copy(update={"localization": loc})
 
 

@@ -132,7 +132,7 @@ def collect(
 
     first = next((r for r in ok if r.run == 0), None)
     return StudyResult(
-        method=study.method,
+        method=study.name,
         seed=seed,
         n_runs=n_runs,
         runs=np.array([r.run for r in ok], dtype=np.intp),
@@ -440,7 +440,33 @@ def summarize(study: Study, result: StudyResult) -> dict[str, Any]:
         ),
         "integrity": integrity_stats(result),
         "per_station": per_station,
+        **({"setups": setup_drift(study, result)} if study.setups else {}),
     }
+
+
+def setup_drift(study: Study, result: StudyResult) -> list[dict[str, Any]]:
+    """Per total station set-up, in build order: the XY error of the base at the visits
+    it localized (mean and max over runs and visits, metres). With set-ups registered on
+    the robot's prisms (Procedure A) the error grows from set-up to set-up; on control
+    points (Procedure B) it does not (paper 001, Fig 7)."""
+    assert study.setups is not None
+    xy = np.linalg.norm(result.localization_error[..., :2], axis=-1)  # (R, V)
+    out = []
+    for s in study.setups:
+        e = xy[:, list(s.packages)]
+        out.append(
+            {
+                "id": s.id,
+                "packages": [s.packages[0] + 1, s.packages[-1] + 1],
+                "registration": s.registration,
+                "position": s.T_world_instrument[:3, 3].tolist(),
+                "xy_error_m": {
+                    "mean": float(e.mean()) if e.size else math.nan,
+                    "max": float(e.max()) if e.size else math.nan,
+                },
+            }
+        )
+    return out
 
 
 def integrity_stats(result: StudyResult) -> dict[str, Any]:
@@ -500,6 +526,7 @@ def comparison_row(summary: dict[str, Any]) -> dict[str, Any]:
         if {"x", "y"} <= ratio.keys()
         else math.nan,
         "seconds_per_run": summary["runs"]["elapsed_s"] / max(1, summary["runs"]["requested"]),
+        "setups": summary.get("setups"),
         "visits_failed": summary["integrity"].get("failed", 0),
         "silently_wrong": summary["integrity"].get("silently_wrong", 0),
     }

@@ -36,9 +36,10 @@ from fabflow.errors import InputError
 from fabflow.localize.layout import site_layout
 from fabflow.localize.methods import localizer_arguments
 from fabflow.localize.plan import LocalizeStation, check_visit, parked_pose, station_localizer
-from fabflow.localize.setups import InstrumentSetup, InstrumentTrack
+from fabflow.localize.setups import InstrumentSetup
+from fabflow.localize.stationing import InstrumentTrack
 from fabflow.positioning.result import BasePose
-from fabflow.project import LOCALIZATION_METHODS, Project
+from fabflow.project import LOCALIZATION_METHODS, Project, TotalStationSetup
 from fabflow.tasks.plan import Plan, Station
 from fabflow.tasks.planner import plan_project
 from fabflow.tasks.split import with_pieces
@@ -51,6 +52,9 @@ observe (e.g. roll and pitch for UWB)."""
 
 Fidelity = Literal["sensors", "covariance"]
 """How a run localizes: simulated sensors, or a Gaussian draw from the predicted covariance."""
+
+STATIONINGS = ("control_points", "robot_points")
+"""How a total station set-up is registered (``localization.total_station.stationing``)."""
 
 CALIBRATION_RUNS = 8
 """Sensor localizations per visit that calibrate the ``"covariance"`` fidelity."""
@@ -87,6 +91,9 @@ class Study:
     setups
         The total station's set-ups (planned once, :mod:`fabflow.localize.setups`);
         ``None`` for the other methods.
+    label
+        The study's name in reports and output folders: the method, or for a total
+        station with a chosen ``stationing``, ``total_station-<stationing>``.
     """
 
     project: Project
@@ -99,6 +106,12 @@ class Study:
     fidelity: Fidelity = "sensors"
     visit_covariance: np.ndarray | None = None
     setups: tuple[InstrumentSetup, ...] | None = None
+    label: str = ""
+
+    @property
+    def name(self) -> str:
+        """:attr:`label`, or the method."""
+        return self.label or self.method
 
     @property
     def n_elements(self) -> int:
@@ -123,6 +136,7 @@ def prepare_study(
     plan: Plan | None = None,
     fidelity: Fidelity = "sensors",
     calibration_runs: int = CALIBRATION_RUNS,
+    stationing: str | None = None,
 ) -> Study:
     """Generate the elements and plan the project once, for any number of runs.
 
@@ -151,6 +165,10 @@ def prepare_study(
         ``"sensors"`` (default) or ``"covariance"``.
     calibration_runs
         Sensor localizations per visit for the ``"covariance"`` fidelity.
+    stationing
+        For the total station: how its set-ups are registered, instead of the
+        project's ``stationing`` (``control_points``: Procedure B of paper 001,
+        ``robot_points``: Procedure A); the study is labelled with it.
 
     Raises
     ------
@@ -176,6 +194,19 @@ def prepare_study(
             project.path,
             "localization.uwb",
         )
+    label = ""
+    if stationing is not None and method == "total_station":
+        if stationing not in STATIONINGS:
+            raise InputError(
+                f"unknown stationing {stationing!r}: expected one of " + ", ".join(STATIONINGS),
+                location="--stationing",
+            )
+        ts = project.localization.total_station or TotalStationSetup()
+        loc = project.localization.model_copy(
+            update={"total_station": ts.model_copy(update={"stationing": stationing})}
+        )
+        project = project.model_copy(update={"localization": loc})
+        label = f"total_station-{stationing}"
     if elements is None:
         elements = generate_elements(project.elements, project.path, project.limits)
     if plan is None:
@@ -202,6 +233,7 @@ def prepare_study(
         stations=tuple(wp.station for wp in plan.work_packages),
         built_before=tuple(built_before),
         setups=layout.setups,
+        label=label,
     )
     if fidelity == "sensors":
         return study

@@ -27,22 +27,39 @@ def _far_anchors(text: str) -> str:
     )
 
 
-def test_refuse_stops_the_build_naming_visit_and_reason(tmp_path: Path, cli) -> None:
+def _parked_off(text: str, on_failure: str) -> str:
+    # the platform parks 30 cm off its station while the project trusts it to 1 mm:
+    # the pose, however well measured, fails the check against the planned station
+    return text.replace(
+        "localization:\n",
+        f"localization:\n  integrity: {{on_failure: {on_failure}, parking_sigma: 0.001}}\n",
+        1,
+    ).replace("simulation:\n", "simulation:\n  driving_error: 0.3\n", 1)
+
+
+def test_anchors_that_cover_no_station_are_a_planning_error(tmp_path: Path, cli) -> None:
     bad = tmp_path / "project.yaml"
     bad.write_text(_far_anchors(SMALL.read_text()))
     res = cli("build", str(bad), "-o", str(tmp_path / "out"))
     assert res.returncode == 2, res.stdout + res.stderr
+    assert "UWB anchors do not cover station S1" in res.stderr
+    assert "localization.uwb.anchors" in res.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_refuse_stops_the_build_naming_visit_and_reason(tmp_path: Path, cli) -> None:
+    bad = tmp_path / "project.yaml"
+    bad.write_text(_parked_off(SMALL.read_text(), "refuse"))
+    res = cli("build", str(bad), "-o", str(tmp_path / "out"))
+    assert res.returncode == 2, res.stdout + res.stderr
     assert "visit 1 at station S1 (uwb): integrity failed" in res.stderr
-    assert "outside the anchors' coverage" in res.stderr
+    assert "from the planned station" in res.stderr
     assert not (tmp_path / "out").exists()
 
 
 def test_warn_builds_without_programs_for_failed_visits(tmp_path: Path, cli) -> None:
-    text = _far_anchors(SMALL.read_text()).replace(
-        "localization:\n", "localization:\n  integrity: {on_failure: warn}\n", 1
-    )
     bad = tmp_path / "project.yaml"
-    bad.write_text(text)
+    bad.write_text(_parked_off(SMALL.read_text(), "warn"))
     res = cli("build", str(bad), "-o", str(tmp_path / "out"))
     assert res.returncode == 0, res.stderr
     assert "no program (localization failed)" in res.stdout

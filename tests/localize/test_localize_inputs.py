@@ -148,7 +148,7 @@ def test_uwb_problems_name_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPa
             "line 2",
             "more than 24",
         ),
-        ("anchors: {A1: [0, 0, 1]}\n", "line 1", "at least 3 items"),
+        ("anchors: {A1: [0, 0, 1]}\n", "line 1", "at least 3 anchors"),
         (
             "anchors: {A1: [0, 0, 1], A2: [4, 0, 1], A3: [4, 6, 1]}\nsigma: 2e-6\n",
             "line 2",

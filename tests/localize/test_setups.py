@@ -17,9 +17,9 @@ from fabflow.localize.setups import (
     InstrumentSetup,
     control_points,
     plan_setups,
-    register_setup,
 )
-from fabflow.positioning.point_selection import Boxes, segments_clear
+from fabflow.localize.stationing import register_setup
+from fabflow.positioning.boxes import Boxes, segments_clear
 from fabflow.project import TotalStationSetup, load_project
 from fabflow.schema import PoseSpec
 from fabflow.tasks.planner import plan_project

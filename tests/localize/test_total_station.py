@@ -8,9 +8,7 @@ import pytest
 from fabflow.design.elements import Element
 from fabflow.localize.prism_points import boxes_in_base
 from fabflow.localize.total_station import localize_station
-from fabflow.positioning.point_selection import (
-    boxes_overlap,
-)
+from fabflow.positioning.boxes import boxes_overlap
 from fabflow.project import parse_project
 from fabflow.transforms.se3 import apply_T, make_T, pose_error
 from fabflow.transforms.so3 import exp_so3

@@ -6,16 +6,14 @@ import numpy as np
 import pytest
 
 from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.boxes import Boxes, boxes_overlap, segments_hit
 from fabflow.positioning.point_selection import (
-    Boxes,
     ClearanceRules,
     Workspace,
     avoid_obstacles,
-    boxes_overlap,
     clear_mask,
     optimal_points,
     sample_workspace,
-    segments_hit,
     sphere_grid,
     spread_objective,
 )

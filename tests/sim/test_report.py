@@ -130,3 +130,48 @@ def test_every_run_of_a_method_failing_exits_2_naming_it(
         rows = list(csv.DictReader(f))
     assert [r["status"] for r in rows] == ["failed"] * 2
     assert "no clear localization point" in rows[0]["error"]
+
+
+def test_simulate_compares_the_total_stations_procedures(tmp_path: Path) -> None:
+    out = tmp_path / "ab"
+    result = invoke(
+        str(SMALL),
+        "-o",
+        str(out),
+        "-n",
+        "2",
+        "--workers",
+        "0",
+        "--methods",
+        "total_station",
+        "--stationing",
+        "control_points,robot_points",
+    )
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["methods"]) == {
+        "total_station-control_points",
+        "total_station-robot_points",
+    }
+    for study in summary["methods"].values():
+        setups = study["setups"]
+        assert setups[0]["packages"][0] == 1
+        assert all(0 < s["xy_error_m"]["mean"] <= s["xy_error_m"]["max"] for s in setups)
+    assert "Procedure A" in result.output and "T1" in result.output
+    assert (out / "total_station-robot_points" / "summary.json").exists()
+
+
+def test_an_unknown_stationing_is_refused(tmp_path: Path) -> None:
+    result = invoke(
+        str(SMALL),
+        "-o",
+        str(tmp_path / "x"),
+        "--workers",
+        "0",
+        "--methods",
+        "total_station",
+        "--stationing",
+        "tripod",
+    )
+    assert result.exit_code == 2, result.output
+    assert "unknown stationing 'tripod'" in result.output

@@ -62,7 +62,9 @@ def test_round_trip_every_representation(p: Pose) -> None:
     assert Pose.from_quat(p.quat, p.t).allclose(p, TOL)
     assert Pose.from_rotvec(p.rotvec, p.t).allclose(p, TOL)
     for seq in ("ZYX", "xyz", "ZYZ"):
-        assert Pose.from_euler(seq, p.euler(seq), p.t).allclose(p, 1e-8)
+        # within about 1e-7 rad of gimbal lock scipy declares the lock and sets the third
+        # angle to zero: the round trip is then good to that order, not to rounding
+        assert Pose.from_euler(seq, p.euler(seq), p.t).allclose(p, 1e-6)
     assert from_kuka_xyzabc(to_kuka_xyzabc(p)).allclose(p, TOL)
     assert from_abb_pose(*to_abb_pose(p)).allclose(p, TOL)
     assert from_ur_pose(to_ur_pose(p)).allclose(p, TOL)
