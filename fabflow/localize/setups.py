@@ -51,7 +51,7 @@ MIN_CONTROL_POINTS = 3
 """Control points a free stationing sights: two fix a levelled set-up, the third checks it."""
 MAX_POSITIONS = 1200
 """Most grid positions a site is searched on for set-ups (the spacing grows beyond)."""
-FOLLOWED = 64
+FOLLOWED = 512
 """Candidates followed through a run of packages: after its first package, those with
 the smallest predicted sigma (the run of the best of them is kept)."""
 CONTROL_HEIGHT = 0.3
