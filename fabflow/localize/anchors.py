@@ -413,7 +413,10 @@ def layout_anchors(
         project = project.model_copy(
             update={"localization": project.localization.model_copy(update={"uwb": uwb})}
         )
-    message = anchor_geometry_problem(coverage.anchors) or coverage_error(coverage, plan)
+    problem = anchor_geometry_problem(coverage.anchors)
+    if problem is not None:
+        problem = f"localization.uwb.anchors: {problem}"
+    message = problem or coverage_error(coverage, plan)
     if message is not None:
         raise LocalizationError(message)
     return project, coverage

@@ -92,7 +92,7 @@ class InstrumentSetup:
         return {
             "id": self.id,
             "position": np.asarray(self.T_world_instrument[:3, 3], dtype=float).tolist(),
-            "packages": [k + 1 for k in self.packages],
+            "packages": [self.packages[0] + 1, self.packages[-1] + 1],
             "registration": self.registration,
             "control_points": list(self.control_points),
             "predicted_sigma_xy_mm": 1000.0 * self.predicted_sigma,

@@ -69,7 +69,16 @@ def test_missing_anchors_are_planned_in_sight(cabin) -> None:
 
 def test_a_layout_that_cannot_locate_names_the_station_and_the_field(cabin) -> None:
     project, elements, plan = cabin
-    # three anchors in a short row, far away: the geometry fixes nothing across it
-    bad = {"A1": (20.0, 0.0, 1.0), "A2": (20.5, 0.0, 1.0), "A3": (21.0, 0.0, 1.0)}
+    # four anchors in a small cluster 17 m away: every station stands outside them
+    bad = {
+        "A1": (20.0, 0.0, 1.0),
+        "A2": (20.5, 0.0, 3.0),
+        "A3": (21.0, 0.5, 1.0),
+        "A4": (20.2, 0.6, 2.5),
+    }
     with pytest.raises(LocalizationError, match=r"station S\d.*localization.uwb.anchors"):
         layout_anchors(_with_anchors(project, bad), plan, elements)
+    # three anchors and the tags' heights cannot fix a 3D position: named before anything
+    three = dict(list(bad.items())[:3])
+    with pytest.raises(LocalizationError, match=r"localization\.uwb\.anchors: degenerate"):
+        layout_anchors(_with_anchors(project, three), plan, elements)
