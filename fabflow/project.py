@@ -366,30 +366,7 @@ class Project(StrictModel):
                 f"{len(self.planning.headings_deg)} headings makes {n_cand:.4g} candidate "
                 f"stations, more than limits.max_candidates = {lim.max_candidates}",
             )
-        ts = self.localization.total_station
-        if ts is not None and ts.T_world_instrument is None:
-            n_setups = _grid_points(x0, x1, ts.setup_spacing) * _grid_points(
-                y0, y1, ts.setup_spacing
-            )
-            if n_setups > lim.max_candidates:
-                raise located(
-                    ("localization", "total_station", "setup_spacing"),
-                    f"a site of {x1 - x0:g} x {y1 - y0:g} m at {ts.setup_spacing:g} m spacing "
-                    f"makes {n_setups:.4g} candidate instrument positions, more than "
-                    f"limits.max_candidates = {lim.max_candidates}",
-                )
         uwb = self.localization.uwb
-        if uwb is not None and not uwb.anchors:
-            n_anchors = _grid_points(x0, x1, uwb.anchor_spacing) * _grid_points(
-                y0, y1, uwb.anchor_spacing
-            )
-            if n_anchors > lim.max_candidates:
-                raise located(
-                    ("localization", "uwb", "anchor_spacing"),
-                    f"a site of {x1 - x0:g} x {y1 - y0:g} m at {uwb.anchor_spacing:g} m spacing "
-                    f"makes {n_anchors:.4g} candidate anchor positions, more than "
-                    f"limits.max_candidates = {lim.max_candidates}",
-                )
         if uwb is not None:
             ranges = uwb.dwell_s * uwb.rate_hz * len(uwb.tags) * len(uwb.anchors)
             imu = uwb.dwell_s * uwb.imu_rate_hz

@@ -49,8 +49,6 @@ TRIPOD_CLEARANCE = 0.5
 """Distance (metres) a planned tripod keeps from the structure, obstacles and parking places."""
 MIN_CONTROL_POINTS = 3
 """Control points a free stationing sights: two fix a levelled set-up, the third checks it."""
-MAX_POSITIONS = 1200
-"""Most grid positions a site is searched on for set-ups (the spacing grows beyond)."""
 FOLLOWED = 512
 """Candidates followed through a run of packages: after its first package, those with
 the smallest predicted sigma (the run of the best of them is kept)."""
@@ -137,13 +135,10 @@ def _world_boxes(elements: Sequence[Element]) -> Boxes:
 
 def candidate_positions(project: Project, elements: Sequence[Element], plan: Plan) -> np.ndarray:
     """``(m, 3)`` candidate trunnion positions (world, metres) for planned set-ups: the
-    free ground (:func:`~fabflow.localize.site.free_ground`, ``setup_spacing``, or
-    coarser on a site so large it would hold more than :data:`MAX_POSITIONS` grid
-    points) at the lowest, middle and highest ``tripod_height``."""
+    free ground (:func:`~fabflow.localize.site.free_ground`, ``setup_spacing``) at the
+    lowest, middle and highest ``tripod_height``."""
     setup = total_station_setup(project)
-    (x0, y0), (x1, y1) = project.site.extent_min, project.site.extent_max
-    spacing = max(setup.setup_spacing, float(np.sqrt((x1 - x0) * (y1 - y0) / MAX_POSITIONS)))
-    xy = free_ground(project, elements, plan, spacing, TRIPOD_CLEARANCE)
+    xy = free_ground(project, elements, plan, setup.setup_spacing, TRIPOD_CLEARANCE)
     lo_h, hi_h = setup.tripod_height
     heights = np.unique([lo_h, 0.5 * (lo_h + hi_h), hi_h])
     return np.concatenate([np.column_stack([xy, np.full(len(xy), h)]) for h in heights])

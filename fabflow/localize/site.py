@@ -70,6 +70,11 @@ def site_obstacles(project: Project) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
     return boxes, prisms
 
 
+MAX_POSITIONS = 1200
+"""Most grid positions a site is searched on for a tripod or an anchor: on a larger
+site the grid is coarser than asked (the work stays bounded)."""
+
+
 def free_ground(
     project: Project,
     elements: Sequence[Element],
@@ -78,13 +83,15 @@ def free_ground(
     clearance: float,
 ) -> np.ndarray:
     """``(m, 2)`` points of a ``spacing`` grid over the site (world, metres) where a tripod
-    or an anchor pole may stand for the whole build.
+    or an anchor pole may stand for the whole build (coarser than ``spacing`` where
+    the site would hold more than :data:`MAX_POSITIONS` grid points).
 
     Left out: points within ``clearance`` of an element's plan footprint (its
     bounding rectangle), of an obstacle, or of the platform parked at any station
     (its footprint plus ``safety_margin``). The ground is at z = 0.
     """
     (x0, y0), (x1, y1) = project.site.extent_min, project.site.extent_max
+    spacing = max(spacing, float(np.sqrt((x1 - x0) * (y1 - y0) / MAX_POSITIONS)))
     xs = np.arange(x0 + 0.5 * spacing, x1, spacing)
     ys = np.arange(y0 + 0.5 * spacing, y1, spacing)
     xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
