@@ -95,14 +95,6 @@ def _cached_optimal_points(n: int, workspace: Workspace) -> np.ndarray:
     return optimal_points(n, replace(workspace, reachable=None), np.random.default_rng(0))
 
 
-def boxes_in_base(elements: Sequence[Element], T_world_base: np.ndarray) -> Boxes:
-    """The box-shaped elements (blocks with ``extents``) as :class:`Boxes` in the base frame."""
-    T_world_box, extents = element_boxes(elements)
-    if len(extents) == 0:
-        return Boxes.empty()
-    return Boxes(np.linalg.inv(np.asarray(T_world_base, dtype=float)) @ T_world_box, extents)
-
-
 def instrument_for(setup: TotalStationSetup) -> Instrument:
     """The accuracy model of a project's total station setup."""
     return make_instrument(

@@ -128,11 +128,6 @@ def sight_clear(eyes: np.ndarray, targets: np.ndarray, boxes: Boxes) -> np.ndarr
     return segments_clear(np.repeat(eyes, n, axis=0), np.tile(targets, (m, 1)), boxes).reshape(m, n)
 
 
-def _world_boxes(elements: Sequence[Element]) -> Boxes:
-    T, extents = element_boxes(elements)
-    return Boxes(T, extents) if len(extents) else Boxes.empty()
-
-
 def candidate_positions(project: Project, elements: Sequence[Element], plan: Plan) -> np.ndarray:
     """``(m, 3)`` candidate trunnion positions (world, metres) for planned set-ups: the
     free ground (:func:`~fabflow.localize.site.free_ground`, ``setup_spacing``) at the

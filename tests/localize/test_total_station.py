@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fabflow.design.elements import Element
-from fabflow.localize.prism_points import boxes_in_base
+from fabflow.design.elements import Element, element_boxes
+from fabflow.localize.prism_points import boxes_near_base
 from fabflow.localize.total_station import localize_station
-from fabflow.positioning.boxes import boxes_overlap
+from fabflow.positioning.boxes import Boxes, boxes_overlap
 from fabflow.project import parse_project
 from fabflow.transforms.se3 import apply_T, make_T, pose_error
 from fabflow.transforms.so3 import exp_so3
@@ -27,15 +27,23 @@ localization:
 """
 
 
+def _in_base(elements: list[Element], T_world_base: np.ndarray) -> Boxes:
+    return boxes_near_base(Boxes(*element_boxes(elements)), T_world_base, np.inf)
+
+
 def test_boxes_in_base_frame() -> None:
     T_world_base = make_T(exp_so3([0, 0, np.pi / 2]), [5.0, 0.0, 0.5])
     block = Element(
         "B1", "block", make_T(np.eye(3), [5.0, 2.0, 0.5]), extents=np.array([0.6, 0.1, 0.1])
     )
+    far = Element("B2", "block", make_T(np.eye(3), [25.0, 2.0, 0.5]), extents=np.ones(3) * 0.1)
     point = Element("T1", "task_point", np.eye(4))
-    boxes = boxes_in_base([block, point], T_world_base)
+    boxes = _in_base([block, point], T_world_base)
     assert len(boxes) == 1
     np.testing.assert_allclose(boxes.T_base_box[0, :3, 3], [2.0, 0.0, 0.0], atol=1e-12)
+    # only the boxes that can reach within the radius of the base are kept
+    near = boxes_near_base(Boxes(*element_boxes([block, far])), T_world_base, 3.0)
+    assert len(near) == 1
 
 
 def test_localize_station_simulates_a_plausible_pose() -> None:
@@ -69,7 +77,7 @@ def test_localize_station_three_point_and_obstacles() -> None:
     blocked = localize_station(p5, T, np.random.default_rng(1), "S1", built=[block])
     assert blocked.quality["moved_for_obstacles"][0] > 0
     P = np.asarray(blocked.quality["points_base"])
-    boxes = boxes_in_base([block], T)
+    boxes = _in_base([block], T)
     assert not boxes_overlap(P, np.array([0.15, 0.15, 0.2]), boxes).any()
 
 
