@@ -212,7 +212,7 @@ def _three_point_points(
     r = ws.radius
     axes = [np.arange(c[k] - r, c[k] + r + 1e-9, THREE_POINT_SEARCH_SPACING) for k in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    sets = grid[:, None, :] + np.array([[0.0, 0.0, 0.0], [d, 0.0, 0.0], [0.0, d, 0.0]])
+    sets = three_point_base_points(grid[:, None, :], d)
     inside = ws.contains_geometry(sets).all(axis=1)
     sets = sets[inside]
     sets = sets[np.argsort(np.linalg.norm(sets[:, 0] - p1, axis=1), kind="stable")]

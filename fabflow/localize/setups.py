@@ -34,11 +34,10 @@ from fabflow.errors import LocalizationError
 from fabflow.localize.prism_points import instrument_for, station_points, total_station_setup
 from fabflow.localize.site import free_ground
 from fabflow.positioning.boxes import Boxes, segments_clear
-from fabflow.positioning.polar import (
-    cartesian_to_polar,
-    polar_covariance,
-)
-from fabflow.project import Project
+from fabflow.positioning.polar import cartesian_to_polar, polar_covariance
+from fabflow.positioning.rigid_fit import point_jacobians
+from fabflow.positioning.total_station import setup_covariance
+from fabflow.project import Project, TotalStationSetup
 from fabflow.tasks.plan import Plan
 from fabflow.transforms.se3 import make_T
 
@@ -97,6 +96,18 @@ class InstrumentSetup:
         }
 
 
+def trunnion_pose(T_world_instrument: np.ndarray, instrument_height: float) -> np.ndarray:
+    """The set-up pose raised by the instrument height along its z axis (4x4, metres)."""
+    T = np.array(T_world_instrument, dtype=float)
+    T[:3, 3] += T[:3, 2] * instrument_height
+    return T
+
+
+def instrument_covariance(setup: TotalStationSetup) -> np.ndarray:
+    """6x6 covariance of the set-up pose from the project's set-up uncertainty fields."""
+    return setup_covariance(setup.setup_sigma_mm, setup.setup_sigma_arcsec)
+
+
 def control_points(project: Project) -> dict[str, np.ndarray]:
     """The control points by id (world, metres): the project's, or the site's corners."""
     given = total_station_setup(project).control_points
@@ -108,24 +119,6 @@ def control_points(project: Project) -> dict[str, np.ndarray]:
         f"CP{i + 1}": np.array([x, y, CONTROL_HEIGHT], dtype=float)
         for i, (x, y) in enumerate(corners)
     }
-
-
-def sight_clear(eyes: np.ndarray, targets: np.ndarray, boxes: Boxes) -> np.ndarray:
-    """Whether each eye sees each target past the boxes, ``(m, n)`` bool.
-
-    Parameters
-    ----------
-    eyes
-        ``(m, 3)`` instrument positions (world, metres).
-    targets
-        ``(n, 3)`` sighted points.
-    boxes
-        Obstacles (world frame).
-    """
-    eyes = np.asarray(eyes, dtype=float).reshape(-1, 3)
-    targets = np.asarray(targets, dtype=float).reshape(-1, 3)
-    m, n = len(eyes), len(targets)
-    return segments_clear(np.repeat(eyes, n, axis=0), np.tile(targets, (m, 1)), boxes).reshape(m, n)
 
 
 def candidate_positions(project: Project, elements: Sequence[Element], plan: Plan) -> np.ndarray:
@@ -160,11 +153,7 @@ def predicted_sigma(
         project.simulation.robot_repeatability**2 + 1e-12
     )
     arm = points_world - np.asarray(T_world_base, dtype=float)[:3, 3]
-    J = np.zeros((len(arm), 3, 6))
-    J[:, :, :3] = np.eye(3)
-    J[:, 0, 4], J[:, 0, 5] = -arm[:, 2], arm[:, 1]
-    J[:, 1, 3], J[:, 1, 5] = arm[:, 2], -arm[:, 0]
-    J[:, 2, 3], J[:, 2, 4] = -arm[:, 1], arm[:, 0]
+    J = point_jacobians(np.eye(3), arm)
     W = np.linalg.inv(C)
     if used is not None:
         W = W * np.asarray(used, dtype=float)[..., None, None]
@@ -265,8 +254,7 @@ def _sees_controls(
     eyes: np.ndarray, controls: np.ndarray, boxes: Boxes
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(m,)`` whether each eye sights enough control points, and ``(m, k)`` which."""
-    far = np.linalg.norm(controls[None] - eyes[:, None], axis=-1) >= MIN_SIGHT
-    seen = far & sight_clear(eyes, controls, boxes)
+    seen = _visible(eyes, controls, boxes)
     return seen.sum(axis=1) >= min(MIN_CONTROL_POINTS, len(controls)), seen
 
 
@@ -326,8 +314,7 @@ def plan_setups(
     if not packages:
         return ()
     if setup.T_world_instrument is not None:
-        T = setup.T_world_instrument.matrix().copy()
-        T[:3, 3] += T[:3, 2] * setup.instrument_height
+        T = trunnion_pose(setup.T_world_instrument.matrix(), setup.instrument_height)
         eye = T[None, :3, 3]
         for k, package in enumerate(packages):
             if not _covers(eye, package, project)[0]:
@@ -396,7 +383,7 @@ def plan_setups(
         T = make_T(np.eye(3), eyes[best])
         registration: Registration = "control_points"
         sighted: tuple[str, ...] = ()
-        if setup.stationing == "robot_points" and out:
+        if registration_on_robot:
             registration = "robot_points"
         else:
             _, seen = _sees_controls(eyes[best][None], control_xyz, packages[i].boxes)

@@ -19,14 +19,18 @@ import numpy as np
 
 from fabflow.design.elements import Element
 from fabflow.localize.prism_points import instrument_for, station_points, total_station_setup
-from fabflow.localize.setups import InstrumentSetup, control_points, plan_setups
+from fabflow.localize.setups import (
+    InstrumentSetup,
+    control_points,
+    instrument_covariance,
+    plan_setups,
+)
 from fabflow.positioning.polar import polar_covariance, polar_to_cartesian
 from fabflow.positioning.rigid_fit import register_leveled
-from fabflow.positioning.total_station import setup_covariance
 from fabflow.project import Project
 from fabflow.sensors.total_station import simulate_polar
 from fabflow.tasks.plan import Plan
-from fabflow.transforms.se3 import compose_covariance, inv_T, make_T
+from fabflow.transforms.se3 import compose_covariance, inv_T, make_T, perturb
 
 
 @dataclass(frozen=True)
@@ -84,12 +88,8 @@ def register_setup(
     instrument = instrument_for(ts)
     T_true = np.asarray(setup.T_world_instrument, dtype=float)
     if setup.registration == "given":
-        C = setup_covariance(ts.setup_sigma_mm, ts.setup_sigma_arcsec)
-        delta = rng.normal(0.0, 1.0, 6) * np.sqrt(np.diag(C))
-        T_actual = T_true.copy()
-        T_actual[:3, 3] += delta[:3]
-        c, s = np.cos(delta[5]), np.sin(delta[5])
-        T_actual[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T_true[:3, :3]
+        C = instrument_covariance(ts)
+        T_actual = perturb(T_true, rng.normal(0.0, 1.0, 6) * np.sqrt(np.diag(C)))
         return InstrumentPose(T_actual, T_true, C, setup.id)
     if setup.registration == "control_points":
         controls = control_points(project)

@@ -23,7 +23,7 @@ from fabflow.design.elements import Element
 from fabflow.errors import InputError
 from fabflow.localize.prism_points import instrument_for, station_points, total_station_setup
 from fabflow.localize.report import check_options
-from fabflow.localize.setups import plan_setups
+from fabflow.localize.setups import instrument_covariance, plan_setups, trunnion_pose
 from fabflow.localize.stationing import InstrumentPose, InstrumentTrack
 from fabflow.positioning.integrity import ALPHA
 from fabflow.positioning.polar import (
@@ -38,7 +38,6 @@ from fabflow.positioning.three_point import localize_three_point
 from fabflow.positioning.total_station import (
     add_instrument_uncertainty,
     localize_observations,
-    setup_covariance,
 )
 from fabflow.positioning.ts_io import read_observations, read_robot_points
 from fabflow.project import Project, TotalStationSetup
@@ -48,18 +47,6 @@ from fabflow.schema import PoseSpec
 from fabflow.sensors.total_station import simulate_polar
 from fabflow.tasks.plan import Plan, Station, WorkPackage
 from fabflow.transforms.se3 import apply_T, inv_T, make_T
-
-
-def trunnion_pose(T_world_instrument: np.ndarray, instrument_height: float) -> np.ndarray:
-    """The set-up pose raised by the instrument height along its z axis (4x4, metres)."""
-    T = np.array(T_world_instrument, dtype=float)
-    T[:3, 3] += T[:3, 2] * instrument_height
-    return T
-
-
-def instrument_covariance(setup: TotalStationSetup) -> np.ndarray:
-    """6x6 covariance of the set-up pose from the project's set-up uncertainty fields."""
-    return setup_covariance(setup.setup_sigma_mm, setup.setup_sigma_arcsec)
 
 
 @dataclass(frozen=True)
