@@ -89,6 +89,10 @@ class TotalStationSetup(StrictModel):
     """Range of trunnion heights above the ground of a planned set-up (metres)."""
     setup_spacing: Annotated[float, Field(ge=0.1, le=5.0)] = 0.5
     """Grid spacing of the candidate set-up positions on the site (metres)."""
+    max_range: Annotated[float, Field(ge=5.0, le=1000.0)] | None = None
+    """Farthest a sighted prism or control point may be from a set-up (metres): the
+    instrument's tracking range with the prism used, or a site rule keeping sights short
+    across traffic and stacked material. ``None``: no limit."""
     stationing: Literal["control_points", "robot_points"] = "control_points"
     """How each planned set-up is registered to the site: free stationing on the fixed
     ``control_points`` (paper 001, Procedure B), or on prisms the robot holds at its last

@@ -38,12 +38,12 @@ from fabflow.design.elements import Element, element_boxes, structure_timeline
 from fabflow.errors import LocalizationError
 from fabflow.localize.site import anchors_world, free_ground, points_in_world
 from fabflow.positioning.boxes import Boxes, segments_clear
-from fabflow.positioning.uwb import anchor_geometry_problem
+from fabflow.positioning.uwb import COND_LIMIT, anchor_geometry_problem
 from fabflow.positioning.uwb_platform import COVERAGE_MARGIN, outside_hull
-from fabflow.project import Project
+from fabflow.project import Project, UwbSetup
 from fabflow.robots import platform
 from fabflow.sensors.uwb import UwbErrorModel
-from fabflow.tasks.plan import Plan
+from fabflow.tasks.plan import Plan, Station
 from fabflow.transforms.se3 import inv_T
 
 DEFAULT_HDOP = 2.0
@@ -51,7 +51,7 @@ DEFAULT_HDOP = 2.0
 a common bound of good geometry in satellite and radio positioning)."""
 ANCHOR_CLEARANCE = 0.5
 """Distance (metres) a planned anchor keeps from the structure, obstacles and parking places."""
-MAX_PLANNED = 32
+MAX_PLANNED = 40
 """Most anchors :func:`plan_anchors` places."""
 MIN_PLANNED = 4
 """Fewest anchors :func:`plan_anchors` places: with three, a faulty anchor leaves no
@@ -159,16 +159,80 @@ def target_sigma(project: Project) -> float:
 def package_tags(project: Project, plan: Plan) -> np.ndarray:
     """``(P, T, 3)`` tag positions at each work package (world, metres), placed from the
     package's base pose as :func:`fabflow.localize.uwb.simulate_station` places them."""
+    L = len(_setup(project).tags)
+    out = [station_tags(project, wp.station) for wp in plan.work_packages]
+    return np.asarray(out).reshape(len(plan.work_packages), L, 3)
+
+
+def station_tags(project: Project, station: Station) -> np.ndarray:
+    """``(T, 3)`` the tag positions at a planned station (world, metres)."""
+    L = np.asarray(_setup(project).tags, dtype=float)
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
+    T_base = station.T_world_base(T_platform_base)
+    return points_in_world(platform.T_world_platform_of(T_base, 0.0, T_platform_base), L)
+
+
+def _tags_fix_themselves(tags: np.ndarray, anchors: np.ndarray, sight: np.ndarray) -> bool:
+    """Whether every tag ``(T, 3)`` sees :data:`MIN_PLANNED` anchors (``sight``: ``(T, A)``),
+    not in one plane, whose directions condition its 3D position as the per-tag
+    fixes require (:data:`~fabflow.positioning.uwb.COND_LIMIT`)."""
+    if sight.sum(axis=1).min() < MIN_PLANNED:
+        return False
+    # the per-tag fixes start from differences of squared ranges: not in one plane
+    if any(anchor_geometry_problem(anchors[row]) is not None for row in sight):
+        return False
+    diff = anchors[None] - tags[:, None]
+    u = diff / np.linalg.norm(diff, axis=2, keepdims=True)
+    N = np.einsum("ta,tai,taj->tij", sight.astype(float), u, u)
+    ev = np.linalg.eigvalsh(N)
+    return bool(np.all(ev[:, 0] > ev[:, -1] / COND_LIMIT))
+
+
+def _setup(project: Project) -> UwbSetup:
     setup = project.localization.uwb
     assert setup is not None
-    L = np.asarray(setup.tags, dtype=float)
-    T_platform_base = project.robot.platform.T_platform_base.matrix()
-    out = []
-    for wp in plan.work_packages:
-        T_base = wp.station.T_world_base(T_platform_base)
-        T_platform = platform.T_world_platform_of(T_base, 0.0, T_platform_base)
-        out.append(points_in_world(T_platform, L))
-    return np.asarray(out).reshape(len(plan.work_packages), len(L), 3)
+    return setup
+
+
+def ranging_zone(
+    project: Project, station: Station, built: Sequence[Element]
+) -> tuple[tuple[str, ...], ...] | None:
+    """The anchors each tag ranges with at a planned station: its zone, or ``None`` (all).
+
+    A site's UWB system assigns each area the anchors that serve it (the zones of
+    an RTLS), so that a platform does not range through the buildings to anchors
+    across the site, where half of the ranges carry an NLOS excess (too many for
+    the robust centre of a link to reject) and several faulty links at once
+    defeat the one-at-a-time exclusion of the tests. Each tag's zone is the
+    anchors it sees past the structure ``built``, at the station as planned,
+    when they stand around it (within
+    :data:`~fabflow.positioning.uwb_platform.COVERAGE_MARGIN` of their plan
+    hull), are not in one plane and reach the target sigma; otherwise the tags
+    range with every anchor (as they do where every anchor is in sight). Each
+    tag must also fix itself from its zone (:data:`MIN_PLANNED` anchors in a
+    geometry the per-tag fixes accept), as the platform's fix starts from those.
+
+    Returns
+    -------
+    tuple or None
+        Per tag (in ``uwb.tags`` order) the ids of the anchors it ranges with.
+    """
+    setup = _setup(project)
+    ids, anchors = anchors_world(setup)
+    tags = station_tags(project, station)
+    sight = _sight(tags[None], anchors, [built])[0]  # (T, A)
+    zone = sight.any(axis=0)
+    if sight.all() or not _tags_fix_themselves(tags, anchors, sight):
+        return None
+    A = anchors[zone]
+    if outside_hull(A[:, :2], tags.mean(axis=0)[None, :2])[0] > COVERAGE_MARGIN:
+        return None
+    if anchor_geometry_problem(A) is not None:
+        return None
+    info = _information(project, tags[None], A, sight[None][:, :, zone], in_sight_only=True)
+    if _sigma_xy(info.sum(axis=1))[0] > target_sigma(project):
+        return None
+    return tuple(tuple(ids[i] for i in np.flatnonzero(row)) for row in sight)
 
 
 def _sight(
@@ -362,7 +426,55 @@ def plan_anchors(
         covered = _sigma_xy(total - np.eye(4) / _PRIOR_SIGMA**2) <= target
         if setup.anchor_count is None and enough and covered.all():
             break
+    if setup.anchor_count is None:
+        chosen += _enclosing_anchors(cands, chosen, sight, tags.mean(axis=1), possible, limit)
     return cands[chosen], possible
+
+
+def _enclosing_anchors(
+    cands: np.ndarray,
+    chosen: list[int],
+    sight: np.ndarray,
+    centres: np.ndarray,
+    possible: np.ndarray,
+    limit: int,
+) -> list[int]:
+    """Anchors added (candidate indices) so that every package the site can cover in
+    sight stands inside the plan hull of the anchors its tags see, as its ranging zone
+    needs (:func:`ranging_zone`): while one is outside, for the one farthest outside,
+    the free candidate in its sight nearest the middle of the widest angular gap of
+    its anchors seen from it (``sight``: ``(P, T, C)``; ``centres``: ``(P, 3)``)."""
+    seen = sight.any(axis=1)  # (P, C)
+    added: list[int] = []
+    hopeless = ~possible
+    while len(chosen) + len(added) < limit:
+        have = np.array(chosen + added)
+        outside = np.zeros(len(centres))
+        for p in np.flatnonzero(~hopeless):
+            mine = have[seen[p, have]]
+            if len(mine) >= 3:
+                outside[p] = outside_hull(cands[mine, :2], centres[p, :2])[0]
+        if outside.max() <= COVERAGE_MARGIN:
+            break
+        p = int(np.argmax(outside))
+        mine = cands[have[seen[p, have]], :2] - centres[p, :2]
+        angle = np.sort(np.arctan2(mine[:, 1], mine[:, 0]))
+        gaps = np.diff(np.append(angle, angle[0] + 2 * np.pi))
+        k = int(np.argmax(gaps))
+        middle = angle[k] + 0.5 * gaps[k]
+        free = np.ones(len(cands), dtype=bool)
+        free[have] = False
+        idx = np.flatnonzero(free & seen[p])
+        if len(idx) == 0:
+            hopeless[p] = True
+            continue
+        rel = cands[idx, :2] - centres[p, :2]
+        off = np.abs(np.angle(np.exp(1j * (np.arctan2(rel[:, 1], rel[:, 0]) - middle))))
+        if off.min() >= 0.5 * gaps[k]:  # nothing in sight within the gap
+            hopeless[p] = True
+            continue
+        added.append(int(idx[np.lexsort((np.linalg.norm(rel, axis=1), np.round(off, 2)))[0]]))
+    return added
 
 
 def _corner_anchors(cands: np.ndarray, stations_xy: np.ndarray) -> list[int]:

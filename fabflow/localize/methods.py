@@ -9,12 +9,13 @@ the measured files the project names.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from fabflow.design.elements import Element
 from fabflow.localize import icp, total_station, uwb
+from fabflow.localize.anchors import ranging_zone
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project
 from fabflow.tasks.plan import Station
@@ -44,12 +45,19 @@ NEEDS_LIFT = frozenset({"icp"})
 """Methods whose sensor does not ride the lift, so the station's lift height places it."""
 
 
-def localizer_arguments(project: Project, method: str, station: Station) -> dict[str, float]:
+def localizer_arguments(
+    project: Project, method: str, station: Station, built: Sequence[Element] = ()
+) -> dict[str, Any]:
     """Method-specific keyword arguments of ``localize_station`` for a station.
 
     The LiDAR sits on the platform, below the lifted arm base, so ICP needs the
-    lift height to place it (:data:`NEEDS_LIFT`).
+    lift height to place it (:data:`NEEDS_LIFT`). UWB tags range with the
+    anchors of the station's zone (:func:`~fabflow.localize.anchors.ranging_zone`,
+    from the structure ``built`` before the visit).
     """
     if method in NEEDS_LIFT and project.simulation.sensor_noise:
         return {"lift": station.lift}
+    if method == "uwb" and project.localization.uwb is not None:
+        zone = ranging_zone(project, station, built)
+        return {} if zone is None else {"zone": zone}
     return {}

@@ -145,7 +145,7 @@ def localize_plan(
             )
         else:
             T_planned, T_true = parked_pose(project, wp.station, rng)
-            extra: dict[str, Any] = localizer_arguments(project, method, wp.station)
+            extra: dict[str, Any] = localizer_arguments(project, method, wp.station, built)
             if track is not None:
                 last = None
                 if previous is not None:

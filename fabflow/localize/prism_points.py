@@ -6,7 +6,9 @@ that are blocked by the structure, by the arm's own path or, when the
 instrument's position is known, by the line of sight
 (:func:`~fabflow.positioning.point_selection.avoid_obstacles`). The
 ``three_point`` procedure holds ``P1, P1 + d x, P1 + d y``; ``P1`` is moved as
-a whole to the nearest place where all three are clear. The set-up planner
+a whole to the nearest place where all three are clear, and, when the instrument
+does not see them there, to the first of :data:`THREE_POINT_ALTERNATIVES` other
+clear places (spread over the workspace) that it sees. The set-up planner
 (:mod:`fabflow.localize.setups`) and the localization
 (:mod:`fabflow.localize.total_station`) both choose the points here, so the
 points a set-up is planned for are the points the robot then shows it.
@@ -41,6 +43,9 @@ from fabflow.transforms.se3 import apply_T, inv_T
 
 THREE_POINT_SEARCH_SPACING = 0.1
 """Grid spacing (metres) of the search for a clear ``P1`` of the three-point procedure."""
+THREE_POINT_ALTERNATIVES = 12
+"""Other clear places of the three points tried, in a fixed order, when a line of sight
+blocks the first: the set-up planner plans for the same list."""
 
 
 def prism_workspace(
@@ -124,6 +129,9 @@ class StationPoints:
     spare
         ``(k, 3)`` other clear points, most spread first (base frame): where
         blocked points may go when a line of sight is tested later.
+    alternatives
+        ``three_point``: ``(k, 3, 3)`` other clear places of the three points, most
+        spread first (base frame), that a line of sight tested later may choose.
     """
 
     reach: PrismReach
@@ -131,6 +139,7 @@ class StationPoints:
     moved: np.ndarray
     dropped: tuple[tuple[int, str], ...]
     spare: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    alternatives: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
 
 
 def station_points(
@@ -158,7 +167,8 @@ def station_points(
     station_id
         For messages.
     spare
-        How many spare clear points to return besides (``StationPoints.spare``).
+        How many spare clear points to return besides (``StationPoints.spare``; for
+        ``three_point``, places of the three points, ``StationPoints.alternatives``).
     boxes_world
         ``built`` as world boxes when already computed (a planner's whole build).
 
@@ -186,8 +196,24 @@ def station_points(
         sight = tuple(float(v) for v in local)
     rules = ClearanceRules(tool_half_extents=setup.tool_half_extents, sight_from=sight)
     if setup.procedure == "three_point":
-        points = _three_point_points(ws, boxes, rules, setup.three_point_step, station_id)
-        return StationPoints(reach, points, np.zeros(3), ())
+        d = setup.three_point_step
+        blind = replace(rules, sight_from=None)
+        first = _three_point_points(ws, boxes, blind, d, station_id)
+        alternatives = _three_point_alternatives(
+            ws, boxes, blind, d, pool_grid, max(spare, THREE_POINT_ALTERNATIVES)
+        )
+        if sight is None:
+            points = first
+        else:
+            # the places a set-up was planned for (the first, then the alternatives
+            # in order), before any other place in sight
+            sets = np.concatenate([first[None], alternatives])
+            seen = clear_mask(sets.reshape(-1, 3), ws, boxes, rules).reshape(-1, 3).all(axis=1)
+            if seen.any():
+                points = sets[int(np.argmax(seen))]
+            else:
+                points = _three_point_points(ws, boxes, rules, d, station_id)
+        return StationPoints(reach, points, np.zeros(3), (), alternatives=alternatives[:spare])
     clear = avoid_obstacles(
         _cached_optimal_points(setup.n_points, ws), ws, boxes, rules, min_points=3
     )
@@ -197,6 +223,17 @@ def station_points(
             clear_workspace_points(ws, boxes, rules, reachable_grid=pool_grid), spare
         )
     return StationPoints(reach, clear.points, clear.moved, clear.dropped, pool)
+
+
+def _three_point_alternatives(
+    ws: Workspace, boxes: Boxes, rules: ClearanceRules, d: float, pool_grid: np.ndarray, k: int
+) -> np.ndarray:
+    """``(<= k, 3, 3)`` places of ``P1, P1 + d x, P1 + d y`` with all three clear, their
+    ``P1`` spread over the workspace's clear pool (farthest first)."""
+    clear = clear_workspace_points(ws, boxes, rules, reachable_grid=pool_grid)
+    sets = three_point_base_points(clear[:, None, :], d)
+    ok = clear_mask(sets[:, 1:].reshape(-1, 3), ws, boxes, rules).reshape(-1, 2).all(axis=1)
+    return three_point_base_points(farthest_points(sets[ok, 0], k)[:, None, :], d)
 
 
 def _three_point_points(

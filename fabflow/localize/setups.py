@@ -9,7 +9,8 @@ stops seeing into the building and the instrument moves, as in paper 001.
 the structure, the obstacles and the platform's parking places) against every
 work package's prism points (:func:`fabflow.localize.prism_points.station_points`,
 the points of eqs 9-11): a candidate covers a package when it sees every point
-through the structure standing then, none closer than :data:`MIN_SIGHT`. In
+through the structure standing then, none closer than :data:`MIN_SIGHT` (nor
+farther than ``max_range``, when the project limits it). In
 build order, it keeps the set-up that covers the longest run of packages from
 the first one not yet covered (the greedy choice is optimal for covering a
 sequence with runs), the smallest predicted base position sigma among equals.
@@ -31,7 +32,12 @@ import numpy as np
 
 from fabflow.design.elements import Element, element_boxes, structure_timeline
 from fabflow.errors import LocalizationError
-from fabflow.localize.prism_points import instrument_for, station_points, total_station_setup
+from fabflow.localize.prism_points import (
+    THREE_POINT_ALTERNATIVES,
+    instrument_for,
+    station_points,
+    total_station_setup,
+)
 from fabflow.localize.site import free_ground
 from fabflow.positioning.boxes import Boxes, segments_clear
 from fabflow.positioning.polar import cartesian_to_polar, polar_covariance
@@ -180,13 +186,15 @@ class _Package:
     spare: np.ndarray  # (k, 3) other clear prism positions, most spread first, world
     T_world_base: np.ndarray
     boxes: Boxes  # the structure standing, world
+    alternatives: np.ndarray  # three_point: (a, 3, 3) other places of the three points, world
 
 
 def _packages(
     project: Project, plan: Plan, standing: Sequence[Sequence[Element]]
 ) -> list[_Package]:
     T_platform_base = project.robot.platform.T_platform_base.matrix()
-    spare = 0 if total_station_setup(project).procedure == "three_point" else SPARE_POINTS
+    three_point = total_station_setup(project).procedure == "three_point"
+    spare = THREE_POINT_ALTERNATIVES if three_point else SPARE_POINTS
     # every element's box once; each package's standing structure is a selection
     everything = {e.id: e for built in standing for e in built}
     ids = list(everything)
@@ -206,29 +214,47 @@ def _packages(
         )
         world = pts.points @ T[:3, :3].T + T[:3, 3]
         pool = pts.spare @ T[:3, :3].T + T[:3, 3]
-        out.append(_Package(world, pool, T, boxes))
+        alternatives = pts.alternatives @ T[:3, :3].T + T[:3, 3]
+        out.append(_Package(world, pool, T, boxes, alternatives))
     return out
 
 
-def _visible(eyes: np.ndarray, points: np.ndarray, boxes: Boxes) -> np.ndarray:
-    """``(m, n)`` which points each eye sees, none closer than :data:`MIN_SIGHT`."""
-    visible = np.linalg.norm(points[None] - eyes[:, None], axis=-1) >= MIN_SIGHT
+def _visible(
+    eyes: np.ndarray, points: np.ndarray, boxes: Boxes, max_range: float | None = None
+) -> np.ndarray:
+    """``(m, n)`` which points each eye sees, none closer than :data:`MIN_SIGHT` nor
+    farther than ``max_range`` (metres; ``None``: no limit)."""
+    distance = np.linalg.norm(points[None] - eyes[:, None], axis=-1)
+    visible = distance >= MIN_SIGHT
+    if max_range is not None:
+        visible &= distance <= max_range
     rows, cols = np.nonzero(visible)
     visible[rows, cols] = segments_clear(eyes[rows], points[cols], boxes)
     return visible
 
 
-def _sighted(eyes: np.ndarray, package: _Package) -> tuple[np.ndarray, np.ndarray]:
+def _sighted(
+    eyes: np.ndarray, package: _Package, max_range: float | None
+) -> tuple[np.ndarray, np.ndarray]:
     """Which points each eye measures, ``(m, n + k)`` over the package's points then its
     spare ones: the visible points, blocked ones replaced by visible spare points, most
-    spread first."""
+    spread first. ``three_point``: over its three points then the alternative places,
+    the first place whose three points are all visible (what the localization chooses)."""
+    if len(package.alternatives):
+        sets = np.concatenate([package.points[None], package.alternatives])
+        flat = sets.reshape(-1, 3)
+        seen = _visible(eyes, flat, package.boxes, max_range).reshape(len(eyes), -1, 3)
+        whole = seen.all(axis=2)
+        first = np.where(whole.any(axis=1), np.argmax(whole, axis=1), -1)
+        used = (np.arange(len(sets))[None, :] == first[:, None])[:, :, None] & seen
+        return used.reshape(len(eyes), -1), flat
     n = len(package.points)
     used = np.zeros((len(eyes), n + len(package.spare)), dtype=bool)
-    used[:, :n] = _visible(eyes, package.points, package.boxes)
+    used[:, :n] = _visible(eyes, package.points, package.boxes, max_range)
     missing = n - used[:, :n].sum(axis=1)
     short = np.flatnonzero(missing > 0)
     if len(short) and len(package.spare):
-        spare = _visible(eyes[short], package.spare, package.boxes)
+        spare = _visible(eyes[short], package.spare, package.boxes, max_range)
         used[short, n:] = spare & (np.cumsum(spare, axis=1) <= missing[short, None])
     return used, np.concatenate([package.points, package.spare])
 
@@ -236,7 +262,7 @@ def _sighted(eyes: np.ndarray, package: _Package) -> tuple[np.ndarray, np.ndarra
 def _sigma(eyes: np.ndarray, package: _Package, project: Project) -> np.ndarray:
     """``(m,)`` predicted base XY sigma from each eye with the points it measures (metres;
     infinity with fewer than three)."""
-    used, points = _sighted(eyes, package)
+    used, points = _sighted(eyes, package, total_station_setup(project).max_range)
     sigma = np.full(len(eyes), np.inf)
     ok = used.sum(axis=1) >= 3
     if ok.any():
@@ -251,10 +277,10 @@ def _covers(eyes: np.ndarray, package: _Package, project: Project) -> np.ndarray
 
 
 def _sees_controls(
-    eyes: np.ndarray, controls: np.ndarray, boxes: Boxes
+    eyes: np.ndarray, controls: np.ndarray, boxes: Boxes, max_range: float | None
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(m,)`` whether each eye sights enough control points, and ``(m, k)`` which."""
-    seen = _visible(eyes, controls, boxes)
+    seen = _visible(eyes, controls, boxes, max_range)
     return seen.sum(axis=1) >= min(MIN_CONTROL_POINTS, len(controls)), seen
 
 
@@ -322,8 +348,9 @@ def plan_setups(
                     f"the total station at localization.total_station.T_world_instrument does "
                     f"not see the prism points of work package {k + 1} (station {ids[k]}) "
                     "through the structure built by then, or stands closer than "
-                    f"{MIN_SIGHT:g} m to them; remove T_world_instrument to have the set-ups "
-                    "planned, or move it"
+                    f"{MIN_SIGHT:g} m to them"
+                    + ("" if setup.max_range is None else f" or farther than {setup.max_range:g} m")
+                    + "; remove T_world_instrument to have the set-ups planned, or move it"
                 )
         sigma = max(float(_sigma(eye, p, project)[0]) for p in packages)
         return (InstrumentSetup("T1", T, tuple(range(len(packages))), "given", (), sigma),)
@@ -346,7 +373,7 @@ def plan_setups(
             allowed = _covers(eyes, packages[i - 1], project)
             why = f"sees the robot's prisms at work package {i} (station {ids[i - 1]})"
         else:
-            allowed, _ = _sees_controls(eyes, control_xyz, packages[i].boxes)
+            allowed, _ = _sees_controls(eyes, control_xyz, packages[i].boxes, setup.max_range)
             why = f"sights {MIN_CONTROL_POINTS} control points"
         alive = np.flatnonzero(allowed)
         worst = np.zeros(len(alive))  # the largest predicted sigma over the run so far
@@ -375,7 +402,9 @@ def plan_setups(
                     "; use stationing 'control_points' (free stationing on fixed points)"
                     if registration_on_robot
                     else "; raise localization.total_station.tripod_height, give more "
-                    "control_points, or use fewer n_points"
+                    "control_points"
+                    + ("" if setup.max_range is None else ", raise max_range")
+                    + ", or use fewer n_points"
                 )
             )
         run = range(i, end)
@@ -386,7 +415,9 @@ def plan_setups(
         if registration_on_robot:
             registration = "robot_points"
         else:
-            _, seen = _sees_controls(eyes[best][None], control_xyz, packages[i].boxes)
+            _, seen = _sees_controls(
+                eyes[best][None], control_xyz, packages[i].boxes, setup.max_range
+            )
             sighted = tuple(k for k, s in zip(control_ids, seen[0], strict=True) if s)
         out.append(
             InstrumentSetup(

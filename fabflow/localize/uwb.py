@@ -71,6 +71,7 @@ def localize_station(
     station_id: str | None = None,
     built: Sequence[Element] = (),
     heading_prior: tuple[float, float] | None = None,
+    zone: Sequence[Sequence[str]] | None = None,
 ) -> BasePose:
     """Simulate UWB localization of a parked platform and return the estimated base pose.
 
@@ -97,6 +98,9 @@ def localize_station(
         Elements already built; blocks occlude lines of sight.
     heading_prior
         ``(yaw, sigma)`` of the platform heading (radians); needed with one tag.
+    zone
+        Per tag, the anchors it ranges with (:func:`~fabflow.localize.anchors.ranging_zone`);
+        default every anchor.
 
     Returns
     -------
@@ -105,7 +109,7 @@ def localize_station(
         roll and pitch are not observed (level platform assumed) and carry
         ``UNOBSERVED_VARIANCE``, as ``quality["unobserved"]`` says.
     """
-    data = simulate_station(project, T_world_base, rng, built)
+    data = simulate_station(project, T_world_base, rng, built, zone)
     return estimate_station(project, data, station_id, heading_prior)
 
 
@@ -121,10 +125,24 @@ def simulate_station(
     T_world_base: np.ndarray,
     rng: np.random.Generator,
     built: Sequence[Element] = (),
+    zone: Sequence[Sequence[str]] | None = None,
 ) -> StationRanges:
-    """The ranges the platform's tags measure at ``T_world_base`` (see :func:`localize_station`)."""
+    """The ranges the platform's tags measure at ``T_world_base`` (see :func:`localize_station`):
+    per tag to the anchors of its ``zone`` (default all)."""
     setup = _setup(project)
     ids, A = anchors_world(setup)
+    ranged = None
+    if zone is not None:
+        if len(zone) != len(setup.tags):
+            raise InputError(
+                f"a ranging zone per tag: {len(setup.tags)} expected, {len(zone)} given"
+            )
+        unknown = sorted({k for z in zone for k in z} - set(ids))
+        if unknown:
+            raise InputError(f"ranging zone names unknown anchors: {', '.join(unknown)}")
+        ranged = np.array([[k in set(z) for k in ids] for z in zone])
+        keep = np.flatnonzero(ranged.any(axis=0))
+        ids, A, ranged = [ids[i] for i in keep], A[keep], ranged[:, keep]
     T_platform_base = project.robot.platform.T_platform_base.matrix()
     # the tags are placed from the base pose as given, without the station's lift
     T_world_platform = platform.T_world_platform_of(T_world_base, 0.0, T_platform_base)
@@ -154,7 +172,12 @@ def simulate_station(
         if occluded is None
         else np.broadcast_to(occluded, (n_rounds, *occluded.shape)),
     )
-    return StationRanges(ids, A, sim.ranges, cal, sim.nlos, occluded)
+    ranges, nlos = sim.ranges, sim.nlos
+    if ranged is not None:  # links outside a tag's zone are not ranged
+        ranges = np.where(ranged[None], ranges, np.nan)
+        nlos = nlos & ranged[None]
+        occluded = None if occluded is None else occluded & ranged
+    return StationRanges(ids, A, ranges, cal, nlos, occluded)
 
 
 def estimate_station(

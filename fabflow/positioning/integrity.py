@@ -262,6 +262,8 @@ def adjustment_test(
     alpha: float = ALPHA,
     position_map: np.ndarray | None = None,
     prior_information: np.ndarray | None = None,
+    extra_statistic: float = 0.0,
+    extra_redundancy: int = 0,
 ) -> TestResult:
     """Global test, w-tests, MDBs and external reliability of one least-squares solution.
 
@@ -284,6 +286,10 @@ def adjustment_test(
     prior_information
         (u, u) information of prior knowledge of the parameters (a heading prior),
         added to ``N``; it is not an observation and adds no redundancy.
+    extra_statistic, extra_redundancy
+        A part of ``v^T Q^-1 v`` solved apart, and its degrees of freedom, added to
+        the global test: the scatter of repeated observations about the means that
+        ``A`` and ``v`` hold (every hypothesis must be constant over each group).
     """
     A = np.asarray(A, dtype=float)
     v = np.asarray(v, dtype=float)
@@ -294,8 +300,8 @@ def adjustment_test(
         N = N + prior_information
     Ninv = np.linalg.pinv(N)
     Qiv = Q.solve(v)
-    r = m - int(np.linalg.matrix_rank(A))
-    statistic = float(v @ Qiv)
+    r = m - int(np.linalg.matrix_rank(A)) + extra_redundancy
+    statistic = float(v @ Qiv) + extra_statistic
     threshold = float(special.chdtri(r, alpha)) if r > 0 else math.inf
     p_value = float(special.chdtrc(r, statistic)) if r > 0 else 1.0
     G = np.eye(3, u) if position_map is None else np.asarray(position_map, dtype=float)
@@ -304,11 +310,15 @@ def adjustment_test(
     thr = np.full(h, np.inf)
     mdb = np.full(h, np.inf)
     shift = np.full((h, 2), np.inf)
-    bias = [np.full(np.asarray(hyp.columns).reshape(m, -1).shape[1], np.nan) for hyp in hypotheses]
-    if h and r > 0:
+    columns = [np.asarray(hyp.columns, dtype=float).reshape(m, -1) for hyp in hypotheses]
+    bias = [np.full(C.shape[1], np.nan) for C in columns]
+    if h and r > 0 and all(C.shape[1] == 1 for C in columns):
+        w, thr, mdb, shift, bias = _one_column_tests(
+            np.concatenate(columns, axis=1), Q, QiA, Ninv, v, G, alpha / h
+        )
+    elif h and r > 0:
         alpha0 = alpha / h
-        for i, hyp in enumerate(hypotheses):
-            C = np.asarray(hyp.columns, dtype=float).reshape(m, -1)
+        for i, C in enumerate(columns):
             QiC = Q.solve(C)
             b = QiC.T @ v
             B = QiA.T @ C
@@ -347,6 +357,45 @@ def adjustment_test(
         excludable=np.array([hyp.excludable for hyp in hypotheses], dtype=bool),
         units=tuple(hyp.unit for hyp in hypotheses),
     )
+
+
+def _one_column_tests(
+    C: np.ndarray,
+    Q: Covariance,
+    QiA: np.ndarray,
+    Ninv: np.ndarray,
+    v: np.ndarray,
+    G: np.ndarray,
+    alpha0: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+    """The w-tests, MDBs and shifts of :func:`adjustment_test` for one-column hypotheses.
+
+    The same formulas as its loop with every matrix ``S`` a number, for all
+    hypotheses at once (``C``: (m, h), one column each), so that a platform with
+    many anchors and links (hundreds of hypotheses, every one refitted when a
+    fault is searched for) costs one solve with ``Q`` instead of one per hypothesis.
+    Returns ``w, thresholds, mdb, shift, bias`` as :class:`TestResult` holds them.
+    """
+    QiC = Q.solve(C)
+    b = QiC.T @ v
+    B = QiA.T @ C
+    own = np.einsum("ij,ij->j", C, QiC)
+    S = own - np.einsum("ih,ij,jh->h", B, Ninv, B)
+    seen = S > MIN_REDUNDANCY * np.maximum(own, 1e-300)
+    Ss = np.where(seen, S, 1.0)
+    w = np.where(seen, np.abs(b) / np.sqrt(Ss), np.nan)
+    bias = [np.array([x]) for x in np.where(seen, b / Ss, np.nan)]
+    thr = np.where(seen, math.sqrt(float(special.chdtri(1, alpha0))), np.inf)
+    visible = seen & (S / np.maximum(own, 1e-300) >= MIN_REDUNDANCY)
+    lam = noncentrality(alpha0, POWER, 1)
+    mdb = np.where(visible, np.sqrt(lam / Ss), np.inf)
+    M = (G @ Ninv @ B) / np.sqrt(Ss)  # (3, h): base shift per unit of the scaled bias
+    shift = np.where(
+        visible[:, None],
+        math.sqrt(lam) * np.stack([np.linalg.norm(M[:2], axis=0), np.abs(M[2])], axis=1),
+        np.inf,
+    )
+    return w, thr, mdb, shift, bias
 
 
 def _redundancy_numbers(own: np.ndarray, S: np.ndarray) -> np.ndarray:

@@ -231,12 +231,17 @@ def _wls(
     dw = np.maximum(d, MIN_RANGE_FOR_WEIGHT)
     s = sigma_of(sigma, dw)
     w = np.where(mask, 1.0 / (4.0 * dw**2 * s**2), 0.0)
-    H = np.concatenate([-2.0 * A, np.ones((n, 1))], axis=1)
-    b = d**2 - np.sum(A**2, axis=1)[None]
+    # about the anchors' centre: the same solution (the model is an affine change of
+    # its unknowns away), but far from the origin the column of ones would be
+    # outscaled and the normal matrix taken as singular
+    centre = A.mean(axis=0)
+    Ac = A - centre
+    H = np.concatenate([-2.0 * Ac, np.ones((n, 1))], axis=1)
+    b = d**2 - np.sum(Ac**2, axis=1)[None]
     M = np.einsum("ij,ni,ik->njk", H, w, H)
     rhs = np.einsum("ij,ni,ni->nj", H, w, b)
     theta, Minv = _solve_batched(M, rhs, ok)
-    return theta[:, :dim], Minv[:, :dim, :dim]
+    return theta[:, :dim] + centre, Minv[:, :dim, :dim]
 
 
 LINE_SEARCH = 0.5 ** np.arange(8)

@@ -188,13 +188,18 @@ def locate_platform(
     state, heading_observed = _initial_state(A, R, L, sigma, method, heading_prior)
     finite = np.isfinite(R)
     d = R[finite]
+    links = PlatformAdjustment.link_means(
+        d,
+        sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT)),
+        np.broadcast_to(np.arange(n_tags)[None, :, None], R.shape)[finite],
+        np.broadcast_to(np.arange(A.shape[0])[None, None, :], R.shape)[finite],
+        A.shape[0],
+    )
+    link = links.pop("link")
     adj = PlatformAdjustment(
         anchors=A,
         lever_arms=L,
-        d=d,
-        s=sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT)),
-        tag_idx=np.broadcast_to(np.arange(n_tags)[None, :, None], R.shape)[finite],
-        anc_idx=np.broadcast_to(np.arange(A.shape[0])[None, None, :], R.shape)[finite],
+        **links,
         bias_sigma=np.zeros(A.shape[0])
         if anchor_bias_sigma is None
         else np.asarray(anchor_bias_sigma, dtype=float),
@@ -207,7 +212,7 @@ def locate_platform(
         alpha=alpha,
         max_iter=max_iter,
     )
-    use = np.ones(d.size, dtype=bool)
+    use = np.ones(adj.d.size, dtype=bool)
     iterations, converged = 0, True
     if method == "wls-t" or not heading_observed or n_tags == 1:
         state, iterations, converged = adj.fit(use, state)
@@ -224,13 +229,13 @@ def locate_platform(
                 "observation": tests.labels[k],
                 "w": float(tests.w[k]),
                 "threshold": float(tests.thresholds[k]),
-                "ranges": int(masks[k].sum()),
+                "ranges": adj.n_ranges(masks[k]),
                 "passed_alone": trial.passed,
             }
         )
         use, state, tests, masks = trial.use, trial.state, trial.tests, trial.masks
         iterations, converged = trial.iterations, trial.converged
-    return _finish(adj, use, state, tests, excluded, problem, iterations, converged)
+    return _finish(adj, (d, link), use, state, tests, excluded, problem, iterations, converged)
 
 
 def _initial_state(
@@ -270,6 +275,7 @@ def _initial_state(
 
 def _finish(
     adj: PlatformAdjustment,
+    ranges: tuple[np.ndarray, np.ndarray],
     use: np.ndarray,
     state: np.ndarray,
     tests: TestResult,
@@ -278,8 +284,12 @@ def _finish(
     iterations: int,
     converged: bool,
 ) -> PlatformFix:
-    """The fix from the final solution: covariance, residuals, integrity record and checks."""
+    """The fix from the final solution: covariance, residuals, integrity record and checks.
+
+    ``ranges``: every finite range (metres) and its link (index into ``adj``'s links).
+    """
     A, L = adj.anchors, adj.lever_arms
+    d, link = ranges
     tg, an, s = adj.tag_idx[use], adj.anc_idx[use], adj.s[use]
     info = adj.information(use, state)
     if not adj.heading_observed:
@@ -299,9 +309,11 @@ def _finish(
         U = (an[:, None] == np.arange(len(A))[None, :]).astype(float)
         g = G @ U
         cov = cov + (g * adj.bias_sigma**2) @ g.T
-    res = adj.d - platform_ranges(A, L, state, adj.tag_idx, adj.anc_idx)
-    n_used = np.bincount(an, minlength=len(A))
-    ss = np.bincount(an, weights=res[use] ** 2, minlength=len(A))
+    # squares of the ranges' residuals: their scatter about the link mean, plus the mean's
+    predicted = platform_ranges(A, L, state, adj.tag_idx, adj.anc_idx)
+    squares = adj.raw_sq_dev[use] + adj.count[use] * (adj.raw_mean[use] - predicted[use]) ** 2
+    n_used = np.bincount(an, weights=adj.count[use], minlength=len(A))
+    ss = np.bincount(an, weights=squares, minlength=len(A))
     per_anchor = np.where(n_used > 0, np.sqrt(ss / np.maximum(n_used, 1)), np.nan)
     checks: dict[str, Any] = _geometry(A[np.unique(an)], state)
     integrity = record(tests, excluded, adj.alpha, checks)
@@ -336,9 +348,9 @@ def _finish(
     return PlatformFix(
         state=state,
         covariance=cov,
-        residuals=res[use],
-        n_ranges=int(adj.d.size),
-        n_used=int(use.sum()),
+        residuals=d[use[link]] - predicted[link[use[link]]],
+        n_ranges=adj.n_ranges(np.ones(adj.d.size, dtype=bool)),
+        n_used=adj.n_ranges(use),
         iterations=iterations,
         heading_observed=adj.heading_observed,
         per_anchor_rms=per_anchor,

@@ -151,6 +151,15 @@ def platform_gauss_newton(
 class PlatformAdjustment:
     """The finite ranges of a standing platform with their weights: fit and test any subset.
 
+    A standing platform's ranges of one tag-anchor link all observe the same
+    distance, so the adjustment holds one observation per link: the weighted mean
+    of its ranges, with the weights' sum (:meth:`from_ranges`). Fits, w-tests,
+    MDBs and covariances are those of all the ranges exactly (every hypothesis
+    is a whole link or anchor, constant over a link's ranges); the global test
+    adds the ranges' scatter about their link means (``scatter``, with one
+    degree of freedom per range beyond the first of its link). The work is then
+    set by the links, not by the epochs.
+
     Attributes
     ----------
     anchors
@@ -158,9 +167,17 @@ class PlatformAdjustment:
     lever_arms
         (n_tags, 3) tag positions in the platform frame (metres).
     d, s
-        (m,) the ranges and their noise standard deviations (metres).
+        (m,) per link, the weighted mean of its ranges and that mean's standard
+        deviation (metres).
     tag_idx, anc_idx
-        (m,) tag and anchor of each range.
+        (m,) tag and anchor of each link.
+    count
+        (m,) ranges per link.
+    scatter
+        (m,) weighted sum of squares of each link's ranges about their mean.
+    raw_mean, raw_sq_dev
+        (m,) plain mean of each link's ranges and their sum of squared deviations
+        from it (metres, m^2): the residual RMS over the ranges.
     bias_sigma
         (n_anchors,) standard deviation (metres) of the error every range to one
         anchor shares (what the calibration leaves).
@@ -192,6 +209,40 @@ class PlatformAdjustment:
     heading_observed: bool
     alpha: float
     max_iter: int
+    count: np.ndarray
+    scatter: np.ndarray
+    raw_mean: np.ndarray
+    raw_sq_dev: np.ndarray
+
+    @staticmethod
+    def link_means(
+        d: np.ndarray, s: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray, n_anchors: int
+    ) -> dict[str, np.ndarray]:
+        """The per-link fields (``d, s, tag_idx, anc_idx, count, scatter, raw_mean,
+        raw_sq_dev``) from ranges ``d`` with standard deviations ``s`` (metres), and
+        ``link``: the link of each range (index into them)."""
+        key = np.asarray(tag_idx) * n_anchors + np.asarray(anc_idx)
+        links, link = np.unique(key, return_inverse=True)
+        w = 1.0 / s**2
+        W = np.bincount(link, weights=w)
+        mean = np.bincount(link, weights=w * d) / W
+        count = np.bincount(link)
+        raw_mean = np.bincount(link, weights=d) / count
+        return {
+            "d": mean,
+            "s": 1.0 / np.sqrt(W),
+            "tag_idx": links // n_anchors,
+            "anc_idx": links % n_anchors,
+            "count": count,
+            "scatter": np.bincount(link, weights=w * (d - mean[link]) ** 2),
+            "raw_mean": raw_mean,
+            "raw_sq_dev": np.bincount(link, weights=(d - raw_mean[link]) ** 2),
+            "link": link,
+        }
+
+    def n_ranges(self, use: np.ndarray) -> int:
+        """How many ranges the links ``use`` hold."""
+        return int(self.count[use].sum())
 
     def fit(self, use: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, int, bool]:
         """Gauss-Newton over the ranges ``use`` from ``start``: state, iterations, converged."""
@@ -220,7 +271,7 @@ class PlatformAdjustment:
         return int(np.unique(self.anc_idx[use]).size)
 
     def hypotheses(self, use: np.ndarray) -> tuple[list[str], list[np.ndarray]]:
-        """Labels and ranges (masks over all ranges) of the hypotheses on the ranges ``use``.
+        """Labels and links (masks over all links) of the hypotheses on the links ``use``.
 
         One anchor (``anchor A3``: all its ranges used) and, with two or more tags,
         one tag-anchor link (``anchor A3 from tag 1``; tags numbered from 0 as in
@@ -272,7 +323,9 @@ class PlatformAdjustment:
             prior = np.zeros((4, 4))
             prior[3, 3] = 1.0 / self.heading_prior[1] ** 2
         test = adjustment_test(
-            J, Q, v, hyps, self.alpha, position_map=G, prior_information=prior
+            J, Q, v, hyps, self.alpha, position_map=G, prior_information=prior,
+            extra_statistic=float(self.scatter[use].sum()),
+            extra_redundancy=int((self.count[use] - 1).sum()),
         )  # fmt: skip
         return test, masks
 
@@ -499,14 +552,14 @@ def hidden_mirrors(
         check, mirror = _mirror(adj, rest, near)
         if not converged or check["passed"] or mirror is None:
             continue
-        residual = adj.d[mask] - platform_ranges(
+        residual = adj.raw_mean[mask] - platform_ranges(
             adj.anchors, adj.lever_arms, mirror, adj.tag_idx[mask], adj.anc_idx[mask]
         )
         shift = _base(adj, mirror) - _base(adj, state)
         found.append(
             {
                 "anchor": adj.ids[j],
-                "bias_m": float(np.mean(residual)),
+                "bias_m": float(np.average(residual, weights=adj.count[mask])),
                 "base_shift_m": [float(x) for x in shift],
             }
         )

@@ -355,7 +355,9 @@ def _localizer_extra(
 ) -> dict[str, Any]:
     """Keyword arguments of the localizer at visit ``v``: the method's, and the
     instrument set-up standing then (registered when it is put up)."""
-    extra: dict[str, Any] = localizer_arguments(study.project, study.method, study.stations[v])
+    extra: dict[str, Any] = localizer_arguments(
+        study.project, study.method, study.stations[v], study.built_before[v]
+    )
     if track is not None:
         extra["instrument"] = track.pose_at(v, rng, study.built_before[v], previous)
     return extra

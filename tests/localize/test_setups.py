@@ -118,6 +118,31 @@ def test_a_given_instrument_that_cannot_see_names_the_field(cabin) -> None:
         plan_setups(project.model_copy(update={"localization": loc}), plan, elements)
 
 
+def test_max_range_bounds_every_sight_and_too_short_a_range_names_it(cabin) -> None:
+    project, elements, plan = cabin
+    timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
+    controls = control_points(project)
+
+    def limited(max_range: float):
+        ts = project.localization.total_station.model_copy(update={"max_range": max_range})
+        loc = project.localization.model_copy(update={"total_station": ts})
+        return project.model_copy(update={"localization": loc})
+
+    setups = plan_setups(limited(10.0), plan, elements)
+    assert [k for s in setups for k in s.packages] == list(range(len(plan.work_packages)))
+    for s in setups:
+        eye = s.T_world_instrument[:3, 3]
+        assert all(np.linalg.norm(controls[c] - eye) <= 10.0 for c in s.control_points)
+        for k in s.packages:
+            T_base = plan.work_packages[k].station.T_world_base(T_platform_base)
+            pts = station_points(project, T_base, timeline[k][0], sight_from=eye).points
+            world = pts @ T_base[:3, :3].T + T_base[:3, 3]
+            assert (np.linalg.norm(world - eye, axis=1) <= 10.0).all()
+    with pytest.raises(LocalizationError, match="raise max_range"):
+        plan_setups(limited(8.0), plan, elements)
+
+
 def _setup(registration: str, eye: np.ndarray, ids: tuple[str, ...] = ()) -> InstrumentSetup:
     T = np.eye(4)
     T[:3, 3] = eye

@@ -56,6 +56,31 @@ def test_woodbury_solve_and_w_match_dense_formulas(seed: int, m: int, shared: bo
     np.testing.assert_allclose(res.statistic, v @ Qi @ v, rtol=1e-9)
 
 
+@settings(deadline=None, max_examples=30)
+@given(seed=st.integers(0, 2**31), m=st.integers(6, 30), shared=st.booleans())
+def test_one_column_hypotheses_at_once_match_one_at_a_time(
+    seed: int, m: int, shared: bool
+) -> None:
+    # a two-column hypothesis sends the same tests through the per-hypothesis loop;
+    # alpha scaled so both share the Bonferroni level alpha / h
+    rng = np.random.default_rng(seed)
+    A, Q, U = _model(rng, m, 3, shared)
+    v = rng.normal(size=m) * 0.01
+    cols = [np.eye(m)[:, i] for i in range(m)] + list(U.T) + [np.ones(m), A[:, 0]]
+    hyps = [Hypothesis(f"h{i}", c) for i, c in enumerate(cols)]
+    G = rng.normal(size=(3, 3))
+    fast = adjustment_test(A, Q, v, hyps, alpha=0.01, position_map=G)
+    pair = Hypothesis("pair", np.stack([np.eye(m)[:, 0], np.eye(m)[:, 1]], axis=1))
+    h = len(hyps)
+    slow = adjustment_test(A, Q, v, [*hyps, pair], alpha=0.01 * (h + 1) / h, position_map=G)
+    for name in ("w", "thresholds", "mdb", "shift"):
+        np.testing.assert_allclose(getattr(fast, name), getattr(slow, name)[:h], rtol=1e-7)
+    np.testing.assert_allclose(
+        np.concatenate(fast.bias), np.concatenate(slow.bias[:h]), rtol=1e-7, atol=1e-12
+    )
+    assert not np.isfinite(fast.mdb[-1])  # a bias along A's column is invisible
+
+
 def test_false_alarm_rate_is_alpha_and_mdb_is_found_with_its_power() -> None:
     rng = np.random.default_rng(3)
     m, u, trials, alpha = 12, 3, 4000, 0.05

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from fabflow.errors import InputError, LocalizationError
@@ -320,3 +320,22 @@ def test_calibration_bias_sigma() -> None:
     assert predicted.shape == (4,)
     np.testing.assert_allclose(np.std(errs, axis=0), predicted, rtol=0.5)
     assert np.all(RangeCalibration.identity(4).bias_sigma(4.0) == 0)
+
+
+@settings(deadline=None, max_examples=40)
+@given(
+    seed=st.integers(0, 2**31),
+    offset=st.tuples(*[st.floats(-500.0, 500.0)] * 2, st.floats(-20.0, 20.0)),
+)
+def test_wls_fixes_move_with_the_site(seed: int, offset: tuple[float, float, float]) -> None:
+    # the same anchors and ranges anywhere on the site give the same fix, moved: far from
+    # the origin the squared-range model must not lose its conditioning
+    rng = np.random.default_rng(seed)
+    A = rng.uniform([-6, -6, 0.5], [6, 6, 3.5], (4 + seed % 3, 3))
+    tag = rng.uniform([-3, -3, 0.5], [3, 3, 2.0], 3)
+    r = np.linalg.norm(A - tag, axis=1)[None] + 0.02 * rng.standard_normal((5, len(A)))
+    near = locate(A, r, method="wls", sigma=0.02)
+    far = locate(A + np.asarray(offset), r, method="wls", sigma=0.02)
+    np.testing.assert_array_equal(near.valid, far.valid)
+    assume(near.valid.all())
+    np.testing.assert_allclose(far.positions - np.asarray(offset), near.positions, atol=1e-6)

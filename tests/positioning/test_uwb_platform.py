@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from fabflow.positioning.uwb_platform import locate_platform
 from fabflow.positioning.uwb_platform_adjustment import rotz
@@ -133,3 +135,43 @@ def test_no_nan_for_an_anchor_left_out() -> None:
     assert fix.integrity.status == "excluded"
     assert np.isnan(fix.per_anchor_rms[2]) and np.all(np.isfinite(np.delete(fix.per_anchor_rms, 2)))
     assert np.all(np.isfinite(fix.residuals)) and fix.residuals.size == fix.n_used
+
+
+@settings(deadline=None, max_examples=25)
+@given(seed=st.integers(0, 2**31), n=st.integers(2, 40), tags=st.integers(2, 3))
+def test_the_link_means_test_every_range(seed: int, n: int, tags: int) -> None:
+    # the adjustment holds one mean per link; its fix and global test must be those of
+    # every range: the fix a stationary point of the weighted ranges, the statistic
+    # v^T Q^-1 v over all of them, one degree of freedom per range beyond the pose's
+    rng = np.random.default_rng(seed)
+    lever = np.vstack([TAGS, [0.0, 0.6, 1.4]])[:tags]
+    tag_xyz = TRUTH[:3] + lever @ rotz(TRUTH[3]).T
+    d = np.linalg.norm(tag_xyz[:, None] - ANCHORS_5[None], axis=2)
+    r = d[None] + 0.04 * rng.standard_normal((n, *d.shape))
+    r[rng.random(r.shape) < 0.15] = np.nan
+
+    def sigma(x):
+        return 0.03 + 0.004 * np.asarray(x)
+
+    bias = np.full(len(ANCHORS_5), 0.01)
+    fix = locate_platform(ANCHORS_5, r, lever, sigma, anchor_bias_sigma=bias, base_lever=BASE)
+    assume(fix.integrity.status == "ok")
+    finite = np.isfinite(r)
+    tag_idx = np.broadcast_to(np.arange(tags)[None, :, None], r.shape)[finite]
+    anc_idx = np.broadcast_to(np.arange(len(ANCHORS_5))[None, None, :], r.shape)[finite]
+    tag_at = fix.state[:3] + lever @ rotz(fix.state[3]).T
+    diff = tag_at[tag_idx] - ANCHORS_5[anc_idx]
+    v = r[finite] - np.linalg.norm(diff, axis=1)
+    np.testing.assert_allclose(fix.residuals, v, atol=1e-12)
+    s2 = sigma(r[finite]) ** 2
+    u = diff / np.linalg.norm(diff, axis=1)[:, None]
+    Rl = lever @ rotz(fix.state[3]).T
+    J = np.column_stack([u, u[:, 0] * -Rl[tag_idx, 1] + u[:, 1] * Rl[tag_idx, 0]])
+    gradient = J.T @ (v / s2)
+    assert np.all(np.abs(gradient) <= 1e-6 * np.abs(J.T / s2).sum(axis=1) * 0.04)
+    U = (anc_idx[:, None] == np.arange(len(ANCHORS_5))[None]).astype(float)
+    Q = np.diag(s2) + (U * bias**2) @ U.T
+    statistic = v @ np.linalg.solve(Q, v)
+    assert fix.integrity.global_test["statistic"] == pytest.approx(statistic, rel=1e-8)
+    assert fix.integrity.redundancy == v.size - 4
+    assert fix.n_ranges == fix.n_used == v.size
