@@ -35,7 +35,7 @@ class UwbSetup(StrictModel):
     anchors: dict[str, Vec3] = {}
     """Anchor positions in the UWB frame (metres). Given: checked against every
     station; absent: planned (:mod:`fabflow.localize.anchors`)."""
-    anchor_count: Annotated[int, Field(ge=3, le=32)] | None = None
+    anchor_count: Annotated[int, Field(ge=3, le=40)] | None = None
     """How many anchors to plan (default: the fewest that reach ``target_sigma``)."""
     anchor_height: tuple[PositiveFloat, PositiveFloat] = (1.0, 3.2)
     """Range of the planned anchors' heights above the ground (metres)."""

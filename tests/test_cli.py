@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import ezdxf
@@ -89,6 +90,11 @@ def test_the_village_plans_where_its_localization_stands(cli, tmp_path) -> None:
     assert covered == list(range(1, len(plan["work_packages"]) + 1))
     assert len(layout["setups"]) > 1  # the instrument moves as the village grows
     assert "set-up T2" in result.stdout
+    for setup in layout["setups"]:  # each sights its control points within max_range
+        eye = setup["position"]
+        assert len(setup["control_points"]) >= 3
+        for c in setup["control_points"]:
+            assert math.dist(layout["control_points"][c], eye) <= 14.0
     doc = ezdxf.readfile(out / "site_plan.dxf")
     texts = {e.dxf.text.split()[0] for e in doc.modelspace().query("TEXT")}
     assert {s["id"] for s in layout["setups"]} <= texts

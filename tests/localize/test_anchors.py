@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from helpers import PROJECTS
 
-from fabflow.design.elements import element_boxes
+from fabflow.design.elements import element_boxes, structure_timeline
 from fabflow.design.generate import generate_elements
 from fabflow.errors import LocalizationError
 from fabflow.localize.anchors import (
@@ -14,9 +14,12 @@ from fabflow.localize.anchors import (
     MIN_PLANNED,
     check_anchors,
     layout_anchors,
+    ranging_zone,
+    station_tags,
     target_sigma,
 )
 from fabflow.localize.site import anchors_world
+from fabflow.localize.uwb import simulate_station
 from fabflow.project import load_project
 from fabflow.tasks.planner import plan_project
 
@@ -82,3 +85,37 @@ def test_a_layout_that_cannot_locate_names_the_station_and_the_field(cabin) -> N
     three = dict(list(bad.items())[:3])
     with pytest.raises(LocalizationError, match=r"localization\.uwb\.anchors: degenerate"):
         layout_anchors(_with_anchors(project, three), plan, elements)
+
+
+def test_each_tag_ranges_with_the_anchors_it_sees(cabin) -> None:
+    project, elements, plan = cabin
+    planned, _ = layout_anchors(_with_anchors(project, {}), plan, elements)
+    ids, anchors = anchors_world(planned.localization.uwb)
+    timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
+    zoned = 0
+    for wp, (built, _) in zip(plan.work_packages, timeline, strict=True):
+        zone = ranging_zone(planned, wp.station, built)
+        if not built:  # nothing stands yet: every anchor is in sight
+            assert zone is None
+        if zone is None:
+            continue
+        zoned += 1
+        # the zone is what each tag sees: checked by sampling the sight lines
+        tags = station_tags(planned, wp.station)
+        T_box, extents = element_boxes(built)
+        t = np.linspace(0.0, 1.0, 300)[1:-1]
+        for tag, names in zip(tags, zone, strict=True):
+            line = tag + t[:, None, None] * (anchors - tag)[None]  # (t, A, 3)
+            local = np.einsum(
+                "kji,takj->taki", T_box[:, :3, :3], line[:, :, None] - T_box[:, :3, 3]
+            )
+            blocked = (np.abs(local) <= 0.5 * extents).all(axis=3).any(axis=(0, 2))
+            assert set(names) == {k for k, b in zip(ids, blocked, strict=True) if not b}
+        # the simulated ranges reach the zone's anchors alone
+        rng = np.random.default_rng(wp.index)
+        T_base = wp.station.T_world_base(planned.robot.platform.T_platform_base.matrix())
+        data = simulate_station(planned, T_base, rng, built, zone)
+        ranged = np.isfinite(data.ranges).any(axis=0)
+        for k, names in enumerate(zone):
+            assert {data.anchor_ids[j] for j in np.flatnonzero(ranged[k])} <= set(names)
+    assert zoned > 0  # the walls hide some anchors from some stations

@@ -58,9 +58,7 @@ def test_woodbury_solve_and_w_match_dense_formulas(seed: int, m: int, shared: bo
 
 @settings(deadline=None, max_examples=30)
 @given(seed=st.integers(0, 2**31), m=st.integers(6, 30), shared=st.booleans())
-def test_one_column_hypotheses_at_once_match_one_at_a_time(
-    seed: int, m: int, shared: bool
-) -> None:
+def test_one_column_hypotheses_at_once_match_one_at_a_time(seed: int, m: int, shared: bool) -> None:
     # a two-column hypothesis sends the same tests through the per-hypothesis loop;
     # alpha scaled so both share the Bonferroni level alpha / h
     rng = np.random.default_rng(seed)
