@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike
 from fabflow.design.elements import Element
 from fabflow.errors import FabflowError
 from fabflow.localize.report import check_options
-from fabflow.localize.site import site_obstacles
+from fabflow.localize.site import parking_accuracy, site_obstacles
 from fabflow.positioning.pointcloud_io import read_point_cloud
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.scan_matching import (
@@ -48,10 +48,37 @@ def _project_map(setup: IcpSetup, project: Project) -> ScanMap:
     return simulated_site_map(boxes, setup.map_voxel_size, 0, None, prisms)  # type: ignore[arg-type]
 
 
+COARSE_REACH = 10.0
+"""Range (metres) of a typical scan point, at which a heading error of the initial
+guess is judged for the coarse stage (:func:`coarse_schedule`)."""
+
+
+def coarse_schedule(setup: IcpSetup, parking: tuple[float, float] | None) -> tuple[float, float]:
+    """Correspondence distances of the coarse ICP stage (metres).
+
+    Wide enough to pull in how far the initial guess can be off, three sigma of the
+    parking accuracy ``(xy metres, heading radians)`` with the heading turning a
+    scan point :data:`COARSE_REACH` away, and no wider: on a site of identical
+    houses a wider reach matches one house's walls with the next's. Between
+    ``max_correspondence_distance`` and four times it; four times without a parking
+    accuracy (a guess given by hand).
+    """
+    d = setup.max_correspondence_distance
+    if parking is None:
+        return 4.0 * d, d
+    reach = 3.0 * (parking[0] + parking[1] * COARSE_REACH)
+    return float(np.clip(reach, d, 4.0 * d)), d
+
+
 def _localize_scan(
-    scan: np.ndarray, scan_map: ScanMap, T_init: np.ndarray, setup: IcpSetup
+    scan: np.ndarray,
+    scan_map: ScanMap,
+    T_init: np.ndarray,
+    setup: IcpSetup,
+    parking: tuple[float, float] | None = None,
 ) -> ScanLocalization:
-    """Register a scan to the map from ``T_init`` with the project's ICP settings."""
+    """Register a scan to the map from ``T_init`` with the project's ICP settings; the
+    coarse stage sized by the ``parking`` accuracy (:func:`coarse_schedule`)."""
     return localize_scan(
         scan,
         scan_map,
@@ -60,10 +87,7 @@ def _localize_scan(
         min_fitness=setup.min_fitness,
         max_rmse=setup.max_rmse,
         min_structure_fitness=setup.min_structure_fitness,
-        coarse_schedule=(
-            4.0 * setup.max_correspondence_distance,
-            setup.max_correspondence_distance,
-        ),
+        coarse_schedule=coarse_schedule(setup, parking),
     )
 
 
@@ -203,7 +227,7 @@ def estimate_station(
 ) -> BasePose:
     """The base pose from a station's scan, with its checks (see :func:`localize_station`)."""
     setup = project.localization.icp or IcpSetup()
-    loc = _localize_scan(data.scan, data.scan_map, data.T_init, setup)
+    loc = _localize_scan(data.scan, data.scan_map, data.T_init, setup, parking_accuracy(project))
     return to_base_pose(loc, data.T_base_lidar, station=station_id, quality=data.quality)
 
 

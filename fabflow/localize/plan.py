@@ -19,6 +19,7 @@ from fabflow.design.elements import Element, structure_timeline
 from fabflow.errors import LocalizationError
 from fabflow.localize.methods import LOCALIZERS, LocalizeStation, localizer_arguments
 from fabflow.localize.setups import InstrumentSetup
+from fabflow.localize.site import parking_accuracy
 from fabflow.localize.stationing import track_for
 from fabflow.positioning.integrity import consistency_test, exact, guard_exclusion, unchecked
 from fabflow.positioning.result import BasePose
@@ -168,15 +169,7 @@ def parking_covariance(project: Project, T_world_base: np.ndarray) -> np.ndarray
     The platform stands on the ground, so the base height is known to about
     ``parking_sigma`` too (ground and lift).
     """
-    policy = project.localization.integrity
-    sim = project.simulation
-    s_xy = sim.driving_error if policy.parking_sigma is None else policy.parking_sigma
-    s_deg = (
-        sim.driving_heading_error_deg
-        if policy.parking_sigma_deg is None
-        else policy.parking_sigma_deg
-    )
-    s_yaw = np.radians(s_deg)
+    s_xy, s_yaw = parking_accuracy(project)
     lever = np.asarray(T_world_base, dtype=float)[:3, :3] @ (
         -project.robot.platform.T_platform_base.matrix()[:3, 3]
     )

@@ -27,6 +27,21 @@ def points_in_world(T_world_frame: np.ndarray, p_frame: np.ndarray) -> np.ndarra
     return p_frame @ T_world_frame[:3, :3].T + T_world_frame[:3, 3]
 
 
+def parking_accuracy(project: Project) -> tuple[float, float]:
+    """How well the platform parks where it is sent: XY sigma per axis (metres) and
+    heading sigma (radians); ``localization.integrity.parking_sigma`` and
+    ``parking_sigma_deg``, by default the simulation's driving error."""
+    policy = project.localization.integrity
+    sim = project.simulation
+    s_xy = sim.driving_error if policy.parking_sigma is None else policy.parking_sigma
+    s_deg = (
+        sim.driving_heading_error_deg
+        if policy.parking_sigma_deg is None
+        else policy.parking_sigma_deg
+    )
+    return float(s_xy), float(np.radians(s_deg))
+
+
 def anchors_world(setup: UwbSetup) -> tuple[list[str], np.ndarray]:
     """Anchor ids and their ``(n, 3)`` positions in the world (metres, ``T_world_uwb`` applied)."""
     ids = list(setup.anchors)

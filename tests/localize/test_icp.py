@@ -11,11 +11,13 @@ import numpy as np
 import pytest
 import trimesh
 from helpers import ROOT
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fabflow.cli import parse_numbers
 from fabflow.design.elements import Element
 from fabflow.errors import InputError, LocalizationError
-from fabflow.localize.icp import localize_station
+from fabflow.localize.icp import COARSE_REACH, coarse_schedule, localize_station
 from fabflow.localize.methods import localizer_arguments
 from fabflow.localize.plan import parked_pose
 from fabflow.positioning.pointcloud_io import write_point_cloud
@@ -28,7 +30,7 @@ from fabflow.positioning.scan_matching import (
     scan_integrity,
     to_base_pose,
 )
-from fabflow.project import load_project, parse_project
+from fabflow.project import IcpSetup, load_project, parse_project
 from fabflow.sensors.lidar import LidarModel, simulate_scan
 from fabflow.sensors.site_map import mapping_poses, simulated_site_map
 from fabflow.sensors.site_scene import site_scene
@@ -371,3 +373,21 @@ def test_scan_points_transform_consistently(site_map: ScanMap) -> None:
     scan = simulate_scan(site_scene(), T_true, np.random.default_rng(9))
     d, _ = site_map.target.tree.query(apply_T(T_true, scan.points), k=1)
     assert np.median(d) < 0.05
+
+
+@settings(deadline=None, max_examples=50)
+@given(
+    xy=st.floats(0.0, 1.0),
+    yaw_deg=st.floats(0.0, 20.0),
+    d=st.floats(0.05, 2.0),
+)
+def test_the_coarse_stage_reaches_as_far_as_the_parking_can_be_off(
+    xy: float, yaw_deg: float, d: float
+) -> None:
+    setup = IcpSetup(max_correspondence_distance=d)
+    first, last = coarse_schedule(setup, (xy, np.radians(yaw_deg)))
+    off = 3.0 * (xy + np.radians(yaw_deg) * COARSE_REACH)  # 3 sigma at a typical range
+    assert last == d and d <= first <= 4.0 * d
+    assert first == pytest.approx(min(max(off, d), 4.0 * d))
+    # a guess given by hand: the widest reach
+    assert coarse_schedule(setup, None) == (4.0 * d, d)
