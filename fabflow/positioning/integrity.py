@@ -57,6 +57,7 @@ import numpy as np
 from scipy import optimize, special
 
 from fabflow.output import json_safe
+from fabflow.positioning.observation_covariance import Covariance
 
 ALPHA = 1e-3
 """Default significance level of the tests (false alarm probability of one solve)."""
@@ -66,70 +67,6 @@ MIN_REDUNDANCY = 1e-9
 """Redundancy number below which a bias direction counts as undetectable."""
 
 Status = Literal["ok", "excluded", "failed"]
-
-
-@dataclass(frozen=True)
-class Covariance:
-    """An observation covariance ``Q = diag(d) + U diag(s) U^T`` or block-diagonal.
-
-    Attributes
-    ----------
-    diag
-        (m,) variances of the independent part (m^2).
-    low_rank
-        (m, k) columns ``U`` of errors shared by groups of observations (e.g. an
-        indicator per anchor), or ``None``.
-    low_rank_var
-        (k,) variances of the shared errors.
-    blocks
-        (m // b, b, b) covariance blocks of consecutive observations (e.g. the 3x3
-        covariance of each measured point); replaces ``diag`` when given.
-    """
-
-    diag: np.ndarray | None = None
-    low_rank: np.ndarray | None = None
-    low_rank_var: np.ndarray | None = None
-    blocks: np.ndarray | None = None
-
-    @property
-    def size(self) -> int:
-        """Number of observations."""
-        if self.blocks is not None:
-            return int(self.blocks.shape[0] * self.blocks.shape[1])
-        assert self.diag is not None
-        return int(self.diag.shape[0])
-
-    def solve(self, X: np.ndarray) -> np.ndarray:
-        """``Q^-1 X`` for ``X`` of shape (m,) or (m, k)."""
-        X = np.asarray(X, dtype=float)
-        vec = X.ndim == 1
-        X2 = X[:, None] if vec else X
-        if self.blocks is not None:
-            b = self.blocks.shape[1]
-            Xb = X2.reshape(-1, b, X2.shape[1])
-            out = np.linalg.solve(self.blocks, Xb).reshape(X2.shape)
-        else:
-            assert self.diag is not None
-            Di = 1.0 / self.diag
-            out = Di[:, None] * X2
-            if self.low_rank is not None and self.low_rank_var is not None:
-                U = self.low_rank
-                DU = Di[:, None] * U
-                core = np.diag(1.0 / self.low_rank_var) + U.T @ DU
-                out = out - DU @ np.linalg.solve(core, DU.T @ X2)
-        return out[:, 0] if vec else out
-
-    def inverse_diag(self) -> np.ndarray:
-        """The diagonal of ``Q^-1`` (m,)."""
-        if self.blocks is not None:
-            return np.linalg.inv(self.blocks).diagonal(axis1=1, axis2=2).reshape(-1)
-        assert self.diag is not None
-        Di = 1.0 / self.diag
-        if self.low_rank is None or self.low_rank_var is None:
-            return Di
-        DU = Di[:, None] * self.low_rank
-        core = np.diag(1.0 / self.low_rank_var) + self.low_rank.T @ DU
-        return Di - np.einsum("ij,ij->i", DU, np.linalg.solve(core, DU.T).T)
 
 
 @dataclass(frozen=True)

@@ -188,7 +188,7 @@ def locate_platform(
     state, heading_observed = _initial_state(A, R, L, sigma, method, heading_prior)
     finite = np.isfinite(R)
     d = R[finite]
-    links = PlatformAdjustment.link_means(
+    links = link_means(
         d,
         sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT)),
         np.broadcast_to(np.arange(n_tags)[None, :, None], R.shape)[finite],
@@ -236,6 +236,37 @@ def locate_platform(
         use, state, tests, masks = trial.use, trial.state, trial.tests, trial.masks
         iterations, converged = trial.iterations, trial.converged
     return _finish(adj, (d, link), use, state, tests, excluded, problem, iterations, converged)
+
+
+def link_means(
+    d: np.ndarray, s: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray, n_anchors: int
+) -> dict[str, np.ndarray]:
+    """A standing platform's ranges as one observation per tag-anchor link.
+
+    Returns the per-link fields of
+    :class:`~fabflow.positioning.uwb_platform_adjustment.PlatformAdjustment`
+    (``d, s, tag_idx, anc_idx, count, scatter, raw_mean, raw_sq_dev``) from ranges
+    ``d`` with standard deviations ``s`` (metres) of the tags ``tag_idx`` to the
+    anchors ``anc_idx``, and ``link``: the link of each range (index into them).
+    """
+    key = np.asarray(tag_idx) * n_anchors + np.asarray(anc_idx)
+    links, link = np.unique(key, return_inverse=True)
+    w = 1.0 / s**2
+    W = np.bincount(link, weights=w)
+    mean = np.bincount(link, weights=w * d) / W
+    count = np.bincount(link)
+    raw_mean = np.bincount(link, weights=d) / count
+    return {
+        "d": mean,
+        "s": 1.0 / np.sqrt(W),
+        "tag_idx": links // n_anchors,
+        "anc_idx": links % n_anchors,
+        "count": count,
+        "scatter": np.bincount(link, weights=w * (d - mean[link]) ** 2),
+        "raw_mean": raw_mean,
+        "raw_sq_dev": np.bincount(link, weights=(d - raw_mean[link]) ** 2),
+        "link": link,
+    }
 
 
 def _initial_state(

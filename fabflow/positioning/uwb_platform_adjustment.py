@@ -153,7 +153,8 @@ class PlatformAdjustment:
 
     A standing platform's ranges of one tag-anchor link all observe the same
     distance, so the adjustment holds one observation per link: the weighted mean
-    of its ranges, with the weights' sum (:meth:`from_ranges`). Fits, w-tests,
+    of its ranges, with the weights' sum
+    (:func:`~fabflow.positioning.uwb_platform.link_means`). Fits, w-tests,
     MDBs and covariances are those of all the ranges exactly (every hypothesis
     is a whole link or anchor, constant over a link's ranges); the global test
     adds the ranges' scatter about their link means (``scatter``, with one
@@ -213,32 +214,6 @@ class PlatformAdjustment:
     scatter: np.ndarray
     raw_mean: np.ndarray
     raw_sq_dev: np.ndarray
-
-    @staticmethod
-    def link_means(
-        d: np.ndarray, s: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray, n_anchors: int
-    ) -> dict[str, np.ndarray]:
-        """The per-link fields (``d, s, tag_idx, anc_idx, count, scatter, raw_mean,
-        raw_sq_dev``) from ranges ``d`` with standard deviations ``s`` (metres), and
-        ``link``: the link of each range (index into them)."""
-        key = np.asarray(tag_idx) * n_anchors + np.asarray(anc_idx)
-        links, link = np.unique(key, return_inverse=True)
-        w = 1.0 / s**2
-        W = np.bincount(link, weights=w)
-        mean = np.bincount(link, weights=w * d) / W
-        count = np.bincount(link)
-        raw_mean = np.bincount(link, weights=d) / count
-        return {
-            "d": mean,
-            "s": 1.0 / np.sqrt(W),
-            "tag_idx": links // n_anchors,
-            "anc_idx": links % n_anchors,
-            "count": count,
-            "scatter": np.bincount(link, weights=w * (d - mean[link]) ** 2),
-            "raw_mean": raw_mean,
-            "raw_sq_dev": np.bincount(link, weights=(d - raw_mean[link]) ** 2),
-            "link": link,
-        }
 
     def n_ranges(self, use: np.ndarray) -> int:
         """How many ranges the links ``use`` hold."""
