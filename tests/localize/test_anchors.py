@@ -100,17 +100,20 @@ def test_each_tag_ranges_with_the_anchors_it_sees(cabin) -> None:
         if zone is None:
             continue
         zoned += 1
-        # the zone is what each tag sees: checked by sampling the sight lines
+        # the zone is what each tag sees: checked by sampling the sight lines, a line
+        # grazing a block within 2 cm counting either way
         tags = station_tags(planned, wp.station)
         T_box, extents = element_boxes(built)
-        t = np.linspace(0.0, 1.0, 300)[1:-1]
+        t = np.linspace(0.0, 1.0, 600)[1:-1]
         for tag, names in zip(tags, zone, strict=True):
             line = tag + t[:, None, None] * (anchors - tag)[None]  # (t, A, 3)
-            local = np.einsum(
-                "kji,takj->taki", T_box[:, :3, :3], line[:, :, None] - T_box[:, :3, 3]
+            local = np.abs(
+                np.einsum("kji,takj->taki", T_box[:, :3, :3], line[:, :, None] - T_box[:, :3, 3])
             )
-            blocked = (np.abs(local) <= 0.5 * extents).all(axis=3).any(axis=(0, 2))
-            assert set(names) == {k for k, b in zip(ids, blocked, strict=True) if not b}
+            clear = ~(local <= 0.5 * extents + 0.02).all(axis=3).any(axis=(0, 2))
+            blocked = (local <= 0.5 * extents - 0.02).all(axis=3).any(axis=(0, 2))
+            assert {k for k, c in zip(ids, clear, strict=True) if c} <= set(names)
+            assert set(names) <= {k for k, b in zip(ids, blocked, strict=True) if not b}
         # the simulated ranges reach the zone's anchors alone
         rng = np.random.default_rng(wp.index)
         T_base = wp.station.T_world_base(planned.robot.platform.T_platform_base.matrix())
