@@ -224,10 +224,9 @@ def ranging_zone(
     zone = sight.any(axis=0)
     if sight.all() or not _tags_fix_themselves(tags, anchors, sight):
         return None
+    # every tag's anchors are off one plane (above), so all of them are too
     A = anchors[zone]
     if outside_hull(A[:, :2], tags.mean(axis=0)[None, :2])[0] > COVERAGE_MARGIN:
-        return None
-    if anchor_geometry_problem(A) is not None:
         return None
     info = _information(project, tags[None], A, sight[None][:, :, zone], in_sight_only=True)
     if _sigma_xy(info.sum(axis=1))[0] > target_sigma(project):

@@ -53,9 +53,12 @@ def localizer_arguments(
     The LiDAR sits on the platform, below the lifted arm base, so ICP needs the
     lift height to place it (:data:`NEEDS_LIFT`). UWB tags range with the
     anchors of the station's zone (:func:`~fabflow.localize.anchors.ranging_zone`,
-    from the structure ``built`` before the visit).
+    from the structure ``built`` before the visit). Without sensor noise the
+    localizer is exact and takes none.
     """
-    if method in NEEDS_LIFT and project.simulation.sensor_noise:
+    if not project.simulation.sensor_noise:
+        return {}
+    if method in NEEDS_LIFT:
         return {"lift": station.lift}
     if method == "uwb" and project.localization.uwb is not None:
         zone = ranging_zone(project, station, built)

@@ -198,19 +198,22 @@ def station_points(
     if setup.procedure == "three_point":
         d = setup.three_point_step
         blind = replace(rules, sight_from=None)
-        first = _three_point_points(ws, boxes, blind, d, station_id)
-        alternatives = _three_point_alternatives(
-            ws, boxes, blind, d, pool_grid, max(spare, THREE_POINT_ALTERNATIVES)
+        points = _three_point_points(ws, boxes, blind, d, station_id)
+        # the alternatives only when asked for or when the sight blocks the first place
+        # (a prefix of a longer list is the shorter list: the order is fixed)
+        blocked = sight is not None and not clear_mask(points, ws, boxes, rules).all()
+        k = max(spare, THREE_POINT_ALTERNATIVES) if blocked else spare
+        alternatives = (
+            _three_point_alternatives(ws, boxes, blind, d, pool_grid, k)
+            if k
+            else np.zeros((0, 3, 3))
         )
-        if sight is None:
-            points = first
-        else:
-            # the places a set-up was planned for (the first, then the alternatives
-            # in order), before any other place in sight
-            sets = np.concatenate([first[None], alternatives])
-            seen = clear_mask(sets.reshape(-1, 3), ws, boxes, rules).reshape(-1, 3).all(axis=1)
-            if seen.any():
-                points = sets[int(np.argmax(seen))]
+        if blocked:
+            # the places a set-up was planned for, in order, before any other in sight
+            seen = clear_mask(alternatives.reshape(-1, 3), ws, boxes, rules)
+            whole = seen.reshape(-1, 3).all(axis=1)
+            if whole.any():
+                points = alternatives[int(np.argmax(whole))]
             else:
                 points = _three_point_points(ws, boxes, rules, d, station_id)
         return StationPoints(reach, points, np.zeros(3), (), alternatives=alternatives[:spare])

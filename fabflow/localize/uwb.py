@@ -140,7 +140,7 @@ def simulate_station(
         unknown = sorted({k for z in zone for k in z} - set(ids))
         if unknown:
             raise InputError(f"ranging zone names unknown anchors: {', '.join(unknown)}")
-        ranged = np.array([[k in set(z) for k in ids] for z in zone])
+        ranged = np.array([np.isin(ids, list(z)) for z in zone])
         keep = np.flatnonzero(ranged.any(axis=0))
         ids, A, ranged = [ids[i] for i in keep], A[keep], ranged[:, keep]
     T_platform_base = project.robot.platform.T_platform_base.matrix()

@@ -18,6 +18,8 @@ from fabflow.localize.anchors import (
     station_tags,
     target_sigma,
 )
+from fabflow.localize.methods import localizer_arguments
+from fabflow.localize.plan import localize_plan
 from fabflow.localize.site import anchors_world
 from fabflow.localize.uwb import simulate_station
 from fabflow.project import load_project
@@ -122,3 +124,20 @@ def test_each_tag_ranges_with_the_anchors_it_sees(cabin) -> None:
         for k, names in enumerate(zone):
             assert {data.anchor_ids[j] for j in np.flatnonzero(ranged[k])} <= set(names)
     assert zoned > 0  # the walls hide some anchors from some stations
+
+
+def test_without_sensor_noise_the_zones_stay_out_of_the_exact_localizer(cabin) -> None:
+    project, elements, plan = cabin
+    planned, _ = layout_anchors(_with_anchors(project, {}), plan, elements)
+    sim = planned.simulation.model_copy(update={"sensor_noise": False})
+    exact = planned.model_copy(update={"simulation": sim})
+    timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
+    zoned = [
+        (wp.station, built)
+        for wp, (built, _) in zip(plan.work_packages, timeline, strict=True)
+        if ranging_zone(planned, wp.station, built) is not None  # a zone with noise on
+    ]
+    assert zoned
+    assert all(localizer_arguments(exact, "uwb", s, built) == {} for s, built in zoned)
+    poses = localize_plan(exact, plan, elements, np.random.default_rng(0))
+    assert all("exact" in est.integrity.checks for est, _ in poses.values())
