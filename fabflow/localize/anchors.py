@@ -204,13 +204,14 @@ def ranging_zone(
     across the site, where half of the ranges carry an NLOS excess (too many for
     the robust centre of a link to reject) and several faulty links at once
     defeat the one-at-a-time exclusion of the tests. Each tag's zone is the
-    anchors it sees past the structure ``built``, at the station as planned,
-    when they stand around it (within
-    :data:`~fabflow.positioning.uwb_platform.COVERAGE_MARGIN` of their plan
-    hull), are not in one plane and reach the target sigma; otherwise the tags
-    range with every anchor (as they do where every anchor is in sight). Each
-    tag must also fix itself from its zone (:data:`MIN_PLANNED` anchors in a
-    geometry the per-tag fixes accept), as the platform's fix starts from those.
+    anchors it sees past the structure ``built``, at the station as planned.
+    Where those do not serve, the anchors hidden from a tag join its zone one at
+    a time (those hidden from the fewest tags first, then the nearest), until
+    the zone does (:func:`_zone_serves`): each tag fixes itself from its zone,
+    the tags' centre stands inside the zone's plan hull and the zone reaches the
+    target sigma, its ranges through the structure counted with their NLOS
+    chance. A zone that needs every anchor is ``None``, as where every anchor is
+    in sight.
 
     Returns
     -------
@@ -221,17 +222,33 @@ def ranging_zone(
     ids, anchors = anchors_world(setup)
     tags = station_tags(project, station)
     sight = _sight(tags[None], anchors, [built])[0]  # (T, A)
-    zone = sight.any(axis=0)
-    if sight.all() or not _tags_fix_themselves(tags, anchors, sight):
-        return None
-    # every tag's anchors are off one plane (above), so all of them are too
-    A = anchors[zone]
-    if outside_hull(A[:, :2], tags.mean(axis=0)[None, :2])[0] > COVERAGE_MARGIN:
-        return None
-    info = _information(project, tags[None], A, sight[None][:, :, zone], in_sight_only=True)
-    if _sigma_xy(info.sum(axis=1))[0] > target_sigma(project):
-        return None
-    return tuple(tuple(ids[i] for i in np.flatnonzero(row)) for row in sight)
+    hidden = np.flatnonzero(~sight.all(axis=0))
+    distance = np.linalg.norm(anchors[hidden] - tags.mean(axis=0), axis=1)
+    order = hidden[np.lexsort((distance, (~sight[:, hidden]).sum(axis=0)))]
+    ranged = sight.copy()
+    for joined in order:
+        if _zone_serves(project, tags, anchors, sight, ranged):
+            return tuple(tuple(ids[i] for i in np.flatnonzero(row)) for row in ranged)
+        ranged[:, joined] = True
+    return None
+
+
+def _zone_serves(
+    project: Project, tags: np.ndarray, anchors: np.ndarray, sight: np.ndarray, ranged: np.ndarray
+) -> bool:
+    """Whether the tags ``(T, 3)`` ranging with ``ranged`` ``(T, A)`` of the anchors, of
+    which they see ``sight``, fix themselves, stand inside the plan hull of the anchors
+    ranged (within :data:`~fabflow.positioning.uwb_platform.COVERAGE_MARGIN`) and reach
+    the target sigma."""
+    if not _tags_fix_themselves(tags, anchors, ranged):
+        return False
+    zone = ranged.any(axis=0)
+    if outside_hull(anchors[zone, :2], tags.mean(axis=0)[None, :2])[0] > COVERAGE_MARGIN:
+        return False
+    info = _information(
+        project, tags[None], anchors[zone], sight[None][:, :, zone], ranged[:, zone]
+    )
+    return bool(_sigma_xy(info.sum(axis=1))[0] <= target_sigma(project))
 
 
 def _sight(
@@ -256,15 +273,15 @@ def _information(
     tags: np.ndarray,
     anchors: np.ndarray,
     sight: np.ndarray,
-    in_sight_only: bool = False,
+    ranged: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per package and anchor the expected Fisher information of one epoch of its
     ranges on the platform's ``x, y, z, yaw``, ``(P, A, 4, 4)``.
 
     Each range has the simulator's distance-dependent noise and counts with the
     chance it carries no NLOS excess (``1 - nlos_prob`` in sight, ``1 -
-    nlos_prob_occluded`` through the structure, nothing there with
-    ``in_sight_only``).
+    nlos_prob_occluded`` through the structure); only the links ``ranged``
+    (broadcast to ``sight``; default all) count.
     """
     setup = project.localization.uwb
     assert setup is not None
@@ -275,8 +292,8 @@ def _information(
     dist = np.linalg.norm(diff, axis=-1)
     u = diff / np.maximum(dist, 1e-9)[..., None]
     clean = 1.0 - np.where(sight, model.nlos_prob, model.nlos_prob_occluded)
-    if in_sight_only:
-        clean = np.where(sight, clean, 0.0)
+    if ranged is not None:
+        clean = np.where(ranged, clean, 0.0)
     weight = clean / model.sigma(dist) ** 2  # (P, T, A)
     # d range / d (x, y, z, yaw): the tag's lever turns with the platform's heading
     lever = tags - tags.mean(axis=1, keepdims=True)
@@ -325,7 +342,7 @@ def check_anchors(
     tags = package_tags(project, plan)
     sight = _sight(tags, anchors, _standing(plan, elements))
     info = _information(project, tags, anchors, sight)
-    info_in_sight = _information(project, tags, anchors, sight, in_sight_only=True)
+    info_in_sight = _information(project, tags, anchors, sight, ranged=sight)
     outside = outside_hull(np.asarray(anchors)[:, :2], tags.mean(axis=1)[:, :2])
     return AnchorCoverage(
         tuple(ids),
@@ -395,7 +412,7 @@ def plan_anchors(
     cands = np.concatenate([np.column_stack([xy, np.full(len(xy), h)]) for h in heights])
     tags = package_tags(project, plan)
     sight = _sight(tags, cands, _standing(plan, elements))
-    in_sight = _information(project, tags, cands, sight, in_sight_only=True)
+    in_sight = _information(project, tags, cands, sight, ranged=sight)
     target = target_sigma(project)
     possible = _sigma_xy(in_sight.sum(axis=1)) <= target
     info = in_sight

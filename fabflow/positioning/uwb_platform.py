@@ -36,10 +36,9 @@ from fabflow.positioning.uwb_platform_adjustment import (
     hidden_mirrors,
     identify_by_refit,
     mirror_check,
-    platform_jacobian,
-    platform_ranges,
 )
-from fabflow.positioning.uwb_platform_adjustment import rotz as _rotz
+from fabflow.positioning.uwb_platform_model import platform_jacobian, platform_ranges
+from fabflow.positioning.uwb_platform_model import rotz as _rotz
 
 
 @dataclass(frozen=True)

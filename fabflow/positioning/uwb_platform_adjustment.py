@@ -6,7 +6,7 @@ radians); tag ``k`` sits at the lever arm ``l_k`` (platform frame), so range
 :class:`PlatformAdjustment` holds the ranges with their weights and solves,
 tests and compares fits of any subset of them:
 
-- :meth:`PlatformAdjustment.fit`: damped Gauss-Newton over the ranges used;
+- :meth:`PlatformAdjustment.fit`: damped Newton over the ranges used;
 - :meth:`PlatformAdjustment.tests`: the global test and the w-tests of one
   anchor's ranges and of one tag-anchor link
   (:func:`fabflow.positioning.integrity.adjustment_test`), each hypothesis with
@@ -40,111 +40,13 @@ from fabflow.positioning.integrity import (
     noncentrality,
 )
 from fabflow.positioning.uwb import COND_LIMIT
-
-
-def rotz(yaw: float) -> np.ndarray:
-    """3x3 rotation about z by ``yaw`` (radians)."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def platform_ranges(
-    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
-) -> np.ndarray:
-    """Predicted ranges (metres) of the tag-anchor pairs ``(tag_idx, anc_idx)`` at ``state``."""
-    tags = state[:3] + L @ rotz(state[3]).T
-    return np.linalg.norm(tags[tag_idx] - A[anc_idx], axis=1)
-
-
-def platform_jacobian(
-    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
-) -> np.ndarray:
-    """(m, 4) derivative of the ranges by ``x, y, z`` (1) and ``yaw`` (metres per radian)."""
-    Rl = L @ rotz(state[3]).T
-    tags = state[:3] + Rl
-    diff = tags[tag_idx] - A[anc_idx]
-    u = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]
-    dyaw = np.column_stack([-Rl[:, 1], Rl[:, 0]])[tag_idx]
-    return np.column_stack([u, np.sum(u[:, :2] * dyaw, axis=1)])
-
-
-def platform_information(
-    A: np.ndarray,
-    L: np.ndarray,
-    s: np.ndarray,
-    tag_idx: np.ndarray,
-    anc_idx: np.ndarray,
-    state: np.ndarray,
-    heading_prior: tuple[float, float] | None,
-) -> np.ndarray:
-    """4x4 information of ``x, y, z, yaw`` from white ranges of sd ``s`` (and the heading prior)."""
-    J = platform_jacobian(A, L, state, tag_idx, anc_idx)
-    info = J.T @ (J / s[:, None] ** 2)
-    if heading_prior is not None:
-        info[3, 3] += 1.0 / heading_prior[1] ** 2
-    return info
-
-
-def platform_gauss_newton(
-    A: np.ndarray,
-    L: np.ndarray,
-    d: np.ndarray,
-    s: np.ndarray,
-    tag_idx: np.ndarray,
-    anc_idx: np.ndarray,
-    state: np.ndarray,
-    heading_prior: tuple[float, float] | None,
-    max_iter: int,
-) -> tuple[np.ndarray, int, bool]:
-    """Damped Gauss-Newton on the ranges ``d``: the state, the iterations, whether it converged.
-
-    Each step is scaled back (halved, up to 7 times) until it lowers the cost; the
-    solve has converged when a step is negligible against its own uncertainty.
-
-    Raises
-    ------
-    LocalizationError
-        The normal matrix is singular (the geometry does not determine the pose).
-    """
-    state = np.array(state, dtype=float)
-
-    def cost_of(x: np.ndarray) -> float:
-        r = (d - platform_ranges(A, L, x, tag_idx, anc_idx)) / s
-        c = float(r @ r)
-        if heading_prior is not None:
-            c += (
-                float(np.angle(np.exp(1j * (heading_prior[0] - x[3])))) ** 2 / heading_prior[1] ** 2
-            )
-        return c
-
-    cost = cost_of(state)
-    for iteration in range(1, max_iter + 1):
-        J = platform_jacobian(A, L, state, tag_idx, anc_idx)
-        r = d - platform_ranges(A, L, state, tag_idx, anc_idx)
-        Wj = J / s[:, None] ** 2
-        M = J.T @ Wj
-        g = Wj.T @ r
-        if heading_prior is not None:
-            w = 1.0 / heading_prior[1] ** 2
-            M[3, 3] += w
-            g[3] += w * (np.angle(np.exp(1j * (heading_prior[0] - state[3]))))
-        try:
-            step = np.linalg.solve(M, g)
-        except np.linalg.LinAlgError:
-            raise LocalizationError(
-                "the tag and anchor geometry does not determine the platform pose"
-            ) from None
-        if float(step @ M @ step) < 1e-10 or np.linalg.norm(step) < 1e-8:
-            return state, iteration, True
-        for scale in 0.5 ** np.arange(8):
-            trial = state + scale * step
-            new = cost_of(trial)
-            if new <= cost:
-                state, cost = trial, new
-                break
-        else:
-            return state, iteration, False
-    return state, max_iter, False
+from fabflow.positioning.uwb_platform_model import (
+    platform_gauss_newton,
+    platform_information,
+    platform_jacobian,
+    platform_ranges,
+    rotz,
+)
 
 
 @dataclass(frozen=True)
@@ -220,7 +122,7 @@ class PlatformAdjustment:
         return int(self.count[use].sum())
 
     def fit(self, use: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, int, bool]:
-        """Gauss-Newton over the ranges ``use`` from ``start``: state, iterations, converged."""
+        """Damped Newton over the ranges ``use`` from ``start``: state, iterations, converged."""
         return platform_gauss_newton(
             self.anchors, self.lever_arms, self.d[use], self.s[use], self.tag_idx[use],
             self.anc_idx[use], start, self.heading_prior, self.max_iter,

@@ -1,0 +1,149 @@
+"""The range model of a standing platform and its damped Newton solve.
+
+A level platform stands at ``x, y, z, yaw`` (anchors' frame, metres and
+radians); tag ``k`` sits at the lever arm ``l_k`` (platform frame), so the range
+of tag ``k`` to anchor ``j`` is ``|p + R(yaw) l_k - a_j|``. Here are that
+range, its first and second derivatives, the information of white ranges and
+the solve; :mod:`fabflow.positioning.uwb_platform_adjustment` tests and
+compares fits with them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fabflow.errors import LocalizationError
+
+
+def rotz(yaw: float) -> np.ndarray:
+    """3x3 rotation about z by ``yaw`` (radians)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def platform_ranges(
+    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
+) -> np.ndarray:
+    """Predicted ranges (metres) of the tag-anchor pairs ``(tag_idx, anc_idx)`` at ``state``."""
+    tags = state[:3] + L @ rotz(state[3]).T
+    return np.linalg.norm(tags[tag_idx] - A[anc_idx], axis=1)
+
+
+def platform_jacobian(
+    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
+) -> np.ndarray:
+    """(m, 4) derivative of the ranges by ``x, y, z`` (1) and ``yaw`` (metres per radian)."""
+    Rl = L @ rotz(state[3]).T
+    tags = state[:3] + Rl
+    diff = tags[tag_idx] - A[anc_idx]
+    u = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]
+    dyaw = np.column_stack([-Rl[:, 1], Rl[:, 0]])[tag_idx]
+    return np.column_stack([u, np.sum(u[:, :2] * dyaw, axis=1)])
+
+
+def range_curvature(
+    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
+) -> np.ndarray:
+    """(m, 4, 4) second derivative of the ranges by ``x, y, z, yaw`` (1/metres, metres
+    per radian squared, 1 per radian).
+
+    With ``G = [I | dp/dyaw]`` the tag's derivative and ``u`` the unit vector to it:
+    ``G^T (I - u u^T) G / range``, plus ``u . d2p/dyaw2`` in yaw-yaw.
+    """
+    Rl = L @ rotz(state[3]).T
+    diff = state[:3] + Rl[tag_idx] - A[anc_idx]
+    dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
+    u = diff / dist[:, None]
+    G = np.zeros((len(diff), 3, 4))
+    G[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    G[:, 0, 3], G[:, 1, 3] = -Rl[tag_idx, 1], Rl[tag_idx, 0]
+    Gu = np.einsum("mi,mij->mj", u, G)
+    out = (np.einsum("mij,mik->mjk", G, G) - Gu[:, :, None] * Gu[:, None, :]) / dist[:, None, None]
+    out[:, 3, 3] -= np.sum(u[:, :2] * Rl[tag_idx, :2], axis=1)
+    return out
+
+
+def platform_information(
+    A: np.ndarray,
+    L: np.ndarray,
+    s: np.ndarray,
+    tag_idx: np.ndarray,
+    anc_idx: np.ndarray,
+    state: np.ndarray,
+    heading_prior: tuple[float, float] | None,
+) -> np.ndarray:
+    """4x4 information of ``x, y, z, yaw`` from white ranges of sd ``s`` (and the heading prior)."""
+    J = platform_jacobian(A, L, state, tag_idx, anc_idx)
+    info = J.T @ (J / s[:, None] ** 2)
+    if heading_prior is not None:
+        info[3, 3] += 1.0 / heading_prior[1] ** 2
+    return info
+
+
+def platform_gauss_newton(
+    A: np.ndarray,
+    L: np.ndarray,
+    d: np.ndarray,
+    s: np.ndarray,
+    tag_idx: np.ndarray,
+    anc_idx: np.ndarray,
+    state: np.ndarray,
+    heading_prior: tuple[float, float] | None,
+    max_iter: int,
+) -> tuple[np.ndarray, int, bool]:
+    """Damped Newton on the ranges ``d``: the state, the iterations, whether it converged.
+
+    Newton's step where its Hessian is positive definite, else Gauss-Newton's;
+    each step is scaled back (halved, up to 7 times) until it lowers the cost; the
+    solve has converged when a step is negligible against its own uncertainty.
+
+    Raises
+    ------
+    LocalizationError
+        The normal matrix is singular (the geometry does not determine the pose).
+    """
+    state = np.array(state, dtype=float)
+
+    def cost_of(x: np.ndarray) -> float:
+        r = (d - platform_ranges(A, L, x, tag_idx, anc_idx)) / s
+        c = float(r @ r)
+        if heading_prior is not None:
+            c += (
+                float(np.angle(np.exp(1j * (heading_prior[0] - x[3])))) ** 2 / heading_prior[1] ** 2
+            )
+        return c
+
+    cost = cost_of(state)
+    for iteration in range(1, max_iter + 1):
+        J = platform_jacobian(A, L, state, tag_idx, anc_idx)
+        r = d - platform_ranges(A, L, state, tag_idx, anc_idx)
+        Wj = J / s[:, None] ** 2
+        M = J.T @ Wj
+        g = Wj.T @ r
+        if heading_prior is not None:
+            w = 1.0 / heading_prior[1] ** 2
+            M[3, 3] += w
+            g[3] += w * (np.angle(np.exp(1j * (heading_prior[0] - state[3]))))
+        # Newton's Hessian adds the ranges' curvature, which Gauss-Newton drops: with
+        # residuals not small against it (height over anchors near one plane) Gauss-
+        # Newton only creeps, as the per-tag fixes of positioning.uwb also find.
+        H = M - np.einsum("m,mij->ij", r / s**2, range_curvature(A, L, state, tag_idx, anc_idx))
+        if np.linalg.eigvalsh(H)[0] <= 1e-9 * np.trace(M):
+            H = M
+        try:
+            step = np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            raise LocalizationError(
+                "the tag and anchor geometry does not determine the platform pose"
+            ) from None
+        if float(step @ M @ step) < 1e-10 or np.linalg.norm(step) < 1e-8:
+            return state, iteration, True
+        for scale in 0.5 ** np.arange(8):
+            trial = state + scale * step
+            new = cost_of(trial)
+            if new <= cost:
+                state, cost = trial, new
+                break
+        else:
+            return state, iteration, False
+    return state, max_iter, False
