@@ -30,6 +30,7 @@ from fabflow.programs.wrist_lin import MAX_DEVIATION_DEG
 from fabflow.project import Project
 from fabflow.robots.catalog import controller_profile, get_robot
 from fabflow.robots.chain import RobotModel
+from fabflow.tasks.targets import home_configuration
 
 
 def _drop_unreachable_optional(
@@ -51,14 +52,6 @@ def _drop_unreachable_optional(
     keep = (valid & required[owner]).any(axis=1) | ~optional
     dropped = {id(w) for w, k in zip(waypoints, keep, strict=True) if not k}
     return [s for s in steps if id(s) not in dropped]
-
-
-def home_configuration(project: Project) -> np.ndarray:
-    """The HOME joint configuration (radians): ``robot.home_deg`` or the catalogue's."""
-    robot = get_robot(project.robot.model)
-    if project.robot.home_deg is not None:
-        return np.radians(np.asarray(project.robot.home_deg, dtype=float))
-    return np.asarray(robot.q_home, dtype=float)
 
 
 def _home_move(
@@ -119,7 +112,7 @@ def compile_program(
     steps = _drop_unreachable_optional(steps, robot, T_base_world, T_flange_tool)
     waypoints = [s for s in steps if isinstance(s, Waypoint)]
     q, via_q, via_T, slowdown, wrist = solve_moves(
-        waypoints, robot.name, T_base_world, T_flange_tool, q_start=q_home
+        waypoints, robot.name, T_base_world, T_flange_tool, q_start=q_home, q_end=q_home
     )
     # A change of configuration between two targets goes through HOME: a
     # joint-space swing between configurations sweeps through unknown space.

@@ -123,6 +123,7 @@ def solve_moves(
     T_base_world: np.ndarray,
     T_flange_tool: np.ndarray,
     q_start: np.ndarray | None = None,
+    q_end: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[np.ndarray | None], list[np.ndarray | None], np.ndarray, np.ndarray]:
     """Joint configurations for every waypoint, with linear moves checked along the line.
 
@@ -138,6 +139,9 @@ def solve_moves(
         Tool centre point in the flange frame.
     q_start
         Configuration before the first move (default: the middle of the joint limits).
+    q_end
+        Joint target after the last move (HOME), which the last PTP target looks
+        ahead to as each looks to the next.
 
     Returns
     -------
@@ -286,6 +290,7 @@ def solve_moves(
             current,
             whole[owner.ravel()[i]],
             None if nxt is None else (q_all[nxt], valid[nxt]),
+            q_end,
         )
         if not options:
             raise _fail(
@@ -352,6 +357,7 @@ def _ptp_options(
     current: int,
     whole_element: np.ndarray,
     next_ptp: tuple[np.ndarray, np.ndarray] | None,
+    q_end: np.ndarray | None = None,
 ) -> list[tuple[np.ndarray, int]]:
     """Valid configurations of a PTP target with their IK branch, cheapest first.
 
@@ -362,7 +368,9 @@ def _ptp_options(
     motion has no solution (``whole_element``, per branch), and once more for
     one the next PTP target does not have. Looking one target ahead settles A1
     at the back of its range (where both turns are within the limits) on the
-    side the arm goes next. Other multi-turn joints take the turn nearest ``q_prev``.
+    side the arm goes next. The last PTP target looks ahead to the joint target
+    ``q_end`` (HOME) as it is, no turn of it taken. Other multi-turn joints take
+    the turn nearest ``q_prev``.
     """
     candidates = np.flatnonzero(ok)
     if len(candidates) == 0:
@@ -380,6 +388,8 @@ def _ptp_options(
         reachable = ok_next[candidates]
         cost += np.where(reachable, (np.abs(ahead - turned) * weights).sum(axis=1), 0.0)
         penalty += ~reachable
+    elif q_end is not None:
+        cost += (np.abs(np.asarray(q_end, dtype=float) - turned) * weights).sum(axis=1)
     cost += CONFIGURATION_CHANGE_COST * penalty
     order = np.argsort(cost, kind="stable")
     return [(turned[k], int(candidates[k])) for k in order]

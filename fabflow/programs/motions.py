@@ -25,6 +25,7 @@ import numpy as np
 from fabflow.design.elements import Element
 from fabflow.project import Project
 from fabflow.tasks.targets import (
+    T_base_home_tool,
     T_base_pick_tool,
     approach_poses,
     block_approach,
@@ -359,7 +360,9 @@ def work_package_motion(
     their placement (see :func:`element_motion`). A tucked block starts by
     drawing the tool in from where the block before it ended ("tuck in", a move
     of the tucked block) to its tuck radius, so that the joint move back to the
-    magazine turns the arm tucked too.
+    magazine turns the arm tucked too. A package whose last block is tucked ends
+    "over home": HOME's tool position at the tucked height, from where the
+    program's HOME move folds the arm over the platform.
     """
     T_world_base = np.asarray(T_world_base, dtype=float)
     T_world_pick = T_world_base @ T_base_pick_tool(project)
@@ -384,4 +387,12 @@ def work_package_motion(
             T_in = tucked(last.T_world_tool, T_world_base, following.tuck)
             if _apart(T_in, last.T_world_tool):
                 steps.append(Waypoint("lin", T_in, speed, blend, "tuck in", elements[k + 1].id))
+    if elements and steps and isinstance(steps[-1], Waypoint):
+        route = routes.get(elements[-1].id)
+        if elements[-1].type == "block" and route is not None and route.tuck is not None:
+            # turn to HOME at the tucked height, then fold into it over the platform:
+            # the joint move HOME alone would lower the arm while it turns
+            T_over = T_world_base @ T_base_home_tool(project)
+            T_over[2, 3] = max(T_over[2, 3], steps[-1].T_world_tool[2, 3])
+            steps.append(Waypoint("ptp", T_over, PTP_SPEED, blend, "over home", elements[-1].id))
     return steps

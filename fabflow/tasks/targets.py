@@ -19,6 +19,7 @@ import numpy as np
 from fabflow.design.elements import Element
 from fabflow.design.print_path import element_tool_frames as print_path_tool_frames
 from fabflow.project import Project
+from fabflow.robots.catalog import get_robot
 from fabflow.transforms.so3 import R_FLIP_X
 
 
@@ -120,6 +121,19 @@ def T_base_pick_tool(project: Project) -> np.ndarray:
     T_pick = np.linalg.inv(T_platform_base) @ platform.T_platform_pick.matrix()
     T_pick[:3, :3] = T_pick[:3, :3] @ R_FLIP_X
     return T_pick
+
+
+def home_configuration(project: Project) -> np.ndarray:
+    """The HOME joint configuration (radians): ``robot.home_deg`` or the catalogue's."""
+    if project.robot.home_deg is not None:
+        return np.radians(np.asarray(project.robot.home_deg, dtype=float))
+    return np.asarray(get_robot(project.robot.model).q_home, dtype=float)
+
+
+def T_base_home_tool(project: Project) -> np.ndarray:
+    """Tool pose at HOME, in the robot base frame (metres)."""
+    robot = get_robot(project.robot.model)
+    return robot.fk(home_configuration(project)) @ project.robot.tool.T_flange_tool.matrix()
 
 
 APPROACH_MARGIN = 0.005

@@ -32,7 +32,7 @@ from fabflow.programs.writers import writer_for
 from fabflow.programs.writers.json_stream import write_json_stream
 from fabflow.project import load_project
 from fabflow.robots.catalog import get_robot
-from fabflow.tasks.targets import block_approach
+from fabflow.tasks.targets import T_base_home_tool, block_approach
 
 SIZE = np.array([0.6, 0.105, 0.105])
 READERS = {"krl": read_krl, "rapid": read_rapid}
@@ -252,7 +252,13 @@ def test_a_tucked_route_turns_at_its_radius_and_starts_by_tucking_in(project) ->
     pick_up = next(s for s in b2 if s.label == "pick approach")
     assert tuck.kind == "ptp" and radius(tuck) == pytest.approx(0.7)
     assert tuck.T_world_tool[2, 3] >= pick_up.T_world_tool[2, 3] - 1e-12
-    assert b2[-1].label == "tuck in" and radius(b2[-1]) == pytest.approx(0.7)
+    assert b2[-2].label == "tuck in" and radius(b2[-2]) == pytest.approx(0.7)
+    # the package's last block turns to HOME at its tucked height, then HOME folds it
+    over = b2[-1]
+    T_home = T_WORLD_BASE @ T_base_home_tool(project)
+    assert over.label == "over home" and over.kind == "ptp"
+    np.testing.assert_allclose(over.T_world_tool[:2], T_home[:2], atol=1e-12)
+    assert over.T_world_tool[2, 3] == pytest.approx(max(T_home[2, 3], b2[-2].T_world_tool[2, 3]))
 
 
 def test_report_mode_writes_what_still_collides_into_the_program(project) -> None:
