@@ -26,6 +26,7 @@ from fabflow.programs.ir import (
 )
 from fabflow.programs.motion_checks import configuration_of, program_checks
 from fabflow.programs.motions import OUTPUTS, PTP_SPEED, Action, Step, Waypoint
+from fabflow.programs.turns import settle_a1_turns
 from fabflow.programs.wrist_lin import MAX_DEVIATION_DEG
 from fabflow.project import Project
 from fabflow.robots.catalog import controller_profile, get_robot
@@ -119,6 +120,7 @@ def compile_program(
     config = configuration_of(robot, q)
     ptp = np.array([w.kind == "ptp" for w in waypoints], dtype=bool)
     via_home = np.r_[False, config[1:] != config[:-1]] & ptp
+    q, via_q = settle_a1_turns(robot, q, via_q, ptp, q_home, via_home)
     if waypoints:
         dist, angle = move_lengths(np.stack([w.T_world_tool for w in waypoints]))
     instructions: list[Instruction] = [_home_move(q_home, q_home, 0.0, robot, T_world_home)]
