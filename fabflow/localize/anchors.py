@@ -149,10 +149,16 @@ def _finite(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
-def target_sigma(project: Project) -> float:
-    """``uwb.target_sigma``, or :data:`DEFAULT_HDOP` x ``uwb.sigma`` (metres)."""
+def _setup(project: Project) -> UwbSetup:
+    """The project's ``localization.uwb`` (every caller here plans or checks UWB)."""
     setup = project.localization.uwb
     assert setup is not None
+    return setup
+
+
+def target_sigma(project: Project) -> float:
+    """``uwb.target_sigma``, or :data:`DEFAULT_HDOP` x ``uwb.sigma`` (metres)."""
+    setup = _setup(project)
     return DEFAULT_HDOP * setup.sigma if setup.target_sigma is None else setup.target_sigma
 
 
@@ -186,12 +192,6 @@ def _tags_fix_themselves(tags: np.ndarray, anchors: np.ndarray, sight: np.ndarra
     N = np.einsum("ta,tai,taj->tij", sight.astype(float), u, u)
     ev = np.linalg.eigvalsh(N)
     return bool(np.all(ev[:, 0] > ev[:, -1] / COND_LIMIT))
-
-
-def _setup(project: Project) -> UwbSetup:
-    setup = project.localization.uwb
-    assert setup is not None
-    return setup
 
 
 def ranging_zone(
@@ -283,8 +283,7 @@ def _information(
     nlos_prob_occluded`` through the structure); only the links ``ranged``
     (broadcast to ``sight``; default all) count.
     """
-    setup = project.localization.uwb
-    assert setup is not None
+    setup = _setup(project)
     P, T = tags.shape[:2]
     A = len(anchors)
     model = UwbErrorModel(sigma_1m=setup.sigma)
@@ -333,8 +332,7 @@ def check_anchors(
     ``planned``: the layout was planned; ``in_sight_possible``: ``(P,)`` the packages
     the planner could cover with ranges in sight (see :class:`AnchorCoverage`).
     """
-    setup = project.localization.uwb
-    assert setup is not None
+    setup = _setup(project)
     if anchors is None:
         ids, anchors = anchors_world(setup)
     else:
@@ -400,8 +398,7 @@ def plan_anchors(
     LocalizationError
         When no free ground is left for anchors.
     """
-    setup = project.localization.uwb
-    assert setup is not None
+    setup = _setup(project)
     xy = free_ground(project, elements, plan, setup.anchor_spacing, ANCHOR_CLEARANCE)
     if len(xy) == 0:
         raise LocalizationError(
@@ -526,8 +523,7 @@ def layout_anchors(
         When the anchors, given or planned, leave a station uncovered
         (:func:`coverage_error`).
     """
-    setup = project.localization.uwb
-    assert setup is not None
+    setup = _setup(project)
     if setup.anchors:
         coverage = check_anchors(project, plan, elements)
     else:

@@ -41,9 +41,9 @@ from fabflow.positioning.integrity import (
 )
 from fabflow.positioning.uwb import COND_LIMIT
 from fabflow.positioning.uwb_platform_model import (
-    platform_gauss_newton,
     platform_information,
     platform_jacobian,
+    platform_newton,
     platform_ranges,
     rotz,
 )
@@ -123,7 +123,7 @@ class PlatformAdjustment:
 
     def fit(self, use: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, int, bool]:
         """Damped Newton over the ranges ``use`` from ``start``: state, iterations, converged."""
-        return platform_gauss_newton(
+        return platform_newton(
             self.anchors, self.lever_arms, self.d[use], self.s[use], self.tag_idx[use],
             self.anc_idx[use], start, self.heading_prior, self.max_iter,
         )  # fmt: skip

@@ -80,7 +80,7 @@ def platform_information(
     return info
 
 
-def platform_gauss_newton(
+def platform_newton(
     A: np.ndarray,
     L: np.ndarray,
     d: np.ndarray,

@@ -31,7 +31,7 @@ from fabflow.programs.wrist_lin import MAX_DEVIATION_DEG
 from fabflow.project import Project
 from fabflow.robots.catalog import controller_profile, get_robot
 from fabflow.robots.chain import RobotModel
-from fabflow.tasks.targets import home_configuration
+from fabflow.tasks.targets import T_base_home_tool, home_configuration
 
 
 def _drop_unreachable_optional(
@@ -109,7 +109,7 @@ def compile_program(
     T_base_world = np.linalg.inv(T_world_base)
     T_flange_tool = project.robot.tool.T_flange_tool.matrix()
     q_home = home_configuration(project)
-    T_world_home = T_world_base @ robot.fk(q_home) @ T_flange_tool
+    T_world_home = T_world_base @ T_base_home_tool(project)
     steps = _drop_unreachable_optional(steps, robot, T_base_world, T_flange_tool)
     waypoints = [s for s in steps if isinstance(s, Waypoint)]
     q, via_q, via_T, slowdown, wrist = solve_moves(
