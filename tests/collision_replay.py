@@ -236,15 +236,23 @@ def replay(
     # the tool's height at the end of every run, and the runs down onto the bed:
     # the linear runs right before a release that end at the place's height
     last_q = np.array([rows[b - 1][0] for b in ends]).reshape(len(ends), -1)
-    end_z = (T_world_base @ opw_fk(robot, last_q)[1] @ T_flange_tool)[:, 2, 3]
+    end_p = (T_world_base @ opw_fk(robot, last_q)[1] @ T_flange_tool)[:, :3, 3]
+    end_z = end_p[:, 2]
+    # a joint run straight down from the run before (a descent through the wrist
+    # singularity) is a way onto the bed too
+    drop = np.diff(end_p, axis=0)
+    down = np.r_[False, (np.hypot(drop[:, 0], drop[:, 1]) <= SEAT_HEIGHT) & (drop[:, 2] < 0)]
     on_bed = np.zeros(len(starts), dtype=bool)
     for r, b in enumerate(ends):
         if rows[b - 1][4] and (b == len(rows) or not rows[b][4]):  # released after run r
             k = r
-            while k >= 0 and rows[starts[k]][1] == "lin" and rows[starts[k]][4]:
-                if abs(end_z[k] - end_z[r]) > SEAT_HEIGHT:
+            while k >= 0 and rows[starts[k]][4]:
+                joint = rows[starts[k]][1] != "lin"
+                if (joint and not down[k]) or abs(end_z[k] - end_z[r]) > SEAT_HEIGHT:
                     break
                 on_bed[k] = True
+                if joint:  # the way down ends the way onto the bed
+                    break
                 k -= 1
     for r, (a, b) in enumerate(zip(starts, ends, strict=True)):
         _, kind, element, label, grip = rows[a]

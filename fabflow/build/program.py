@@ -53,6 +53,11 @@ def stage_program(ctx: BuildContext) -> None:
             "linear moves with the wrist interpolated",
             sum(c.get("wrist_interpolated", 0) for c in checks),
         )
+        ctx.add(
+            "program",
+            "linear moves made joint moves at the wrist singularity",
+            sum(c.get("joint_through_wrist", 0) for c in checks),
+        )
         if any("collision_moves" in c for c in checks):
             colliding = [p.name for p in programs if p.checks.get("collision_moves")]
             ctx.add(

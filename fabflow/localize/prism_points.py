@@ -49,22 +49,29 @@ blocks the first: the set-up planner plans for the same list."""
 
 
 def prism_workspace(
-    model: str, T_flange_tool: np.ndarray, z_min: float
+    model: str, T_flange_tool: np.ndarray, z_min: float, front: tuple[float, float] = (1.0, 0.0)
 ) -> tuple[PrismReach, Workspace]:
     """The robot's prism reach and the workspace the prism points are chosen in.
 
     The workspace is the reach sphere about the shoulder, above ``z_min`` (base
-    frame, metres), with the robot's exact reach test; its top is capped at the
-    highest reachable point in front of the robot (5 cm margin), because the top
-    of the sphere is out of reach with the tool held down.
+    frame, metres) and in front of the robot (``front``, see
+    :func:`platform_front`), with the robot's exact reach test; its top is
+    capped at the highest reachable point in front of the robot (5 cm margin),
+    because the top of the sphere is out of reach with the tool held down.
     """
     reach = prism_reach(model, T_flange_tool)
     robot = reach.robot
     shoulder = robot.frames(np.zeros(robot.dof))[1][:3, 3]
-    ws = Workspace(center=(0.0, 0.0, float(shoulder[2])), reach=float(robot.reach), z_min=z_min)
+    ws = Workspace(
+        center=(0.0, 0.0, float(shoulder[2])),
+        reach=float(robot.reach),
+        z_min=z_min,
+        front=front,
+    )
     x = np.arange(0.1, ws.radius, 0.05)
     z = np.arange(z_min, ws.center[2] + ws.radius, 0.05)
     grid = np.stack(np.meshgrid(x, [0.0], z, indexing="ij"), axis=-1).reshape(-1, 3)
+    grid[:, :2] = x.repeat(len(z))[:, None] * np.asarray(front)
     ok = reach.reachable(grid)
     if not ok.any():
         raise LocalizationError(f"{model}: no prism position above z = {z_min} m is reachable")
@@ -72,13 +79,25 @@ def prism_workspace(
     return reach, replace(ws, reachable=reach.reachable, z_max=z_max)
 
 
+def platform_front(project: Project) -> tuple[float, float]:
+    """The platform's front (its +x) as a unit vector in the robot's base frame: where
+    the prism points go (paper 001 puts them in front of the robot, ``x > 0``; an arm
+    mounted turned on its platform has its own +x towards the platform's back)."""
+    R = project.robot.platform.T_platform_base.matrix()[:3, :3]
+    ahead = R.T[:2, 0]
+    norm = float(np.linalg.norm(ahead))
+    if norm < 1e-9:  # the arm mounted on its side: its own +x
+        return (1.0, 0.0)
+    return (float(ahead[0] / norm), float(ahead[1] / norm))
+
+
 @functools.lru_cache(maxsize=16)
 def _robot_workspace(
-    model: str, tool: bytes, z_min: float
+    model: str, tool: bytes, z_min: float, front: tuple[float, float]
 ) -> tuple[PrismReach, Workspace, np.ndarray]:
-    """:func:`prism_workspace` and its reachable pool grid, once per robot, tool and
-    ``z_min`` (``tool``: the 4x4 TCP's bytes)."""
-    reach, ws = prism_workspace(model, np.frombuffer(tool).reshape(4, 4), z_min)
+    """:func:`prism_workspace` and its reachable pool grid, once per robot, tool,
+    ``z_min`` and front (``tool``: the 4x4 TCP's bytes)."""
+    reach, ws = prism_workspace(model, np.frombuffer(tool).reshape(4, 4), z_min, front)
     return reach, ws, reachable_workspace_grid(ws)
 
 
@@ -182,7 +201,7 @@ def station_points(
     T_world_base = np.asarray(T_world_base, dtype=float)
     T_flange_tool = np.ascontiguousarray(project.robot.tool.T_flange_tool.matrix(), dtype=float)
     reach, ws, pool_grid = _robot_workspace(
-        project.robot.model, T_flange_tool.tobytes(), float(setup.z_min)
+        project.robot.model, T_flange_tool.tobytes(), float(setup.z_min), platform_front(project)
     )
     if boxes_world is None:
         T_box, extents = element_boxes(built)
@@ -245,7 +264,8 @@ def _three_point_points(
     """``P1, P1 + d x, P1 + d y`` with ``P1`` at its default place, or at the nearest
     place on a grid of :data:`THREE_POINT_SEARCH_SPACING` where all three are clear."""
     c = np.asarray(ws.center)
-    p1 = c + np.array([0.55 * ws.radius - 0.5 * d, -0.5 * d, 0.0])
+    ahead = np.r_[ws.front, 0.0]
+    p1 = c + 0.55 * ws.radius * ahead - np.array([0.5 * d, 0.5 * d, 0.0])
     P = three_point_base_points(p1, d)
     if clear_mask(P, ws, boxes, rules).all():
         return P

@@ -40,7 +40,12 @@ class Workspace:
     reach
         Reach sphere radius ``r`` (metres).
     x_min
-        Points must have ``x > x_min`` (in front of the robot).
+        Points must lie more than ``x_min`` in front of the robot: ``x > x_min``
+        in the paper, along ``front`` in general.
+    front
+        Unit vector ``(x, y)`` in the base frame pointing to the robot's front:
+        the paper's ``(1, 0)``; where the arm is mounted turned on its platform,
+        the platform's front, away from the platform and its magazine.
     z_min
         Points must have ``z > z_min`` (above the ground or deck).
     z_max
@@ -58,6 +63,7 @@ class Workspace:
     center: tuple[float, float, float] = (0.0, 0.0, 1.0)
     reach: float = 2.55
     x_min: float = 0.0
+    front: tuple[float, float] = (1.0, 0.0)
     z_min: float = 0.0
     z_max: float = float("inf")
     margin: float = 0.1
@@ -76,7 +82,7 @@ class Workspace:
         ok = (
             (r <= self.radius + 1e-6)
             & (r >= self.min_radius)
-            & (p[..., 0] > self.x_min)
+            & (p[..., :2] @ np.asarray(self.front) > self.x_min)
             & (p[..., 2] > self.z_min)
             & (p[..., 2] < self.z_max)
         )
@@ -129,6 +135,7 @@ def optimal_points(
     if n < 3:
         raise InputError(f"need at least 3 localization points, got {n}")
     c = np.asarray(workspace.center, dtype=float)
+    front = np.asarray(workspace.front, dtype=float)
     rad = workspace.radius - 1e-6
     eps = 1e-3
 
@@ -145,7 +152,7 @@ def optimal_points(
         return np.concatenate(
             [
                 rad**2 - np.einsum("ni,ni->n", d, d),
-                P[:, 0] - workspace.x_min - eps,
+                P[:, :2] @ front - workspace.x_min - eps,
                 P[:, 2] - workspace.z_min - eps,
                 np.minimum(workspace.z_max - eps - P[:, 2], 1e6),
             ]
@@ -156,7 +163,7 @@ def optimal_points(
         Jc = np.zeros((4 * n, n, 3))
         rows = np.arange(n)
         Jc[rows, rows] = -2.0 * (P - c)
-        Jc[n + rows, rows, 0] = 1.0
+        Jc[n + rows, rows, :2] = front
         Jc[2 * n + rows, rows, 2] = 1.0
         Jc[3 * n + rows, rows, 2] = -1.0
         return Jc.reshape(4 * n, 3 * n)
@@ -194,7 +201,7 @@ def sample_workspace(workspace: Workspace, n: int, rng: np.random.Generator) -> 
             return out[:n]
     raise LocalizationError(
         f"the workspace (reach {workspace.reach} m about {workspace.center}, "
-        f"z > {workspace.z_min}, x > {workspace.x_min}) is empty"
+        f"z > {workspace.z_min}, {workspace.x_min} m in front along {workspace.front}) is empty"
     )
 
 

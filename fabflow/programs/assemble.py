@@ -2,8 +2,9 @@
 
 :func:`compile_program` solves every waypoint of a work package's motion
 (:mod:`fabflow.programs.feasibility`), keeps one arm configuration where it can
-(a change goes through HOME), times every move and attaches the program's
-checks (:mod:`fabflow.programs.motion_checks`).
+(a change goes through HOME, except on a linear move made a joint move at the
+wrist singularity), times every move and attaches the program's checks
+(:mod:`fabflow.programs.motion_checks`).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from fabflow.programs.ir import (
 from fabflow.programs.motion_checks import configuration_of, program_checks
 from fabflow.programs.motions import OUTPUTS, PTP_SPEED, Action, Step, Waypoint
 from fabflow.programs.turns import settle_a1_turns
-from fabflow.programs.wrist_lin import MAX_DEVIATION_DEG
+from fabflow.programs.wrist_lin import MAX_DEVIATION_DEG, MAX_JOINT_BOW
 from fabflow.project import Project
 from fabflow.robots.catalog import controller_profile, get_robot
 from fabflow.robots.chain import RobotModel
@@ -112,11 +113,13 @@ def compile_program(
     T_world_home = T_world_base @ T_base_home_tool(project)
     steps = _drop_unreachable_optional(steps, robot, T_base_world, T_flange_tool)
     waypoints = [s for s in steps if isinstance(s, Waypoint)]
-    q, via_q, via_T, slowdown, wrist = solve_moves(
+    q, via_q, via_T, slowdown, wrist, joint = solve_moves(
         waypoints, robot.name, T_base_world, T_flange_tool, q_start=q_home, q_end=q_home
     )
     # A change of configuration between two targets goes through HOME: a
     # joint-space swing between configurations sweeps through unknown space.
+    # Not so a short linear move made a joint move through A5 = 0: its path is
+    # the line's, bowed by millimetres, and checked as it is.
     config = configuration_of(robot, q)
     ptp = np.array([w.kind == "ptp" for w in waypoints], dtype=bool)
     via_home = np.r_[False, config[1:] != config[:-1]] & ptp
@@ -153,10 +156,14 @@ def compile_program(
         else:
             duration = max(dist[k - 1] / step.speed, angle[k - 1] / TOOL_ROTATION_SPEED)
             duration *= slowdown[k]
+            if joint[k]:  # the axis speed that takes the line's time
+                full = float(np.max(np.abs(q[k] - q_from) / robot.velocity_limits))
+                speed = min(max(full / max(duration, 1e-9), 0.01), PTP_SPEED)
+                duration = full / speed
         t += duration
         instructions.append(
             Move(
-                kind=step.kind,  # type: ignore[arg-type]
+                kind="ptp" if joint[k] else step.kind,  # type: ignore[arg-type]
                 T_world_tool=step.T_world_tool,
                 q=q[k],
                 speed=round(float(speed), 6),
@@ -186,6 +193,7 @@ def compile_program(
             joint=np.array([m.joint for m in executed]),
         )
         checks["wrist_interpolated"] = int(wrist.sum())
+        checks["joint_through_wrist"] = int(joint.sum())
         checks["changes_through_home"] = int(via_home.sum())
     if any(
         checks.get(k) for k in ("changes_inside_lin", "needless_swings", "configuration_changes")
@@ -203,6 +211,15 @@ def compile_program(
             "wrist interpolated": f"{checks['wrist_interpolated']} linear moves pass the wrist "
             "singularity with the wrist axes interpolated (orientation within "
             f"{MAX_DEVIATION_DEG:g} deg, the ends exact)",
+        }
+    if checks.get("joint_through_wrist"):
+        header = {
+            **header,
+            "joint moves through the wrist singularity": f"{checks['joint_through_wrist']} "
+            "linear moves made joint moves: a short one takes A5 through 0 (off the line by "
+            f"at most {1000 * MAX_JOINT_BOW:g} mm, orientation within {MAX_DEVIATION_DEG:g} "
+            "deg, exact for a block going into its seat); the tool drawn in keeps its "
+            "configuration with a half turn of A4 and A6",
         }
     slowed = slowdown > 1.0
     if slowed.any():

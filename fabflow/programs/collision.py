@@ -26,8 +26,10 @@ By design some bodies touch; these pairs are not contacts:
 * the held block on its *seat moves*, the linear move right after the grip (out
   of the magazine) and the linear moves right before the release that end at
   the place's height (down into its place between its neighbours, or, for a
-  block slid in, down onto its bed beside the place and along the bed into it):
-  there it may touch but not penetrate deeper than :data:`SEAT_TOLERANCE`.
+  block slid in, down onto its bed beside the place and along the bed into it;
+  a descent straight down made a joint move, where the line passes the wrist
+  singularity, counts as one): there it may touch but not penetrate deeper
+  than :data:`SEAT_TOLERANCE`.
 
 Broad phase in numpy (:mod:`fabflow.programs.collision_phases`: boxes of the
 bodies swept over chunks of samples against the obstacles' boxes through a plan
@@ -203,14 +205,20 @@ def program_motion(program: Program, robot: RobotModel, reach_beyond: float) -> 
         held_of.append(held)
         seat.append(held is not None and move.kind == "lin" and i in grip_at)
     # down onto the bed: the linear moves right before a release that end at the
-    # place's height (the place, and the lowering beside it of a block slid in)
+    # place's height (the place, and the lowering beside it of a block slid in),
+    # or a descent straight down made a joint move (through the wrist singularity)
     for i in release:
         z_place = moves[i - 1].T_world_tool[2, 3]
         k = i - 1
-        while k >= 0 and moves[k].kind == "lin" and held_of[k] is not None:
+        while k >= 0 and held_of[k] is not None:
+            down = moves[k].kind != "lin"
+            if down and not _straight_down(moves, k):
+                break
             if abs(moves[k].T_world_tool[2, 3] - z_place) > SEAT_HEIGHT:
                 break
             seat[k] = True
+            if down:  # the way down ends the way onto the bed
+                break
             k -= 1
     # stage 2c - 1 for the moves of the c-th completed element after its completion
     # (its retract), 2c from the next element's first move (see
@@ -239,6 +247,15 @@ def program_motion(program: Program, robot: RobotModel, reach_beyond: float) -> 
         ptp_travel=np.sum(dq * lever, axis=1),
         ptp_step=dq.max(axis=1, initial=0.0),
     )
+
+
+def _straight_down(moves: Sequence[Move], k: int) -> bool:
+    """Whether move ``k`` takes the tool straight down from where the move before ended
+    (within :data:`SEAT_HEIGHT` horizontally)."""
+    if k == 0:
+        return False
+    start, end = moves[k - 1].T_world_tool[:3, 3], moves[k].T_world_tool[:3, 3]
+    return bool(np.hypot(*(end[:2] - start[:2])) <= SEAT_HEIGHT and end[2] < start[2])
 
 
 def _counts(travel: np.ndarray, step: np.ndarray, max_travel: float, max_step: float) -> np.ndarray:

@@ -5,8 +5,12 @@ written. A PTP target takes the configuration from which the linear moves
 after it can be followed; a linear move must keep the configuration of its
 start and is sampled at most one controller step apart (2 cm / 0.015 rad), so
 that a joint limit, a configuration change or a joint speed beyond the
-robot's limits inside the line is found. Any failure is an
-:class:`~fabflow.errors.InfeasibleError` naming the element and the target.
+robot's limits inside the line is found. A line that passes the wrist
+singularity keeps its status with the wrist axes interpolated
+(:mod:`fabflow.programs.wrist_lin`) or, failing that (always, for a held block
+going into its seat), becomes a joint move through A5 = 0 where its path stays
+near the line. Any failure is an :class:`~fabflow.errors.InfeasibleError`
+naming the element and the target.
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ from fabflow.programs.motion_checks import configuration_of, wrap_angle, wrist_f
 from fabflow.programs.motions import Waypoint
 from fabflow.programs.wrist_lin import (
     MAX_DEVIATION_DEG,
+    MAX_JOINT_BOW,
+    joint_move_bow,
     same_status_ends,
     wrist_interpolated_path,
 )
@@ -45,6 +51,9 @@ turn on it, so that no sample is more than about 5 deg from the next."""
 AXIS_WEIGHTS = np.array([1.0, 1.0, 1.0, 0.25, 0.25, 0.25])
 """Weight of each axis' travel in the cost of a PTP move (per radian): the main
 axes move the arm's mass through the work area, the wrist axes only the tool."""
+SEATED_TURN = 1e-6
+"""Largest tool rotation (rad) off the straight move on a seated joint move: its
+orientation is exact up to rounding."""
 CONFIGURATION_CHANGE_COST = 2.0 * np.pi
 """Cost added to a PTP option on another configuration than the current one: a
 configuration is kept while any option on it can follow the motion."""
@@ -124,7 +133,9 @@ def solve_moves(
     T_flange_tool: np.ndarray,
     q_start: np.ndarray | None = None,
     q_end: np.ndarray | None = None,
-) -> tuple[np.ndarray, list[np.ndarray | None], list[np.ndarray | None], np.ndarray, np.ndarray]:
+) -> tuple[
+    np.ndarray, list[np.ndarray | None], list[np.ndarray | None], np.ndarray, np.ndarray, np.ndarray
+]:
     """Joint configurations for every waypoint, with linear moves checked along the line.
 
     Parameters
@@ -155,6 +166,15 @@ def solve_moves(
     wrist
         (n,) bool: linear moves that pass the wrist singularity with the wrist
         axes interpolated (:mod:`fabflow.programs.wrist_lin`), their status kept.
+    joint
+        (n,) bool: linear moves through the wrist singularity made joint moves.
+        A short one that neither the straight nor the wrist-interpolated move can
+        pass (a ``seated`` one: that the straight move cannot) takes A5 through 0,
+        its bow off the line within :data:`~fabflow.programs.wrist_lin.MAX_JOINT_BOW`
+        and its orientation within
+        :data:`~fabflow.programs.wrist_lin.MAX_DEVIATION_DEG` (a seated one's
+        exact, A1, A4 and A6 standing still); a ``free`` one keeps its
+        configuration with a half turn of A4 and A6, whatever its path.
 
     Raises
     ------
@@ -165,7 +185,8 @@ def solve_moves(
     robot = get_robot(robot_name)
     n = len(waypoints)
     if n == 0:
-        return np.zeros((0, robot.dof)), [], [], np.ones(0), np.zeros(0, dtype=bool)
+        empty = np.zeros(0, dtype=bool)
+        return np.zeros((0, robot.dof)), [], [], np.ones(0), empty, empty.copy()
     T_tool_flange = np.linalg.inv(np.asarray(T_flange_tool, dtype=float))
     T_world_tool = np.stack([w.T_world_tool for w in waypoints])
     flat, stops = sample_linear_moves(T_world_tool, np.array([w.kind == "lin" for w in waypoints]))
@@ -189,6 +210,7 @@ def solve_moves(
     via_q: list[np.ndarray | None] = [None] * n
     via_T: list[np.ndarray | None] = [None] * n
     wrist = np.zeros(n, dtype=bool)
+    joint = np.zeros(n, dtype=bool)
     starts = np.r_[0, stops[:-1]]
 
     def follow(i: int, q_prev: np.ndarray, branch: int) -> tuple[np.ndarray, int, float]:
@@ -212,11 +234,12 @@ def solve_moves(
 
     def follow_chain(
         i: int, end: int, q_i: np.ndarray, branch: int, wrist_ok: bool
-    ) -> tuple[list[tuple[np.ndarray, float, np.ndarray | None]], bool]:
+    ) -> tuple[list[tuple[np.ndarray, float, np.ndarray | None, bool]], bool]:
         """The linear moves after PTP ``i`` from ``q_i``; whether one takes A5 through 0.
 
-        Each move is ``(joint path, slowdown, samples)``: ``samples`` are the tool
-        poses (world) of a wrist-interpolated move's path, None for the others.
+        Each move is ``(joint path, slowdown, samples, joint)``: ``samples`` are the
+        tool poses (world) of a wrist-interpolated move's path, None for the
+        others; ``joint``: made a joint move (:func:`_as_joint_move`).
         """
         chain = []
         q_chain = q_i
@@ -224,15 +247,48 @@ def solve_moves(
         for k in range(i + 1, end):
             path, branch, slow = follow(k, q_chain, branch)
             samples = None
+            as_joint = False
             if wrist_flips(np.vstack([q_chain, path])):
-                kept = _keep_status(k, q_chain) if wrist_ok else None
-                if kept is None:
-                    flips = True
-                else:
+                seated = waypoints[k].seated
+                kept = _keep_status(k, q_chain) if wrist_ok and not seated else None
+                if kept is not None:
                     path, branch, slow, samples = kept
-            chain.append((path, slow, samples))
+                elif wrist_ok and (q_joint := _as_joint_move(k, q_chain)) is not None:
+                    path, slow, as_joint = q_joint[None], 1.0, True
+                    row = stops[k] - 1
+                    same = _same_branch(q_all[row], q_joint) & valid[row]
+                    branch = int(np.argmax(same)) if same.any() else branch
+                else:
+                    flips = True
+            chain.append((path, slow, samples, as_joint))
             q_chain = path[-1]
         return chain, flips
+
+    def _as_joint_move(k: int, q_from: np.ndarray) -> np.ndarray | None:
+        """The end of linear move ``k`` as a joint move from ``q_from`` through A5 = 0,
+        where its bow and turn off the line are within bounds
+        (:func:`~fabflow.programs.wrist_lin.joint_move_bow`; a ``seated`` move's
+        orientation exact, with A1, A4 and A6 standing still); None otherwise. A
+        ``free`` move (the empty tool drawn in) keeps its configuration instead,
+        with a half turn of A4 and A6, whatever its path (checked for collisions)."""
+        end_row = stops[k] - 1
+        ends = robot.nearest_turn(q_all[end_row][valid[end_row]], q_from)
+        ends = ends[robot.within_limits(ends)]
+        # the wrist only flips: the main axes move as little as the line asks
+        ends = ends[np.abs(ends[:, :3] - q_from[:3]).max(axis=1) < MAX_JOINT_STEP]
+        ends = ends[np.argsort(np.abs(ends - q_from).max(axis=1), kind="stable")]
+        if waypoints[k].free and not waypoints[k].seated:
+            same = configuration_of(robot, ends) == configuration_of(robot, q_from[None])[0]
+            return ends[same][0] if same.any() else None
+        seated = waypoints[k].seated
+        if seated:  # A2, A3 and A5 alone turn, about parallel axes
+            ends = ends[np.abs(ends[:, [0, 3, 5]] - q_from[[0, 3, 5]]).max(axis=1) < 1e-6]
+        turn = SEATED_TURN if seated else np.radians(MAX_DEVIATION_DEG)
+        for q_end in ends:
+            bow, deviation = joint_move_bow(robot, q_from, q_end, T_flange_tool)
+            if bow <= MAX_JOINT_BOW and deviation <= turn:
+                return q_end
+        return None
 
     def _keep_status(
         k: int, q_from: np.ndarray
@@ -302,8 +358,9 @@ def solve_moves(
         chosen = flipping = None
         # First a chain on which no linear move takes A5 through 0; failing that,
         # one whose flipping moves can keep their status with the wrist axes
-        # interpolated (:mod:`fabflow.programs.wrist_lin`); failing that too, the
-        # cheapest chain, its flips counted by the program's checks.
+        # interpolated (:mod:`fabflow.programs.wrist_lin`) or be made joint moves
+        # (:func:`_as_joint_move`); failing that too, the cheapest chain, its
+        # flips counted by the program's checks.
         for wrist_ok in (False, True):
             for q_i, branch in options:
                 try:
@@ -329,15 +386,16 @@ def solve_moves(
             if same.any():
                 current = int(np.argmax(same))
         q_out[i] = q_prev = q_i
-        for k, (path, slow, samples) in zip(range(i + 1, end), chain, strict=True):
+        for k, (path, slow, samples, as_joint) in zip(range(i + 1, end), chain, strict=True):
             q_out[k] = q_prev = path[-1]
             slowdown[k] = slow
             wrist[k] = samples is not None
+            joint[k] = as_joint
             if len(path) > 1:
                 via_q[k] = path[:-1]
                 via_T[k] = flat[starts[k] : stops[k] - 1] if samples is None else samples[:-1]
         i = end
-    return q_out, via_q, via_T, slowdown, wrist
+    return q_out, via_q, via_T, slowdown, wrist, joint
 
 
 def _line_samples(T_from: np.ndarray, T_to: np.ndarray, count: int) -> np.ndarray:

@@ -22,7 +22,7 @@ import numpy as np
 
 from fabflow.programs.motion_checks import configuration_of
 from fabflow.robots.chain import RobotModel
-from fabflow.transforms.so3 import log_so3, skew
+from fabflow.transforms.so3 import exp_so3, log_so3, skew
 
 MAX_DEVIATION_DEG = 2.0
 """Largest tool orientation deviation (degrees) accepted on a wrist-interpolated
@@ -120,3 +120,51 @@ def wrist_interpolated_path(
     R = (robot.fk(q) @ T_flange_tool)[:, :3, :3]
     deviation = np.linalg.norm(log_so3(T_base_tool[:, :3, :3].transpose(0, 2, 1) @ R), axis=1)
     return q, float(deviation.max())
+
+
+MAX_JOINT_BOW = 0.005
+"""Largest distance (metres) of the tool centre point from the straight line on a
+short linear move made a joint move through A5 = 0 (:func:`joint_move_bow`)."""
+_BOW_SAMPLES = 33
+
+
+def joint_move_bow(
+    robot: RobotModel, q_from: np.ndarray, q_to: np.ndarray, T_flange_tool: np.ndarray
+) -> tuple[float, float]:
+    """How far a joint move strays from the straight move between the same ends.
+
+    Where neither the straight move nor the wrist-interpolated one can pass
+    the wrist singularity (A5 at 0), a short move can be made a joint move: a
+    controller takes A5 through 0 in a joint move, and on a short descent with
+    A1, A4 and A6 standing still the tool's bow off the line is a few
+    millimetres while its orientation stays (A2, A3 and A5 turn about parallel
+    axes).
+
+    Parameters
+    ----------
+    robot
+        A six-axis robot.
+    q_from, q_to
+        ``(6,)`` the move's ends (radians).
+    T_flange_tool
+        The tool centre point in the flange frame.
+
+    Returns
+    -------
+    bow, deviation
+        The largest distance of the tool centre point from the line between the
+        ends (metres) and the largest tool rotation off the geodesic between
+        the ends' orientations (radians), over the joint-interpolated path.
+    """
+    s = np.linspace(0.0, 1.0, _BOW_SAMPLES)[:, None]
+    T = robot.fk(q_from + s * (q_to - q_from)) @ T_flange_tool
+    p = T[:, :3, 3] - T[0, :3, 3]
+    chord = p[-1]
+    length = float(np.linalg.norm(chord))
+    along = p @ chord / length**2 if length > 0.0 else np.zeros(len(p))
+    bow = float(np.linalg.norm(p - along[:, None] * chord, axis=1).max())
+    R0 = T[0, :3, :3]
+    w = log_so3(R0.T @ T[-1, :3, :3])
+    R_line = R0 @ exp_so3(s * w)
+    deviation = np.linalg.norm(log_so3(R_line.transpose(0, 2, 1) @ T[:, :3, :3]), axis=1)
+    return bow, float(deviation.max())

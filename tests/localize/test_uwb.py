@@ -67,7 +67,7 @@ def test_an_anchor_left_out_is_written_without_nan() -> None:
     )
     T = np.eye(4)
     T[:3, :3] = exp_so3(np.array([0.0, 0.0, 0.7]))
-    T[:3, 3] = [2.0, 2.5, 1.1]
+    T[:3, 3] = [1.1, 1.7, 1.1]  # the platform stands 0.6 m ahead of the turned arm
     data = simulate_station(project, T, np.random.default_rng(0))
     ranges = data.ranges.copy()
     ranges[:, :, 2] += 0.5  # every range to A3 half a metre long (NLOS)

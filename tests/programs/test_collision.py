@@ -8,6 +8,7 @@ from collision_replay import opw_fk, replay
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from program_cases import CASES, PROJECT, make_pose, sample_program
+from program_cases import T_WORLD_BASE as CASES_BASE
 from program_readers import read_krl, read_rapid
 
 from fabflow.design.elements import Element
@@ -299,3 +300,31 @@ def test_check_collisions_takes_true_false_or_report(project, value) -> None:
 def test_check_collisions_rejects_anything_else(project) -> None:
     with pytest.raises(ValueError, match="check_collisions"):
         project.program.model_validate({"check_collisions": "sometimes"})
+
+
+def test_a_joint_descent_is_a_seat_move_and_the_replay_agrees(project) -> None:
+    # blocks end to end, low in front of the arm, each going down touching the one
+    # placed before it: a seat move, whether linear or, past the wrist singularity,
+    # a joint move straight down
+    course = [
+        Element(f"L{i}", "block", make_pose([3.2, 0.2 + 0.6 * i, 0.4], yaw=np.pi / 2),
+                extents=SIZE)
+        for i in range(3)
+    ]  # fmt: skip
+    program = checked_program("t", course, [], project, CASES_BASE, {})
+    assert program.checks["joint_through_wrist"] >= 1
+    stream = next(iter(write_json_stream(program).values()))
+    assert replay(stream, course, []) == []
+    # a neighbour 5 mm into the place of a block that goes down by a joint move:
+    # the seat move touches, it does not penetrate, by the check and by the replay
+    held = next(m.element for m in program.moves if m.kind == "ptp" and m.label == "place")
+    assert held != course[0].id  # it goes down beside a block placed before it
+    T = next(e.T_world_element for e in course if e.id == held).copy()
+    T[0, 3] += SIZE[1] - 0.005
+    intruder = Element("N", "block", T, extents=SIZE)
+    env = environment(project, CASES_BASE, [intruder], course)
+    assert (held, "place", "N") in {
+        (c.element, c.label, c.obstacle) for c in check_package(program, project, env, course)
+    }
+    found = replay(stream, [intruder, *course], ["N"])
+    assert any(c[:2] == (held, "place") and c[3] == "N" and c[4] < -0.001 for c in found)

@@ -14,7 +14,7 @@ from program_readers import read_krl, read_rapid
 from fabflow.design.elements import Element
 from fabflow.programs.assemble import compile_program
 from fabflow.programs.ir import Move, Program
-from fabflow.programs.motions import work_package_motion
+from fabflow.programs.motions import Waypoint, work_package_motion
 from fabflow.programs.writers import WRITERS
 from fabflow.project import load_project
 
@@ -57,13 +57,19 @@ def test_each_writer_marks_the_move_and_nothing_else(fmt: str, robot: str) -> No
 
 
 def test_a_real_wrist_move_reads_back_from_krl() -> None:
-    """Blocks low in front of a KR 60-3: two place descents pass the wrist singularity."""
+    """Blocks low in front of a KR 60-3: the place descents pass the wrist singularity.
+    Compiled as if the tool held nothing there (a held block goes by a joint move
+    instead, see tests/programs/test_motion_checks.py), they keep their status with
+    the wrist axes interpolated."""
     project = load_project(PROJECT)
     low = [
         Element(f"L{i}", "block", make_pose([2.9 + 0.1 * i, 0.5 + 0.2 * i, 0.3], yaw=0.3 * i))
         for i in range(6)
     ]
-    steps = work_package_motion(low, project, T_WORLD_BASE)
+    steps = [
+        dataclasses.replace(s, seated=False) if isinstance(s, Waypoint) else s
+        for s in work_package_motion(low, project, T_WORLD_BASE)
+    ]
     program = compile_program("low", steps, project, T_WORLD_BASE, {})
     flags = [m.wrist_interpolated for m in program.moves]
     assert sum(flags) >= 1
