@@ -42,7 +42,6 @@ from fabflow.positioning.uwb import COND_LIMIT, anchor_geometry_problem
 from fabflow.positioning.uwb_platform import COVERAGE_MARGIN, outside_hull
 from fabflow.project import Project, UwbSetup
 from fabflow.robots import platform
-from fabflow.sensors.uwb import UwbErrorModel
 from fabflow.tasks.plan import Plan, Station
 from fabflow.transforms.se3 import inv_T
 
@@ -286,7 +285,7 @@ def _information(
     setup = _setup(project)
     P, T = tags.shape[:2]
     A = len(anchors)
-    model = UwbErrorModel(sigma_1m=setup.sigma)
+    model = setup.error_model()
     diff = tags[:, :, None, :] - anchors[None, None]  # (P, T, A, 3)
     dist = np.linalg.norm(diff, axis=-1)
     u = diff / np.maximum(dist, 1e-9)[..., None]

@@ -28,7 +28,6 @@ from fabflow.positioning.uwb_platform import (
 from fabflow.project import Project, UwbSetup
 from fabflow.robots import platform
 from fabflow.sensors.uwb import (
-    UwbErrorModel,
     calibration_campaign,
     draw_bias,
     segments_occluded,
@@ -78,8 +77,9 @@ def localize_station(
     :func:`simulate_station` then :func:`estimate_station`: the platform stands
     still for ``uwb.dwell_s`` seconds at the true pose; its tags (``uwb.tags``,
     platform frame) range to every anchor at ``uwb.rate_hz`` with the simulator's
-    error model (:class:`fabflow.sensors.uwb.UwbErrorModel` with ``sigma_1m =
-    uwb.sigma``): distance-dependent noise, a per-anchor linear bias (fitted by a
+    error model (``uwb.error_model()``): distance-dependent noise, the
+    position-dependent multipath of each link (``uwb.multipath_sigma``, which
+    the dwell does not average out), a per-anchor linear bias (fitted by a
     simulated calibration campaign and corrected), 2 % NLOS outliers, and NLOS
     with probability 0.5 on lines of sight blocked by ``built`` blocks.
 
@@ -149,7 +149,7 @@ def simulate_station(
     L = np.asarray(setup.tags, dtype=float)
     tags_world = points_in_world(T_world_platform, L)
 
-    model = UwbErrorModel(sigma_1m=setup.sigma)
+    model = setup.error_model()
     bias = draw_bias(len(ids), model, rng)
     cal = RangeCalibration.fit(*calibration_campaign(model, bias, rng))
 
@@ -217,7 +217,7 @@ def estimate_station(
     A = data.anchors_true if anchors is None else np.asarray(anchors, dtype=float)
     T_platform_base = project.robot.platform.T_platform_base.matrix()
     L = np.asarray(setup.tags, dtype=float)
-    model = UwbErrorModel(sigma_1m=setup.sigma)
+    model = setup.error_model()
     cal = data.calibration
     ranges = cal.apply(data.ranges)
     rej = reject_outliers_static(ranges, model.sigma(ranges))
@@ -231,6 +231,7 @@ def estimate_station(
         method=method,
         heading_prior=heading_prior,
         anchor_bias_sigma=cal.bias_sigma(np.where(np.isfinite(first_guess), first_guess, 0.0)),
+        link_sigma=model.field_sigma,
         alpha=project.localization.integrity.alpha,
         anchor_ids=ids,
         base_lever=T_platform_base[:3, 3],

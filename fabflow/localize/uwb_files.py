@@ -52,7 +52,6 @@ from fabflow.positioning.uwb_platform import (
 from fabflow.project import UwbSetup, format_loc
 from fabflow.robots import platform
 from fabflow.schema import PoseSpec
-from fabflow.sensors.uwb import UwbErrorModel
 from fabflow.transforms.se3 import compose_covariance
 from fabflow.transforms.so3 import matrix_from_quat, skew
 from fabflow.yaml_input import read_yaml
@@ -266,7 +265,7 @@ def _localize(
         ids,
         str(anchors_yaml),
     )
-    sigma = UwbErrorModel(sigma_1m=setup.sigma).sigma
+    sigma = setup.error_model().sigma
     epochs = cal.apply(log.epochs(len(L), len(ids)))
     quality: dict[str, Any] = {
         "n_ranges": int(log.range.size),
@@ -321,6 +320,7 @@ def _static_pose(
         anchor_bias_sigma=np.full(len(A), setup.calibration_sigma),
         anchor_ids=anchor_ids,
         base_lever=T_platform_base[:3, 3],
+        link_sigma=setup.error_model().field_sigma,
     )
     cov = platform_to_base_covariance(fix.T, T_platform_base, fix.covariance)
     quality = {

@@ -103,6 +103,7 @@ def locate_platform(
     alpha: float = ALPHA,
     anchor_ids: Sequence[str] | None = None,
     base_lever: np.ndarray | None = None,
+    link_sigma: Sigma | None = None,
 ) -> PlatformFix:
     """Estimate a standing platform's ``x, y, z, yaw`` from the ranges of its tags, and test it.
 
@@ -163,6 +164,13 @@ def locate_platform(
     base_lever
         (3,) the arm base in the platform frame (metres): the protection level is
         given for the base, which a heading error moves too.
+    link_sigma
+        Standard deviation (metres) of a range error every range of one tag-anchor
+        link shares (position-dependent multipath, which stays while the platform
+        stands: :mod:`fabflow.sensors.uwb_multipath`), constant or a function of
+        the range; added to each link mean's variance, since averaging over epochs
+        does not reduce it. Links are taken as independent (tags farther apart
+        than the multipath's correlation length).
 
     Raises
     ------
@@ -195,6 +203,8 @@ def locate_platform(
         A.shape[0],
     )
     link = links.pop("link")
+    if link_sigma is not None:
+        links["s"] = np.hypot(links["s"], sigma_of(link_sigma, links["d"]))
     adj = PlatformAdjustment(
         anchors=A,
         lever_arms=L,

@@ -24,6 +24,7 @@ import numpy as np
 
 from fabflow.errors import InputError
 from fabflow.positioning.boxes import Boxes, segments_clear
+from fabflow.sensors.uwb_multipath import MultipathField, draw_multipath
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,14 @@ class UwbErrorModel:
         deviation in metres, correlation time in seconds), as multipath produces
         while a tag moves slowly. Off by default (the paper's error model has none);
         used to test how much of a filter's gain survives correlated errors.
+    multipath_field_sigma, multipath_field_length, multipath_field_growth
+        Optional position-dependent multipath per anchor
+        (:mod:`fabflow.sensors.uwb_multipath`): an error that stays while the tag
+        stays and changes over ``multipath_field_length`` metres as it moves
+        (standard deviation in metres at 1 m, growing by the fraction
+        ``multipath_field_growth`` of it per metre of range, as the default
+        noise does). Drawn with the installation's bias (:func:`draw_bias`);
+        a calibration campaign meets it too. Off by default.
     """
 
     sigma_1m: float = 0.05
@@ -62,6 +71,9 @@ class UwbErrorModel:
     scale_sigma: float = 0.005
     multipath_sigma: float = 0.0
     multipath_tau: float = 1.0
+    multipath_field_sigma: float = 0.0
+    multipath_field_length: float = 0.5
+    multipath_field_growth: float = 0.2
 
     @classmethod
     def gaussian(cls, sigma: float) -> UwbErrorModel:
@@ -87,6 +99,9 @@ class UwbErrorModel:
             scale_sigma=self.scale_sigma,
             multipath_sigma=self.multipath_sigma,
             multipath_tau=self.multipath_tau,
+            multipath_field_sigma=self.multipath_field_sigma,
+            multipath_field_length=self.multipath_field_length,
+            multipath_field_growth=self.multipath_field_growth,
         )
 
     def sigma(self, distance: np.ndarray | float) -> np.ndarray:
@@ -94,13 +109,25 @@ class UwbErrorModel:
         d = np.asarray(distance, dtype=float)
         return np.maximum(self.sigma_1m + self.growth * (d - 1.0), 0.25 * self.sigma_1m)
 
+    def field_sigma(self, distance: np.ndarray | float) -> np.ndarray:
+        """Standard deviation (metres) of the position-dependent multipath at ``distance``
+        (metres): ``multipath_field_sigma`` at 1 m, growing by ``multipath_field_growth``
+        of that per metre (a weaker first path, more reflectors along a longer one),
+        never below a quarter of it."""
+        d = np.asarray(distance, dtype=float)
+        scale = np.maximum(1.0 + self.multipath_field_growth * (d - 1.0), 0.25)
+        return self.multipath_field_sigma * scale
+
 
 @dataclass(frozen=True)
 class AnchorBias:
-    """Per-anchor linear range bias: measured mean ``= offset + scale * distance``."""
+    """An installation's systematic range errors: per anchor a linear bias, measured
+    mean ``= offset + scale * distance``, and optionally the position-dependent
+    multipath (:class:`~fabflow.sensors.uwb_multipath.MultipathField`)."""
 
     offset: np.ndarray
     scale: np.ndarray
+    multipath: MultipathField | None = None
 
     @classmethod
     def none(cls, n_anchors: int) -> AnchorBias:
@@ -111,10 +138,12 @@ class AnchorBias:
 def draw_bias(n_anchors: int, model: UwbErrorModel, rng: np.random.Generator) -> AnchorBias:
     """Draw the unknown per-anchor bias of one UWB installation."""
     lo, hi = model.offset_range
-    return AnchorBias(
-        offset=rng.uniform(lo, hi, n_anchors),
-        scale=1.0 + model.scale_sigma * rng.standard_normal(n_anchors),
-    )
+    offset = rng.uniform(lo, hi, n_anchors)
+    scale = 1.0 + model.scale_sigma * rng.standard_normal(n_anchors)
+    multipath = None
+    if model.multipath_field_sigma > 0:
+        multipath = draw_multipath(n_anchors, 1.0, model.multipath_field_length, rng)
+    return AnchorBias(offset=offset, scale=scale, multipath=multipath)
 
 
 @dataclass(frozen=True)
@@ -178,6 +207,8 @@ def simulate_ranges(
     excess = np.where(nlos, rng.uniform(*model.nlos_excess, d.shape), 0.0)
     noise = model.sigma(d) * rng.standard_normal(d.shape)
     y = bias.offset + bias.scale * d + noise + excess
+    if bias.multipath is not None:  # drawn with unit deviation, scaled to the range's
+        y = y + bias.multipath(tags) * model.field_sigma(d)
     if model.multipath_sigma > 0:
         if dt is None:
             raise InputError("a multipath error model needs the sample spacing 'dt'")
@@ -215,7 +246,11 @@ def calibration_campaign(
     n = bias.offset.shape[0]
     d = np.broadcast_to(distances[:, None, None], (distances.size, samples, n))
     noise = model.sigma(d) * rng.standard_normal(d.shape)
-    return distances, bias.offset + bias.scale * d + noise
+    measured = bias.offset + bias.scale * d + noise
+    if model.multipath_field_sigma > 0:  # each spot's multipath, the same for its samples
+        spot = model.field_sigma(distances)[:, None] * rng.standard_normal((distances.size, n))
+        measured = measured + spot[:, None, :]
+    return distances, measured
 
 
 def segments_occluded(

@@ -1,0 +1,237 @@
+"""Sensor models against the papers' real-machine tables: fit on some, check on the others.
+
+UWB (paper 003). The simulator's range error is the white, distance-dependent
+noise, a per-anchor linear bias removed by the simulated calibration, NLOS
+outliers and, new, the position-dependent multipath of
+``fabflow.sensors.uwb_multipath`` (an error that stays while the tag stays and
+changes over ``multipath_field_length`` as it moves). Its one free parameter,
+the multipath's standard deviation, is fitted on the paper's **static** tables
+(1, 2 and 6: the error of each point's fix averaged over 30 or 200 epochs, so
+white noise has averaged away and what remains is what stays); with no further
+change the **moving** tables (3, 4, 5 and 7) are then simulated as held-out
+checks (LS, WLS-T and the UWB/IMU ESKF, per axis and the XOY projection).
+
+The paper's LS is read as its baseline on the ranges as the sensor gives them,
+and WLS-T and the ESKF as getting them calibrated (section 3.3.1, the "improved"
+pipeline of its figure 3). The paper does not say so in as many words; it is
+the reading that reproduces its static tables, where LS errs 2.2 times as much
+as WLS-T: fed the same calibrated ranges, LS errs about as much as WLS-T under
+every range error model tried here (1.1 times), while the per-anchor offsets
+the calibration removes (5-25 cm, the model's default, not fitted) give LS the
+paper's static errors on their own.
+
+Prints per table, estimator and axis the paper's value, the simulated one and
+their ratio, then the mean ratio per role; ``--json FILE`` writes the rows
+``{paper, table, estimator, axis, paper_value_m, simulated_value_m, role}``
+(``role``: ``fit`` or ``holdout``).
+
+    python benchmarks/sensor_models.py [--quick] [--seed N] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+from uwb import PAPER_MOVING, run_moving
+
+from fabflow.positioning.uwb import horizontal_ranges, locate
+from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers
+from fabflow.sensors.uwb import (
+    PAPER_ANCHORS_2D,
+    PAPER_ANCHORS_3D,
+    PAPER_POINTS_2D,
+    PAPER_POINTS_3D,
+    UwbErrorModel,
+    calibration_campaign,
+    draw_bias,
+    paper_trajectories,
+    simulate_ranges,
+)
+
+TABLE6_POINTS = np.array(
+    [[3.00, 5.05], [2.60, 2.30], [4.00, 4.90], [2.21, 0.60], [3.60, 0.35], [2.07, 5.25]]
+)
+"""Table 6 test points (the paper's site; its layout is not given: the 6.6 x 7.0 m
+layout of table 1 is assumed, tag at the anchors' 2.20 m)."""
+
+STATIC_TABLES = {
+    # table: (anchors, points, tag height or None for 3D, epochs per point, paper cm)
+    "1": (PAPER_ANCHORS_2D, PAPER_POINTS_2D, 2.20, 30, {"ls": (9.6, 7.5), "wls-t": (3.9, 2.7)}),
+    "2": (
+        PAPER_ANCHORS_3D,
+        PAPER_POINTS_3D,
+        None,
+        30,
+        {"ls": (12.1, 12.2, 23.1), "wls-t": (6.7, 4.9, 11.7)},
+    ),
+    "6": (PAPER_ANCHORS_2D, TABLE6_POINTS, 2.20, 200, {"ls": (5.3, 6.9), "wls-t": (2.4, 3.6)}),
+}
+MOVING_TABLES = {"rect2d": "3", "line3d": "4", "rect3d": "5", "u": "7"}
+TWO_D = {"rect2d": True, "line3d": False, "rect3d": False, "u": True}
+FIT_SIGMAS = (0.0, 0.01, 0.02, 0.025, 0.03, 0.035, 0.04, 0.05, 0.06, 0.08)
+"""Candidate multipath standard deviations (metres) of the fit."""
+
+
+def static_errors(
+    model: UwbErrorModel,
+    table: str,
+    installations: int,
+    rng: np.random.Generator,
+    ls_raw: bool = True,
+) -> dict[str, np.ndarray]:
+    """Mean absolute error per axis of each point's averaged fix, as the paper's static
+    tables report it, averaged over ``installations`` drawn installations. ``ls_raw``:
+    LS reads the ranges uncalibrated (the module docstring)."""
+    anchors, points, tag_z, epochs, _ = STATIC_TABLES[table]
+    dim = 2 if tag_z is not None else 3
+    A = anchors[:, :2] if tag_z is not None else anchors
+    tags = np.c_[points, np.full(len(points), tag_z)] if tag_z is not None else points
+    out: dict[str, list[np.ndarray]] = {"ls": [], "wls-t": []}
+    for _ in range(installations):
+        bias = draw_bias(len(anchors), model, rng)
+        cal = RangeCalibration.fit(*calibration_campaign(model, bias, rng))
+        truth = np.broadcast_to(tags[:, None, :], (len(tags), epochs, 3))
+        sim = simulate_ranges(anchors, truth, model, rng, bias=bias)
+        for method in out:
+            errors = []
+            for k in range(len(tags)):
+                # the paper's LS is its baseline on the ranges as measured (module docstring)
+                y = sim.ranges[k] if method == "ls" and ls_raw else cal.apply(sim.ranges[k])
+                y = reject_outliers(y, model.sigma(y)).ranges
+                if tag_z is not None:
+                    y = horizontal_ranges(y, anchors[:, 2], tag_z)
+                fix = locate(A, y, method=method, sigma=model.sigma)
+                mean = np.nanmean(fix.positions[fix.valid], axis=0)
+                errors.append(np.abs(mean - tags[k, :dim]))
+            out[method].append(np.mean(errors, axis=0))
+    return {m: np.mean(v, axis=0) for m, v in out.items()}
+
+
+def _log_misfit(rows: list[dict]) -> float:
+    ratios = np.array([r["simulated_value_m"] / r["paper_value_m"] for r in rows])
+    return float(np.mean(np.log(ratios) ** 2))
+
+
+def static_rows(model: UwbErrorModel, installations: int, seed: int) -> list[dict]:
+    rows = []
+    for table, (*_, paper) in STATIC_TABLES.items():
+        sim = static_errors(model, table, installations, np.random.default_rng(seed))
+        for method, values in paper.items():
+            for axis, (p, s) in enumerate(zip(values, sim[method], strict=False)):
+                rows.append(_row(table, method, "XYZ"[axis], p, s, "fit"))
+    return rows
+
+
+def moving_rows(model: UwbErrorModel, runs: int, seed: int, quick: bool) -> list[dict]:
+    rows = []
+    rng = np.random.default_rng(seed)
+    trajectories = paper_trajectories()
+    for group, table in MOVING_TABLES.items():
+        anchors = PAPER_ANCHORS_2D if TWO_D[group] else PAPER_ANCHORS_3D
+        for traj in trajectories[group][:1] if quick else trajectories[group]:
+            results = [
+                run_moving(rng, traj, anchors, TWO_D[group], False, model, ls_raw=True)[0]
+                for _ in range(runs)
+            ]
+            paper = PAPER_MOVING[traj.name]
+            for method in ("ls", "wls-t", "eskf"):
+                sim = np.mean([r[method] for r in results], axis=0)
+                axes = ["X", "Y", "XOY"] if TWO_D[group] else ["X", "Y", "Z", "XOY"]
+                n = len(paper[method])  # table 3 gives X and Y only
+                for axis, p, s in zip(axes[:n], paper[method], sim[:n], strict=True):
+                    rows.append(_row(f"{table} {traj.name}", method, axis, p, s, "holdout"))
+    return rows
+
+
+def _row(table: str, method: str, axis: str, paper_cm: float, sim_m: float, role: str) -> dict:
+    return {
+        "paper": "003",
+        "table": table,
+        "estimator": method,
+        "axis": axis,
+        "paper_value_m": round(paper_cm / 100.0, 4),
+        "simulated_value_m": round(float(sim_m), 5),
+        "role": role,
+    }
+
+
+def _print(rows: list[dict], title: str) -> None:
+    print(f"\n{title}")
+    print(
+        f"   {'table':<20} {'estimator':<7} {'axis':<4} {'paper cm':>9} {'sim cm':>8} {'ratio':>6}"
+    )
+    for r in rows:
+        ratio = r["simulated_value_m"] / r["paper_value_m"]
+        print(
+            f"   {r['table']:<20} {r['estimator']:<7} {r['axis']:<4} "
+            f"{100 * r['paper_value_m']:>9.1f} {100 * r['simulated_value_m']:>8.1f} {ratio:>6.2f}"
+        )
+
+
+def _summary(rows: list[dict]) -> str:
+    parts = []
+    for method in ("ls", "wls-t", "eskf"):
+        r = [x["simulated_value_m"] / x["paper_value_m"] for x in rows if x["estimator"] == method]
+        if r:
+            parts.append(f"{method} {np.mean(r):.2f} ({min(r):.2f}-{max(r):.2f})")
+    return ", ".join(parts)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer installations and runs")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path, help="write the rows as JSON")
+    parser.add_argument(
+        "--length", type=float, default=UwbErrorModel().multipath_field_length,
+        help="the multipath's correlation length (m; a sensitivity, not fitted)",
+    )  # fmt: skip
+    parser.add_argument("--sigma", type=float, help="skip the fit: this multipath sigma (m)")
+    args = parser.parse_args()
+    installations = 8 if args.quick else 24
+    base = dataclasses.replace(UwbErrorModel(), multipath_field_length=args.length)
+    print(
+        "UWB, paper 003. Fit: the multipath standard deviation on the static tables "
+        f"(mean over {installations} simulated installations; correlation length "
+        f"{base.multipath_field_length} m, not fitted)."
+    )
+    print("   sigma cm   static misfit (mean squared log ratio)   mean ratio per estimator")
+    fits = []
+    for sigma in FIT_SIGMAS if args.sigma is None else (args.sigma,):
+        model = dataclasses.replace(base, multipath_field_sigma=sigma)
+        rows = static_rows(model, installations, args.seed)
+        fits.append((_log_misfit(rows), sigma, rows))
+        print(f"   {100 * sigma:8.1f}   {_log_misfit(rows):10.3f}{'':30}{_summary(rows)}")
+    _, sigma, fit = min(fits, key=lambda f: f[0])
+    model = dataclasses.replace(base, multipath_field_sigma=sigma)
+    _print(fit, f"Static tables (fit): multipath sigma {100 * sigma:.1f} cm")
+    holdout = moving_rows(model, 1 if args.quick else 3, args.seed + 1, args.quick)
+    _print(holdout, "Moving tables (held out, the fitted model unchanged)")
+    before = moving_rows(base, 1 if args.quick else 3, args.seed + 1, args.quick)
+
+    def gap(ls_raw: bool) -> float:
+        """Mean over the static tables of the LS / WLS-T error ratio per axis."""
+        rng = np.random.default_rng(args.seed)
+        errors = [static_errors(model, t, installations, rng, ls_raw) for t in STATIC_TABLES]
+        return float(np.mean([np.mean(e["ls"] / e["wls-t"]) for e in errors]))
+
+    paper_gap = np.mean([np.mean(np.divide(*STATIC_TABLES[t][-1].values())) for t in STATIC_TABLES])
+    print(
+        f"\nStatic LS / WLS-T error: paper {paper_gap:.2f}; simulated with LS on the raw "
+        f"ranges {gap(True):.2f}, with LS fed the calibrated ranges too {gap(False):.2f}"
+    )
+    print("\nMean ratio simulated / paper, per estimator (min-max):")
+    print(f"   static, fit:                    {_summary(fit)}")
+    print(f"   moving, held out:               {_summary(holdout)}")
+    print(f"   moving, without the multipath:  {_summary(before)}")
+    if args.json:
+        args.json.write_text(json.dumps(fit + holdout, indent=1))
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
