@@ -25,9 +25,8 @@ from typing import Any
 import numpy as np
 
 from fabflow.robots.chain import RobotModel
+from fabflow.tasks.targets import SWING_MAIN_AXIS_DEG
 
-SWING_MAIN_AXIS_DEG = 90.0
-"""A PTP turning A2 or A3 by more than this (degrees) swings the arm over."""
 SWING_A1_EXCESS_DEG = 30.0
 """A PTP turning A1 this much (degrees) more than the wrist centre moves about it turns around."""
 _SAME_ANGLE = 1e-4

@@ -8,7 +8,9 @@
    which lift heights (:mod:`fabflow.tasks.stations`);
 4. few stations with short travel (:mod:`fabflow.tasks.cover`);
 5. the build order across stations and the lift height of every visit
-   (:mod:`fabflow.tasks.order`);
+   (:mod:`fabflow.tasks.order`), off the levels where a block's descent passes
+   the wrist singularity or the arm swings widely to reach it, where another
+   level reaches (:func:`_singular_lifts`);
 6. :class:`~fabflow.tasks.plan.WorkPackage` objects: one per stay of the
    platform at one lift height.
 
@@ -58,6 +60,7 @@ from fabflow.tasks.reachability import (
 from fabflow.tasks.split import split_wide_paths
 from fabflow.tasks.stations import Candidates, generate_candidates, lift_levels
 from fabflow.tasks.targets import (
+    SWING_MAIN_AXIS_DEG,
     T_base_pick_tool,
     block_approach,
     element_tool_frames,
@@ -333,14 +336,15 @@ def _work_packages(
     lifts: np.ndarray,
     ids: Sequence[str],
     T_targets: np.ndarray,
-    singular: dict[int, np.ndarray] | None = None,
+    singular: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[list[WorkPackage], float]:
     """One work package per stay at one lift height, and the total travel (metres).
 
     Station ids follow the order of first visit. ``singular`` gives per visit
-    (its index) the lift levels at which each element's descent is singular
-    (bit masks, :func:`_singular_lifts`): the lift avoids them where another
-    level reaches the element.
+    (its index) the lift levels at which each element's descent is singular and
+    those at which the arm swings widely to reach it (bit masks,
+    :func:`_singular_lifts`): the lift avoids the first, then the second, where
+    another level reaches the element.
     """
     first_visit: dict[int, int] = {}
     for v in visits:
@@ -352,8 +356,9 @@ def _work_packages(
     for k, v in enumerate(visits):
         c = int(chosen[v.station])
         masks = np.asarray(A_ch_r[v.station, v.elements].todense()).ravel().astype(np.int64)
-        if singular is not None and k in singular:
-            regular = masks & ~singular[k]
+        # the singular levels first, then the swinging ones, where another level reaches
+        for awkward in (singular or {}).get(k, ()):
+            regular = masks & ~awkward
             masks = np.where(regular != 0, regular, masks)
         levels = lift_bands(masks)
         cuts = np.flatnonzero(np.diff(levels)) + 1
@@ -394,8 +399,9 @@ def _singular_lifts(
     cands: Candidates,
     lifts: np.ndarray,
     work: Sequence[Element],
-) -> dict[int, np.ndarray]:
-    """Per visit, the lift levels at which each block's descent passes the wrist singularity.
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per visit, the lift levels at which each block's descent passes the wrist singularity,
+    and those at which the arm swings widely between the magazine and the block.
 
     A block goes straight down from its approach pose (:func:`block_approach`)
     onto its place by a linear move; where A5 changes sign, or comes within
@@ -403,9 +409,12 @@ def _singular_lifts(
     inverse kinematics branch that follows the whole descent and also reaches
     the magazine (a block's motion keeps one configuration), the controller
     would refuse the move (or the wrist axes must be interpolated, tilting the
-    block between its neighbours). Returns visit index -> ``(m,)`` int bit masks
-    over ``lifts`` (bit ``l``: singular at level ``l``) for the visit's
-    elements; a robot without six axes gets none.
+    block between its neighbours). A level swings where, on every branch left,
+    A2 or A3 turns more than 90 deg between the pick approach and the block's
+    approach pose (a wide swing, :mod:`fabflow.programs.motion_checks`). Returns
+    visit index -> two ``(m,)`` int bit masks over ``lifts`` (bit ``l``: singular,
+    swinging at level ``l``) for the visit's elements; a robot without six axes
+    gets none.
     """
     robot = get_robot(project.robot.model)
     if robot.dof != 6:
@@ -437,9 +446,30 @@ def _singular_lifts(
         flips = (np.sign(a5) != np.sign(a5[:, :, :1])).any(axis=2) | near
         bad = (valid & ~flips).sum(axis=-1) == 0
         bad &= valid.any(axis=-1)  # unreachable levels are the reach mask's business
-        masks = np.zeros(len(v.elements), dtype=np.int64)
-        masks[blocks] = (bad.astype(np.int64) << np.arange(len(lifts))[:, None]).sum(axis=0)
-        out[k] = masks
+        # the pick approach, the travel point above the block at its height (where the
+        # block comes from below it) and the approach pose (the descent's first sample)
+        T_pick_up = np.repeat(T_base_pick_tool(project)[None], len(blocks), axis=0)
+        T_pick_up[:, 2, 3] += up
+        q_pick, _ = robot.ik_batch(T_pick_up @ T_tool_flange)  # (blocks, branch, dof)
+        T_up = T[:, :, 0] @ np.linalg.inv(T_tool_flange)  # (L, blocks, 4, 4) tool poses
+        T_travel = T_up.copy()
+        T_travel[..., 2, 3] = np.maximum(T_up[..., 2, 3], T_pick_up[None, :, 2, 3])
+        q_travel, _ = robot.ik_batch((T_travel @ T_tool_flange).reshape(-1, 4, 4))
+        q_travel = q_travel.reshape(len(lifts), len(blocks), -1, robot.dof)
+        q_up = q.reshape(*shape[:3], -1, robot.dof)[:, :, 0]  # (L, blocks, branch, dof)
+        turn = np.maximum(
+            np.abs(q_travel[..., 1:3] - q_pick[None, :, :, 1:3]).max(axis=-1),
+            np.abs(q_up[..., 1:3] - q_travel[..., 1:3]).max(axis=-1),
+        )
+        turn = np.where(np.isfinite(turn), turn, np.inf)
+        calm = valid & ~flips & (turn <= np.radians(SWING_MAIN_AXIS_DEG))
+        swing = ~bad & ((valid & ~flips).any(axis=-1)) & ~calm.any(axis=-1)
+        masks = np.zeros((2, len(v.elements)), dtype=np.int64)
+        for row, flags in enumerate((bad, swing)):
+            masks[row, blocks] = (flags.astype(np.int64) << np.arange(len(lifts))[:, None]).sum(
+                axis=0
+            )
+        out[k] = (masks[0], masks[1])
     return out
 
 
