@@ -277,8 +277,9 @@ def _information(
     """Per package and anchor the expected Fisher information of one epoch of its
     ranges on the platform's ``x, y, z, yaw``, ``(P, A, 4, 4)``.
 
-    Each range has the simulator's distance-dependent noise and counts with the
-    chance it carries no NLOS excess (``1 - nlos_prob`` in sight, ``1 -
+    Each range has the simulator's distance-dependent noise and multipath (the
+    multipath is in every epoch, and is what a dwell does not average away) and
+    counts with the chance it carries no NLOS excess (``1 - nlos_prob`` in sight, ``1 -
     nlos_prob_occluded`` through the structure); only the links ``ranged``
     (broadcast to ``sight``; default all) count.
     """
@@ -292,7 +293,7 @@ def _information(
     clean = 1.0 - np.where(sight, model.nlos_prob, model.nlos_prob_occluded)
     if ranged is not None:
         clean = np.where(ranged, clean, 0.0)
-    weight = clean / model.sigma(dist) ** 2  # (P, T, A)
+    weight = clean / (model.sigma(dist) ** 2 + model.field_sigma(dist) ** 2)  # (P, T, A)
     # d range / d (x, y, z, yaw): the tag's lever turns with the platform's heading
     lever = tags - tags.mean(axis=1, keepdims=True)
     J = np.zeros((P, T, A, 4))

@@ -148,3 +148,22 @@ def test_without_sensor_noise_the_zones_stay_out_of_the_exact_localizer(cabin) -
     assert all(localizer_arguments(exact, "uwb", s, built) == {} for s, built in zoned)
     poses = localize_plan(exact, plan, elements, np.random.default_rng(0))
     assert all("exact" in est.integrity.checks for est, _ in poses.values())
+
+
+def test_multipath_raises_the_predicted_sigma_by_its_share_of_each_range(cabin) -> None:
+    """One epoch of ranges carries the multipath too: with ``multipath_sigma`` the
+    predicted sigma of every package grows, by no more than the largest factor
+    ``sqrt(1 + (field / noise)^2)`` any of its ranges gets, no less than the smallest."""
+    project, elements, plan = cabin
+    plain = check_anchors(project, plan, elements)
+    uwb = project.localization.uwb.model_copy(update={"multipath_sigma": 0.035})
+    noisy_project = project.model_copy(
+        update={"localization": project.localization.model_copy(update={"uwb": uwb})}
+    )
+    noisy = check_anchors(noisy_project, plan, elements)
+    model = uwb.error_model()
+    d = np.linspace(0.5, 15.0, 300)  # every range the cabin's tags and anchors make
+    factor = np.sqrt(1.0 + (model.field_sigma(d) / model.sigma(d)) ** 2)
+    ratio = noisy.sigma / plain.sigma
+    assert np.all(ratio >= factor.min() - 1e-9) and np.all(ratio <= factor.max() + 1e-9)
+    assert np.all(ratio > 1.0)
