@@ -71,7 +71,7 @@ def prism_workspace(
     x = np.arange(0.1, ws.radius, 0.05)
     z = np.arange(z_min, ws.center[2] + ws.radius, 0.05)
     grid = np.stack(np.meshgrid(x, [0.0], z, indexing="ij"), axis=-1).reshape(-1, 3)
-    grid[:, :2] = x.repeat(len(z))[:, None] * np.asarray(front)
+    grid[:, :2] = grid[:, :1] * np.asarray(front)  # along the front, not the base's x
     ok = reach.reachable(grid)
     if not ok.any():
         raise LocalizationError(f"{model}: no prism position above z = {z_min} m is reachable")

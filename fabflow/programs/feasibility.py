@@ -277,10 +277,10 @@ def solve_moves(
         # the wrist only flips: the main axes move as little as the line asks
         ends = ends[np.abs(ends[:, :3] - q_from[:3]).max(axis=1) < MAX_JOINT_STEP]
         ends = ends[np.argsort(np.abs(ends - q_from).max(axis=1), kind="stable")]
-        if waypoints[k].free and not waypoints[k].seated:
+        seated = waypoints[k].seated
+        if waypoints[k].free and not seated:
             same = configuration_of(robot, ends) == configuration_of(robot, q_from[None])[0]
             return ends[same][0] if same.any() else None
-        seated = waypoints[k].seated
         if seated:  # A2, A3 and A5 alone turn, about parallel axes
             ends = ends[np.abs(ends[:, [0, 3, 5]] - q_from[[0, 3, 5]]).max(axis=1) < 1e-6]
         turn = SEATED_TURN if seated else np.radians(MAX_DEVIATION_DEG)

@@ -18,7 +18,7 @@ differentiates nothing numerically.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -89,20 +89,7 @@ class UwbErrorModel:
 
     def without_outliers(self) -> UwbErrorModel:
         """The same model with the NLOS outliers switched off."""
-        return UwbErrorModel(
-            sigma_1m=self.sigma_1m,
-            growth=self.growth,
-            nlos_prob=0.0,
-            nlos_excess=self.nlos_excess,
-            nlos_prob_occluded=0.0,
-            offset_range=self.offset_range,
-            scale_sigma=self.scale_sigma,
-            multipath_sigma=self.multipath_sigma,
-            multipath_tau=self.multipath_tau,
-            multipath_field_sigma=self.multipath_field_sigma,
-            multipath_field_length=self.multipath_field_length,
-            multipath_field_growth=self.multipath_field_growth,
-        )
+        return replace(self, nlos_prob=0.0, nlos_prob_occluded=0.0)
 
     def sigma(self, distance: np.ndarray | float) -> np.ndarray:
         """Range noise standard deviation (metres) at ``distance`` (metres)."""

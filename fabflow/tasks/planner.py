@@ -10,7 +10,7 @@
 5. the build order across stations and the lift height of every visit
    (:mod:`fabflow.tasks.order`), off the levels where a block's descent passes
    the wrist singularity or the arm swings widely to reach it, where another
-   level reaches (:func:`_singular_lifts`);
+   level reaches (:func:`_avoided_lifts`);
 6. :class:`~fabflow.tasks.plan.WorkPackage` objects: one per stay of the
    platform at one lift height.
 
@@ -196,9 +196,9 @@ def plan_project(
         )
     visits = _visits(A, res.chosen, cands, work, idx_work, (src, dst), T_targets, ids)
     t_ord = time.perf_counter()
-    singular = _singular_lifts(project, visits, res.chosen, cands, lifts, work)
+    avoided = _avoided_lifts(project, visits, res.chosen, cands, lifts, work)
     packages, travel_total = _work_packages(
-        visits, A, res.chosen, cands, lifts, ids, T_targets, singular
+        visits, A, res.chosen, cands, lifts, ids, T_targets, avoided
     )
     t_end = time.perf_counter()
 
@@ -336,14 +336,14 @@ def _work_packages(
     lifts: np.ndarray,
     ids: Sequence[str],
     T_targets: np.ndarray,
-    singular: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+    avoided: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[list[WorkPackage], float]:
     """One work package per stay at one lift height, and the total travel (metres).
 
-    Station ids follow the order of first visit. ``singular`` gives per visit
+    Station ids follow the order of first visit. ``avoided`` gives per visit
     (its index) the lift levels at which each element's descent is singular and
     those at which the arm swings widely to reach it (bit masks,
-    :func:`_singular_lifts`): the lift avoids the first, then the second, where
+    :func:`_avoided_lifts`): the lift avoids the first, then the second, where
     another level reaches the element.
     """
     first_visit: dict[int, int] = {}
@@ -357,7 +357,7 @@ def _work_packages(
         c = int(chosen[v.station])
         masks = np.asarray(A_ch_r[v.station, v.elements].todense()).ravel().astype(np.int64)
         # the singular levels first, then the swinging ones, where another level reaches
-        for awkward in (singular or {}).get(k, ()):
+        for awkward in (avoided or {}).get(k, ()):
             regular = masks & ~awkward
             masks = np.where(regular != 0, regular, masks)
         levels = lift_bands(masks)
@@ -392,7 +392,7 @@ WRIST_MARGIN_DEG = 10.0
 few centimetres off its plan, which moves A5 by a few degrees there."""
 
 
-def _singular_lifts(
+def _avoided_lifts(
     project: Project,
     visits: Sequence[Visit],
     chosen: np.ndarray,
@@ -410,8 +410,9 @@ def _singular_lifts(
     the magazine (a block's motion keeps one configuration), the controller
     would refuse the move (or the wrist axes must be interpolated, tilting the
     block between its neighbours). A level swings where, on every branch left,
-    A2 or A3 turns more than 90 deg between the pick approach and the block's
-    approach pose (a wide swing, :mod:`fabflow.programs.motion_checks`). Returns
+    A2 or A3 turns more than 90 deg from the pick approach to the travel point
+    above the block at the pick height, or from there to the block's approach
+    pose (a wide swing, :mod:`fabflow.programs.motion_checks`). Returns
     visit index -> two ``(m,)`` int bit masks over ``lifts`` (bit ``l``: singular,
     swinging at level ``l``) for the visit's elements; a robot without six axes
     gets none.
@@ -451,7 +452,7 @@ def _singular_lifts(
         T_pick_up = np.repeat(T_base_pick_tool(project)[None], len(blocks), axis=0)
         T_pick_up[:, 2, 3] += up
         q_pick, _ = robot.ik_batch(T_pick_up @ T_tool_flange)  # (blocks, branch, dof)
-        T_up = T[:, :, 0] @ np.linalg.inv(T_tool_flange)  # (L, blocks, 4, 4) tool poses
+        T_up = T[:, :, 0] @ project.robot.tool.T_flange_tool.matrix()  # (L, blocks) tools
         T_travel = T_up.copy()
         T_travel[..., 2, 3] = np.maximum(T_up[..., 2, 3], T_pick_up[None, :, 2, 3])
         q_travel, _ = robot.ik_batch((T_travel @ T_tool_flange).reshape(-1, 4, 4))
@@ -463,12 +464,10 @@ def _singular_lifts(
         )
         turn = np.where(np.isfinite(turn), turn, np.inf)
         calm = valid & ~flips & (turn <= np.radians(SWING_MAIN_AXIS_DEG))
-        swing = ~bad & ((valid & ~flips).any(axis=-1)) & ~calm.any(axis=-1)
+        swing = (valid & ~flips).any(axis=-1) & ~calm.any(axis=-1)
+        level_bits = np.int64(1) << np.arange(len(lifts), dtype=np.int64)[:, None]
         masks = np.zeros((2, len(v.elements)), dtype=np.int64)
-        for row, flags in enumerate((bad, swing)):
-            masks[row, blocks] = (flags.astype(np.int64) << np.arange(len(lifts))[:, None]).sum(
-                axis=0
-            )
+        masks[:, blocks] = [(bad * level_bits).sum(axis=0), (swing * level_bits).sum(axis=0)]
         out[k] = (masks[0], masks[1])
     return out
 

@@ -576,7 +576,7 @@ def _near_singular_descents(project, plan, elements) -> int:
 def test_the_lift_keeps_block_descents_off_the_wrist_singularity(cabin, monkeypatch):
     project, elements, plan = cabin
     preferred = _near_singular_descents(project, plan, elements)
-    monkeypatch.setattr(planner, "_singular_lifts", lambda *args: {})
+    monkeypatch.setattr(planner, "_avoided_lifts", lambda *args: {})
     plain = plan_project(project, elements)
     before = _near_singular_descents(project, plain, elements)
     assert len(plan.work_packages) > len(plain.work_packages)  # more lift changes
