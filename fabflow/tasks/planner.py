@@ -10,7 +10,7 @@
 5. the build order across stations and the lift height of every visit
    (:mod:`fabflow.tasks.order`), off the levels where a block's descent passes
    the wrist singularity or the arm swings widely to reach it, where another
-   level reaches (:func:`_avoided_lifts`);
+   level or station reaches (:mod:`fabflow.tasks.awkward_lifts`);
 6. :class:`~fabflow.tasks.plan.WorkPackage` objects: one per stay of the
    platform at one lift height.
 
@@ -35,8 +35,8 @@ from fabflow.errors import InfeasibleError, InputError, UnsupportedError
 from fabflow.project import Project
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.geometry import shoulder_radius
-from fabflow.robots.platform import T_world_base
 from fabflow.robots.reach_model import ReachModel, reach_model
+from fabflow.tasks.awkward_lifts import awkward_levels, prefer_regular
 from fabflow.tasks.cover import CoverResult, select_stations
 from fabflow.tasks.order import (
     Visit,
@@ -60,10 +60,6 @@ from fabflow.tasks.reachability import (
 from fabflow.tasks.split import split_wide_paths
 from fabflow.tasks.stations import Candidates, generate_candidates, lift_levels
 from fabflow.tasks.targets import (
-    SWING_MAIN_AXIS_DEG,
-    T_base_pick_tool,
-    block_approach,
-    element_tool_frames,
     tool_frames,
 )
 from fabflow.tasks.verify import unreachable_targets
@@ -194,12 +190,10 @@ def plan_project(
             f"at least {res.lower_bound} are needed because elements "
             f"{list_ids([ids[i] for i in res.witnesses])} share no station"
         )
-    visits = _visits(A, res.chosen, cands, work, idx_work, (src, dst), T_targets, ids)
+    A_ch = _regular_reach(project, A[res.chosen].tocsr(), res.chosen, cands, lifts, work)
+    visits = _visits(A_ch, res.chosen, cands, work, idx_work, (src, dst), T_targets, ids)
     t_ord = time.perf_counter()
-    avoided = _avoided_lifts(project, visits, res.chosen, cands, lifts, work)
-    packages, travel_total = _work_packages(
-        visits, A, res.chosen, cands, lifts, ids, T_targets, avoided
-    )
+    packages, travel_total = _work_packages(visits, A_ch, res.chosen, cands, lifts, ids, T_targets)
     t_end = time.perf_counter()
 
     notes += _station_notes(res, len(cands), len(visits), reach, ids)
@@ -297,8 +291,24 @@ def _frames_to_reach(
     return T_frames[keep], owner[keep], T_targets, tilted
 
 
+def _regular_reach(
+    project: Project,
+    A_ch: sparse.csr_matrix,
+    chosen: np.ndarray,
+    cands: Candidates,
+    lifts: np.ndarray,
+    work: Sequence[Element],
+) -> sparse.csr_matrix:
+    """The chosen stations' reach without the lift levels at which a block is awkward to
+    build (:mod:`fabflow.tasks.awkward_lifts`) where another level or station reaches it."""
+    coo = A_ch.tocoo()
+    T_wp = np.stack([cands.T_world_platform(int(c)) for c in chosen])
+    singular, swinging = awkward_levels(project, T_wp, lifts, work, coo.row, coo.col, coo.data)
+    return prefer_regular(A_ch, singular, swinging)
+
+
 def _visits(
-    A: sparse.csr_matrix,
+    A_ch: sparse.csr_matrix,
     chosen: np.ndarray,
     cands: Candidates,
     work: Sequence[Element],
@@ -311,9 +321,9 @@ def _visits(
     src, dst = supports
     n = len(work)
     k = len(chosen)
-    A_ch = A[chosen].tocsc()
-    A_ch.sort_indices()
-    reach_sets = [A_ch.indices[A_ch.indptr[e] : A_ch.indptr[e + 1]] for e in range(n)]
+    A_csc = A_ch.tocsc()
+    A_csc.sort_indices()
+    reach_sets = [A_csc.indices[A_csc.indptr[e] : A_csc.indptr[e + 1]] for e in range(n)]
     layer = np.array([e.layer for e in work], dtype=np.int64)
     topo = topological_order(n, src, dst, layer)
     blocked_ch = cands.blocked(chosen)[:, idx_work].tocsr()
@@ -330,36 +340,28 @@ def _visits(
 
 def _work_packages(
     visits: Sequence[Visit],
-    A: sparse.csr_matrix,
+    A_ch: sparse.csr_matrix,
     chosen: np.ndarray,
     cands: Candidates,
     lifts: np.ndarray,
     ids: Sequence[str],
     T_targets: np.ndarray,
-    avoided: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[list[WorkPackage], float]:
     """One work package per stay at one lift height, and the total travel (metres).
 
-    Station ids follow the order of first visit. ``avoided`` gives per visit
-    (its index) the lift levels at which each element's descent is singular and
-    those at which the arm swings widely to reach it (bit masks,
-    :func:`_avoided_lifts`): the lift avoids the first, then the second, where
-    another level reaches the element.
+    Station ids follow the order of first visit; ``A_ch`` is the chosen stations'
+    reach (lift level bit masks), the awkward levels already taken out.
     """
     first_visit: dict[int, int] = {}
     for v in visits:
         first_visit.setdefault(v.station, len(first_visit))
-    A_ch_r = A[chosen].tocsr()
+    A_ch_r = A_ch.tocsr()
     packages: list[WorkPackage] = []
     prev_xy: np.ndarray | None = None
     travel_total = 0.0
-    for k, v in enumerate(visits):
+    for v in visits:
         c = int(chosen[v.station])
         masks = np.asarray(A_ch_r[v.station, v.elements].todense()).ravel().astype(np.int64)
-        # the singular levels first, then the swinging ones, where another level reaches
-        for awkward in (avoided or {}).get(k, ()):
-            regular = masks & ~awkward
-            masks = np.where(regular != 0, regular, masks)
         levels = lift_bands(masks)
         cuts = np.flatnonzero(np.diff(levels)) + 1
         T_wp = cands.T_world_platform(c)
@@ -383,93 +385,6 @@ def _work_packages(
                 )
             )
     return packages, travel_total
-
-
-DESCENT_SAMPLES = 9
-"""Points along a block's descent checked for the wrist singularity."""
-WRIST_MARGIN_DEG = 10.0
-"""A descent with A5 closer to 0 than this counts as singular: the platform parks a
-few centimetres off its plan, which moves A5 by a few degrees there."""
-
-
-def _avoided_lifts(
-    project: Project,
-    visits: Sequence[Visit],
-    chosen: np.ndarray,
-    cands: Candidates,
-    lifts: np.ndarray,
-    work: Sequence[Element],
-) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """Per visit, the lift levels at which each block's descent passes the wrist singularity,
-    and those at which the arm swings widely between the magazine and the block.
-
-    A block goes straight down from its approach pose (:func:`block_approach`)
-    onto its place by a linear move; where A5 changes sign, or comes within
-    :data:`WRIST_MARGIN_DEG` of 0, on the way on every
-    inverse kinematics branch that follows the whole descent and also reaches
-    the magazine (a block's motion keeps one configuration), the controller
-    would refuse the move (or the wrist axes must be interpolated, tilting the
-    block between its neighbours). A level swings where, on every branch left,
-    A2 or A3 turns more than 90 deg from the pick approach to the travel point
-    above the block at the pick height, or from there to the block's approach
-    pose (a wide swing, :mod:`fabflow.programs.motion_checks`). Returns
-    visit index -> two ``(m,)`` int bit masks over ``lifts`` (bit ``l``: singular,
-    swinging at level ``l``) for the visit's elements; a robot without six axes
-    gets none.
-    """
-    robot = get_robot(project.robot.model)
-    if robot.dof != 6:
-        return {}
-    T_tool_flange = np.linalg.inv(project.robot.tool.T_flange_tool.matrix())
-    T_platform_base = project.robot.platform.T_platform_base.matrix()
-    frac = np.linspace(0.0, 1.0, DESCENT_SAMPLES)
-    # the branches that also reach the magazine: a block's motion keeps one
-    _, at_pick = robot.ik_batch((T_base_pick_tool(project) @ T_tool_flange)[None])
-    out: dict[int, np.ndarray] = {}
-    for k, v in enumerate(visits):
-        blocks = [i for i, e in enumerate(v.elements) if work[e].type == "block"]
-        if not blocks:
-            continue
-        T_place = np.stack([element_tool_frames(work[v.elements[i]])[0] for i in blocks])
-        up = np.array([block_approach(work[v.elements[i]], project) for i in blocks])
-        # (blocks, samples, 4, 4): the tool from its approach pose down to the place
-        T_path = np.repeat(T_place[:, None], DESCENT_SAMPLES, axis=1)
-        T_path[..., 2, 3] += up[:, None] * frac[None, ::-1]
-        T_wb = T_world_base(
-            cands.T_world_platform(int(chosen[v.station])), lifts, T_platform_base
-        )  # (L, 4, 4)
-        T = np.linalg.inv(T_wb)[:, None, None] @ T_path[None] @ T_tool_flange
-        q, valid = robot.ik_batch(T.reshape(-1, 4, 4))
-        shape = (len(lifts), len(blocks), DESCENT_SAMPLES, valid.shape[-1])
-        a5 = q[..., 4].reshape(shape)
-        valid = valid.reshape(shape).all(axis=2) & at_pick[0]  # the whole descent and the pick
-        near = (np.abs(a5) < np.radians(WRIST_MARGIN_DEG)).any(axis=2)
-        flips = (np.sign(a5) != np.sign(a5[:, :, :1])).any(axis=2) | near
-        bad = (valid & ~flips).sum(axis=-1) == 0
-        bad &= valid.any(axis=-1)  # unreachable levels are the reach mask's business
-        # the pick approach, the travel point above the block at its height (where the
-        # block comes from below it) and the approach pose (the descent's first sample)
-        T_pick_up = np.repeat(T_base_pick_tool(project)[None], len(blocks), axis=0)
-        T_pick_up[:, 2, 3] += up
-        q_pick, _ = robot.ik_batch(T_pick_up @ T_tool_flange)  # (blocks, branch, dof)
-        T_up = T[:, :, 0] @ project.robot.tool.T_flange_tool.matrix()  # (L, blocks) tools
-        T_travel = T_up.copy()
-        T_travel[..., 2, 3] = np.maximum(T_up[..., 2, 3], T_pick_up[None, :, 2, 3])
-        q_travel, _ = robot.ik_batch((T_travel @ T_tool_flange).reshape(-1, 4, 4))
-        q_travel = q_travel.reshape(len(lifts), len(blocks), -1, robot.dof)
-        q_up = q.reshape(*shape[:3], -1, robot.dof)[:, :, 0]  # (L, blocks, branch, dof)
-        turn = np.maximum(
-            np.abs(q_travel[..., 1:3] - q_pick[None, :, :, 1:3]).max(axis=-1),
-            np.abs(q_up[..., 1:3] - q_travel[..., 1:3]).max(axis=-1),
-        )
-        turn = np.where(np.isfinite(turn), turn, np.inf)
-        calm = valid & ~flips & (turn <= np.radians(SWING_MAIN_AXIS_DEG))
-        swing = (valid & ~flips).any(axis=-1) & ~calm.any(axis=-1)
-        level_bits = np.int64(1) << np.arange(len(lifts), dtype=np.int64)[:, None]
-        masks = np.zeros((2, len(v.elements)), dtype=np.int64)
-        masks[:, blocks] = [(bad * level_bits).sum(axis=0), (swing * level_bits).sum(axis=0)]
-        out[k] = (masks[0], masks[1])
-    return out
 
 
 def _station_notes(

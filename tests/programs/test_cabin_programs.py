@@ -65,3 +65,15 @@ def test_place_targets_reproduce_block_poses(cabin_build: tuple[Path, BuildConte
         T_ref = element_tool_frames(by_id[eid])[0]
         assert np.linalg.norm(T[:3, 3] - T_ref[:3, 3]) < 1e-5, eid
         assert _angle_deg(T[:3, :3], T_ref[:3, :3]) < 1e-3, eid
+
+
+def test_programs_keep_their_configuration(cabin_build: tuple[Path, BuildContext]) -> None:
+    """Issue 18's bar on the cabin as a user builds it (UWB-localized stations): no wide
+    swing, at most one configuration change per work package, none inside a linear move."""
+    _, ctx = cabin_build
+    assert ctx.programs
+    for program in ctx.programs:
+        checks = program.checks
+        assert checks["needless_swings"] == 0, (program.name, checks["swing_moves"])
+        assert checks["configuration_changes"] <= 1, (program.name, checks["configurations"])
+        assert checks["changes_inside_lin"] == 0, (program.name, checks["inside_lin_moves"])

@@ -20,6 +20,7 @@ from fabflow.project import Project, load_project
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.reach_model import reach_model
 from fabflow.tasks import Plan, planner
+from fabflow.tasks.awkward_lifts import SINGULAR_MARGIN_DEG
 from fabflow.tasks.cover import tour
 from fabflow.tasks.order import (
     assign_passes,
@@ -28,7 +29,7 @@ from fabflow.tasks.order import (
     schedule,
     visit_patterns,
 )
-from fabflow.tasks.planner import WRIST_MARGIN_DEG, make_plan, plan_project
+from fabflow.tasks.planner import make_plan, plan_project
 from fabflow.tasks.reachability import thin_frames
 from fabflow.tasks.split import split_wide_paths, with_pieces
 from fabflow.tasks.stations import element_polygons, footprint_polygons
@@ -551,9 +552,10 @@ def test_narrow_site_parks_on_ground_built_later():
     assert sorted(built) == sorted(e.id for e in wall)
 
 
-def _near_singular_descents(project, plan, elements) -> int:
-    """Planned blocks whose straight descent comes within the margin of A5 = 0 on every
-    branch that follows it and reaches the magazine (computed here from the plan)."""
+def _singular_descents(project, plan, elements) -> int:
+    """Planned blocks whose straight descent takes A5 through 0, or within the margin of
+    it, on every branch that follows it and reaches the magazine (computed here from the
+    plan)."""
     robot = get_robot(project.robot.model)
     T_tool_flange = np.linalg.inv(project.robot.tool.T_flange_tool.matrix())
     T_platform_base = project.robot.platform.T_platform_base.matrix()
@@ -568,16 +570,19 @@ def _near_singular_descents(project, plan, elements) -> int:
             T[:, 2, 3] += np.linspace(0.0, block_approach(e, project), 9)
             q, valid = robot.ik_batch(T_base_world @ T @ T_tool_flange)
             usable = valid.all(axis=0) & at_pick[0]
-            clear = (np.abs(q[:, :, 4]) >= np.radians(WRIST_MARGIN_DEG)).all(axis=0)
+            a5 = q[:, :, 4]
+            clear = (np.abs(a5) >= np.radians(SINGULAR_MARGIN_DEG)).all(axis=0)
+            clear &= (np.sign(a5) == np.sign(a5[:1])).all(axis=0)
             count += bool(usable.any() and not (usable & clear).any())
     return count
 
 
 def test_the_lift_keeps_block_descents_off_the_wrist_singularity(cabin, monkeypatch):
     project, elements, plan = cabin
-    preferred = _near_singular_descents(project, plan, elements)
-    monkeypatch.setattr(planner, "_avoided_lifts", lambda *args: {})
+    preferred = _singular_descents(project, plan, elements)
+    monkeypatch.setattr(planner, "_regular_reach", lambda project, A_ch, *args: A_ch)
     plain = plan_project(project, elements)
-    before = _near_singular_descents(project, plain, elements)
+    before = _singular_descents(project, plain, elements)
     assert len(plan.work_packages) > len(plain.work_packages)  # more lift changes
-    assert preferred < before / 2, (preferred, before)  # 24 of 548 against 64
+    # 1 of 548 against 29: B0031, singular at every level of every station reaching it
+    assert preferred <= 1 < before / 10, (preferred, before)
