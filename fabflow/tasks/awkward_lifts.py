@@ -13,11 +13,12 @@ can only build it awkwardly:
   :data:`~fabflow.tasks.targets.SWING_MAIN_AXIS_DEG` less
   :data:`SWING_MARGIN_DEG` from the pick approach at the magazine to the
   travel point above the block at the pick height, or from there to the
-  block's approach pose: the programs' wide swing
+  block's approach pose along the plain route (no raised approach, no tuck):
+  the A2/A3 part of the programs' wide swing
   (:mod:`fabflow.programs.motion_checks`).
 
-A descent near A5 = 0 but not through it is no trouble: straight down, A1, A4
-and A6 stand still and only A2, A3 and A5 turn.
+A descent that stays clear of that margin is no trouble: straight down with the
+tool pointing down, A1, A4 and A6 stand still and only A2, A3 and A5 turn.
 
 :func:`prefer_regular` takes these levels out of the reach matrix of the
 chosen stations: the singular levels wherever another level, at the same
@@ -42,7 +43,7 @@ from fabflow.tasks.targets import (
     SWING_MAIN_AXIS_DEG,
     T_base_pick_tool,
     block_approach,
-    element_tool_frames,
+    element_targets,
 )
 
 DESCENT_SAMPLES = 9
@@ -114,16 +115,17 @@ def awkward_levels(
     pair, level = np.nonzero((reach[:, None] & level_bits[None]) != 0)
     keep = is_block[pair]
     pair, level = pair[keep], level[keep]
-    T_place = np.zeros((len(element), 4, 4))
-    up = np.zeros(len(element))
-    for i in np.flatnonzero(is_block):
-        T_place[i] = element_tool_frames(work[element[i]])[0]
-        up[i] = block_approach(work[element[i]], project)
+    if len(pair) == 0:
+        return masks[0], masks[1]
+    # the place and approach of every block concerned, once each
+    blocks, slot = np.unique(element[pair], return_inverse=True)
+    T_place = element_targets([work[e] for e in blocks])[slot.ravel()]
+    up = np.array([block_approach(work[e], project) for e in blocks])[slot.ravel()]
     for chunk in np.array_split(np.arange(len(pair)), max(1, -(-len(pair) // _CHUNK))):
         p, lv = pair[chunk], level[chunk]
         flags = _case_flags(
-            robot, T_base_world[station[p], lv], T_place[p], up[p], T_tool_flange, T_pick,
-            at_pick[0],
+            robot, T_base_world[station[p], lv], T_place[chunk], up[chunk], T_tool_flange,
+            T_pick, at_pick[0],
         )  # fmt: skip
         for m in range(2):
             np.add.at(masks[m], p, np.where(flags[m], level_bits[lv], 0))
@@ -139,9 +141,31 @@ def _case_flags(
     T_pick: np.ndarray,
     at_pick: np.ndarray,
 ) -> np.ndarray:
-    """``(2, C)`` singular and swinging flags of C blocks (tool at the place ``T_place``,
-    world frame, approach ``up`` metres above it) seen from the bases ``T_base_world``
-    ``(C, 4, 4)``."""
+    """Singular and swinging flags of C cases, each a block seen from a station's base.
+
+    Parameters
+    ----------
+    robot
+        The arm (closed-form inverse kinematics).
+    T_base_world
+        ``(C, 4, 4)`` inverse of the arm base pose of each case (metres).
+    T_place, up
+        ``(C, 4, 4)`` tool at the block's place (world frame, metres) and ``(C,)``
+        its approach distance above it (metres).
+    T_tool_flange
+        4x4 flange in the tool frame.
+    T_pick
+        4x4 tool at the magazine's pick in the arm base frame (it rides on the lift).
+    at_pick
+        ``(K,)`` which inverse kinematics branches reach the pick.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(2, C)`` bool: singular (no branch that reaches the pick follows the
+        whole descent clear of A5 = 0; this includes a case no branch follows at
+        all), and swinging.
+    """
     n = len(T_place)
     frac = np.linspace(0.0, 1.0, DESCENT_SAMPLES)
     # the tool from its approach pose down to the place, in the base: (C, S, 4, 4)
@@ -152,10 +176,10 @@ def _case_flags(
     shape = (n, DESCENT_SAMPLES, valid.shape[-1])
     a5 = q[..., 4].reshape(shape)
     valid = valid.reshape(shape).all(axis=1) & at_pick  # the whole descent and the pick
-    reached = valid.any(axis=-1)  # unreachable cases are the reach mask's business
     flips = (np.sign(a5) != np.sign(a5[:, :1])).any(axis=1)
     flips |= (np.abs(a5) < np.radians(SINGULAR_MARGIN_DEG)).any(axis=1)
-    singular = reached & ~(valid & ~flips).any(axis=-1)
+    # a level the reach model grants but no branch follows is no better than a singular one
+    singular = ~(valid & ~flips).any(axis=-1)
     # the pick approach, the travel point above the block at its height (where the
     # block comes from below it) and the approach pose (the descent's first sample)
     T_pick_up = np.repeat(T_pick[None], n, axis=0)
@@ -201,6 +225,10 @@ def prefer_regular(
         levels no longer reaches it, where another does.
     """
     coo = A.tocoo()
+    if len(np.ravel(singular)) != A.nnz or len(np.ravel(swinging)) != A.nnz:
+        raise ValueError("prefer_regular needs one singular and one swinging mask per entry")
+    if A.nnz and len(np.unique(coo.row * A.shape[1] + coo.col)) != A.nnz:
+        raise ValueError("prefer_regular needs a reach matrix without repeated entries")
     data = coo.data.astype(np.int64)
     regular = data & ~np.asarray(singular, dtype=np.int64)
     kept = np.zeros(A.shape[1], dtype=bool)

@@ -191,6 +191,7 @@ def plan_project(
             f"{list_ids([ids[i] for i in res.witnesses])} share no station"
         )
     A_ch = _regular_reach(project, A[res.chosen].tocsr(), res.chosen, cands, lifts, work)
+    t_awk = time.perf_counter()
     visits = _visits(A_ch, res.chosen, cands, work, idx_work, (src, dst), T_targets, ids)
     t_ord = time.perf_counter()
     packages, travel_total = _work_packages(visits, A_ch, res.chosen, cands, lifts, ids, T_targets)
@@ -219,7 +220,8 @@ def plan_project(
             "candidates": round(t_cand - t0, 4),
             "coverage": round(t_cov - t_cand, 4),
             "selection": round(t_sel - t_cov, 4),
-            "order": round(t_ord - t_sel, 4),
+            "awkward_lifts": round(t_awk - t_sel, 4),
+            "order": round(t_ord - t_awk, 4),
             "packages": round(t_end - t_ord, 4),
             "total": round(t_end - t0, 4),
         },

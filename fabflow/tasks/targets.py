@@ -25,7 +25,7 @@ from fabflow.transforms.so3 import R_FLIP_X
 SWING_MAIN_AXIS_DEG = 90.0
 """A PTP turning A2 or A3 by more than this (degrees) swings the arm over: counted in
 the programs (:mod:`fabflow.programs.motion_checks`) and avoided by the lift choice
-(:mod:`fabflow.tasks.planner`)."""
+(:mod:`fabflow.tasks.awkward_lifts`)."""
 
 
 def element_tool_frames(element: Element) -> np.ndarray:
