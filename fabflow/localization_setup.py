@@ -27,6 +27,7 @@ from fabflow.schema import (
     Switch,
     Vec3,
 )
+from fabflow.sensors.lidar_errors import LidarErrorModel
 from fabflow.sensors.uwb import UwbErrorModel
 
 
@@ -62,6 +63,14 @@ class UwbSetup(StrictModel):
     multipath_length: PositiveFloat = 0.5
     """How far (metres) a tag moves before its multipath error changes (the
     simulated field's correlation length; not fitted, see the benchmark)."""
+    material_delay: Annotated[NonNegativeFloat, Field(le=3.0)] = 0.0
+    """Excess range per metre of built material a tag-anchor line of sight passes
+    through (``sqrt(eps_r) - 1``; 0.41 for wood of relative permittivity 2). Simulated
+    on the links the structure blocks; the estimate subtracts the excess it predicts
+    from the design and counts the spread below in the link's variance. 0: off."""
+    material_delay_spread: Annotated[NonNegativeFloat, Field(le=1.0)] = 0.25
+    """Relative standard deviation of ``material_delay`` at one site (moisture,
+    species)."""
     rate_hz: PositiveFloat = 60.0
     imu_rate_hz: PositiveFloat = 100.0
     tags: Annotated[list[Vec3], Field(min_length=1)] = [(0.8, 0.0, 1.5), (-0.8, 0.0, 1.5)]
@@ -82,6 +91,8 @@ class UwbSetup(StrictModel):
             sigma_1m=self.sigma,
             multipath_field_sigma=self.multipath_sigma,
             multipath_field_length=self.multipath_length,
+            material_delay=self.material_delay,
+            material_delay_spread=self.material_delay_spread,
         )
 
     @model_validator(mode="after")
@@ -103,6 +114,16 @@ class TotalStationSetup(StrictModel):
     distance_sigma_mm: PositiveFloat | None = None
     distance_ppm: NonNegativeFloat | None = None
     angle_sigma_arcsec: PositiveFloat | None = None
+    prism_centring_mm: Annotated[NonNegativeFloat, Field(le=100.0)] = 0.0
+    """Standard deviation per axis of a sighted prism's optical centre off its point
+    (millimetres, per sighting): about 1 for a 360 deg prism seen from changing
+    sides (manufacturers state about 2 mm for such prisms), 0.5 for a round prism facing the
+    instrument. Simulated, and in every point's covariance."""
+    atmosphere_ppm: Annotated[NonNegativeFloat, Field(le=1000.0)] = 0.0
+    """Standard deviation of the scale error the atmospheric correction leaves (ppm;
+    about 1 per degree Celsius or 3 hPa entered wrongly; 10 or more when no
+    temperature and pressure are entered). Simulated per set-up, and in the
+    distances' variance."""
     T_world_instrument: PoseSpec | None = None
     """Where the instrument stands (world). Given: checked against every visit and used
     for all of them; absent: the set-ups are planned (:mod:`fabflow.localize.setups`)."""
@@ -184,6 +205,34 @@ class IcpSetup(StrictModel):
     """Largest accepted inlier RMSE (metres)."""
     map_as_built: Switch = True
     """Add the blocks built so far (at their design poses) to the map before localizing."""
+    beam_divergence_mrad: Annotated[NonNegativeFloat, Field(le=50.0)] = 3.0
+    """Full beam divergence of the LiDAR (milliradians): a surface seen obliquely
+    spreads the return over the beam's footprint (:mod:`fabflow.sensors.lidar_errors`).
+    Simulated."""
+    max_incidence_deg: Annotated[PositiveFloat, Field(le=90.0)] = 85.0
+    """Returns from surfaces seen more obliquely than this are too weak and dropped
+    (degrees). Simulated."""
+    channel_bias_sigma: Annotated[NonNegativeFloat, Field(le=0.2)] = 0.0
+    """Standard deviation of the range offset each laser channel keeps over a run
+    (metres): simulated, and in the covariance of every scan fix. Paper 000's table I
+    (a stationary sensor outdoors, runs at different times of day) is fitted by
+    0.035, but that puts its moving end-effector's ICP error at 2.1 times the
+    paper's (``benchmarks/sensor_models.py``), so the default stays 0."""
+    map_drift: Switch = False
+    """Build the simulated map as a mapping run builds it: its scans registered one
+    after the other, so it drifts by what each registration errs (about a millimetre
+    on the simulated site), and every fix's covariance counts the map's error
+    (``ScanMap.map_covariance``). ``false`` (the default, and cheaper: no
+    registrations): the scans at their true poses (their range errors stay in
+    the map, not in the covariance). Simulated."""
+
+    def lidar_errors(self) -> LidarErrorModel:
+        """The range error model of this setup's LiDAR (simulation and covariance alike)."""
+        return LidarErrorModel(
+            channel_bias_sigma=self.channel_bias_sigma,
+            beam_divergence=self.beam_divergence_mrad / 1000.0,
+            max_incidence_deg=self.max_incidence_deg,
+        )
 
 
 class IntegrityPolicy(StrictModel):

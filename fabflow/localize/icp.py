@@ -45,7 +45,15 @@ def _project_map(setup: IcpSetup, project: Project) -> ScanMap:
     if setup.map is not None:
         return _cached_file_map(str(setup.map), setup.map_voxel_size)
     boxes, prisms = site_obstacles(project)
-    return simulated_site_map(boxes, setup.map_voxel_size, 0, None, prisms)  # type: ignore[arg-type]
+    return simulated_site_map(
+        boxes,  # type: ignore[arg-type]
+        setup.map_voxel_size,
+        0,
+        None,
+        prisms,  # type: ignore[arg-type]
+        setup.lidar_errors(),
+        setup.map_drift,
+    )
 
 
 COARSE_REACH = 10.0
@@ -88,6 +96,8 @@ def _localize_scan(
         max_rmse=setup.max_rmse,
         min_structure_fitness=setup.min_structure_fitness,
         coarse_schedule=coarse_schedule(setup, parking),
+        channel_bias_sigma=setup.channel_bias_sigma,
+        beam_elevations=HESAI_QT64.elevations(),
     )
 
 
@@ -192,7 +202,7 @@ def simulate_station(
 
     boxes, prisms = site_obstacles(project)
     scene = site_scene(built=built, obstacles=boxes, prisms=prisms)
-    scan = simulate_scan(scene, T_true, rng, HESAI_QT64)
+    scan = simulate_scan(scene, T_true, rng, HESAI_QT64, setup.lidar_errors())
 
     sim = project.simulation
     err = np.zeros(6)

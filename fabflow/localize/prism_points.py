@@ -122,7 +122,12 @@ def _cached_optimal_points(n: int, workspace: Workspace) -> np.ndarray:
 def instrument_for(setup: TotalStationSetup) -> Instrument:
     """The accuracy model of a project's total station setup."""
     return make_instrument(
-        setup.instrument, setup.distance_sigma_mm, setup.distance_ppm, setup.angle_sigma_arcsec
+        setup.instrument,
+        setup.distance_sigma_mm,
+        setup.distance_ppm,
+        setup.angle_sigma_arcsec,
+        setup.prism_centring_mm,
+        setup.atmosphere_ppm,
     )
 
 

@@ -343,15 +343,26 @@ def plan_setups(
         T = trunnion_pose(setup.T_world_instrument.matrix(), setup.instrument_height)
         eye = T[None, :3, 3]
         for k, package in enumerate(packages):
-            if not _covers(eye, package, project)[0]:
+            if _covers(eye, package, project)[0]:
+                continue
+            sigma_k = float(_sigma(eye, package, project)[0])
+            limit = SIGMA_SHARE * project.tolerances.position
+            if np.isfinite(sigma_k):
                 raise LocalizationError(
-                    f"the total station at localization.total_station.T_world_instrument does "
-                    f"not see the prism points of work package {k + 1} (station {ids[k]}) "
-                    "through the structure built by then, or stands closer than "
-                    f"{MIN_SIGHT:g} m to them"
-                    + ("" if setup.max_range is None else f" or farther than {setup.max_range:g} m")
-                    + "; remove T_world_instrument to have the set-ups planned, or move it"
+                    f"the total station at localization.total_station.T_world_instrument "
+                    f"localizes work package {k + 1} (station {ids[k]}) to a predicted "
+                    f"{1e3 * sigma_k:.2f} mm (XY), more than {SIGMA_SHARE:g} of "
+                    f"tolerances.position ({1e3 * limit:.2f} mm); measure more prism points "
+                    "(n_points), use a more accurate instrument or prism, or move it closer"
                 )
+            raise LocalizationError(
+                f"the total station at localization.total_station.T_world_instrument does "
+                f"not see the prism points of work package {k + 1} (station {ids[k]}) "
+                "through the structure built by then, or stands closer than "
+                f"{MIN_SIGHT:g} m to them"
+                + ("" if setup.max_range is None else f" or farther than {setup.max_range:g} m")
+                + "; remove T_world_instrument to have the set-ups planned, or move it"
+            )
         sigma = max(float(_sigma(eye, p, project)[0]) for p in packages)
         return (InstrumentSetup("T1", T, tuple(range(len(packages))), "given", (), sigma),)
 

@@ -27,7 +27,6 @@ from fabflow.localize.setups import instrument_covariance, plan_setups, trunnion
 from fabflow.localize.stationing import InstrumentPose, InstrumentTrack
 from fabflow.positioning.integrity import ALPHA
 from fabflow.positioning.polar import (
-    make_instrument,
     polar_covariance,
     polar_to_cartesian,
     to_world,
@@ -322,11 +321,15 @@ def localize_files(
         setup = project.localization.total_station
     given = setup.T_world_instrument if project is not None else None
     pose = given if given is not None else PoseSpec()
-    inst = make_instrument(
-        instrument or setup.instrument,
-        distance_sigma_mm if distance_sigma_mm is not None else setup.distance_sigma_mm,
-        distance_ppm if distance_ppm is not None else setup.distance_ppm,
-        angle_sigma_arcsec if angle_sigma_arcsec is not None else setup.angle_sigma_arcsec,
+    # the command line's overrides on the project's setup, then its one accuracy model
+    overrides = {
+        "instrument": instrument,
+        "distance_sigma_mm": distance_sigma_mm,
+        "distance_ppm": distance_ppm,
+        "angle_sigma_arcsec": angle_sigma_arcsec,
+    }
+    inst = instrument_for(
+        setup.model_copy(update={k: v for k, v in overrides.items() if v is not None})
     )
     if instrument_xyz is not None or instrument_abc_deg is not None:
         pose = PoseSpec(

@@ -17,6 +17,7 @@ import numpy as np
 from fabflow.design.elements import Element, element_boxes
 from fabflow.errors import InputError
 from fabflow.localize.site import anchors_world, points_in_world
+from fabflow.positioning.boxes import Boxes, segments_inside
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Method
 from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers_static
@@ -30,6 +31,7 @@ from fabflow.robots import platform
 from fabflow.sensors.uwb import (
     calibration_campaign,
     draw_bias,
+    material_excess,
     segments_occluded,
     simulate_ranges,
 )
@@ -53,6 +55,10 @@ class StationRanges:
         (rounds, tags, anchors) which ranges carry a simulated NLOS excess.
     occluded
         (tags, anchors) lines of sight blocked by built blocks, or ``None``.
+    material_length
+        (tags, anchors) metres of built material on each line of sight, from the
+        design: the estimate predicts the through-material delay from it
+        (``uwb.material_delay``); ``None`` when nothing is built or the delay is off.
     """
 
     anchor_ids: list[str]
@@ -61,6 +67,7 @@ class StationRanges:
     calibration: RangeCalibration
     nlos: np.ndarray
     occluded: np.ndarray | None
+    material_length: np.ndarray | None = None
 
 
 def localize_station(
@@ -154,11 +161,14 @@ def simulate_station(
     cal = RangeCalibration.fit(*calibration_campaign(model, bias, rng))
 
     T_boxes, ext = element_boxes(built)
-    occluded = None
+    occluded = material = excess = None
     if len(ext):
         starts = np.repeat(tags_world, len(ids), axis=0)
         ends = np.tile(A, (len(L), 1))
         occluded = segments_occluded(starts, ends, T_boxes, ext).reshape(len(L), len(ids))
+        if model.material_delay > 0:
+            material = segments_inside(starts, ends, Boxes(T_boxes, ext)).reshape(occluded.shape)
+            excess = material_excess(model, material, rng)
 
     n_rounds = max(1, round(setup.dwell_s * setup.rate_hz))
     tags_t = np.broadcast_to(tags_world, (n_rounds, *tags_world.shape))
@@ -171,13 +181,14 @@ def simulate_station(
         occluded=None
         if occluded is None
         else np.broadcast_to(occluded, (n_rounds, *occluded.shape)),
+        link_excess=excess,
     )
     ranges, nlos = sim.ranges, sim.nlos
     if ranged is not None:  # links outside a tag's zone are not ranged
         ranges = np.where(ranged[None], ranges, np.nan)
         nlos = nlos & ranged[None]
         occluded = None if occluded is None else occluded & ranged
-    return StationRanges(ids, A, ranges, cal, nlos, occluded)
+    return StationRanges(ids, A, ranges, cal, nlos, occluded, material)
 
 
 def estimate_station(
@@ -220,6 +231,17 @@ def estimate_station(
     model = setup.error_model()
     cal = data.calibration
     ranges = cal.apply(data.ranges)
+    link_sigma: Any = model.field_sigma
+    if data.material_length is not None and model.material_delay > 0:
+        # the delay the design predicts is taken off; what the site's material
+        # may differ by stays in each link's variance, with the multipath's
+        predicted = material_excess(model, data.material_length)
+        ranges = ranges - predicted[None]
+        per_link = np.nanmedian(ranges, axis=0)
+        link_sigma = np.hypot(
+            model.field_sigma(np.where(np.isfinite(per_link), per_link, 0.0)),
+            model.material_delay_spread * predicted,
+        )
     rej = reject_outliers_static(ranges, model.sigma(ranges))
     method: Method = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
     first_guess = np.nanmedian(ranges, axis=(0, 1))
@@ -231,7 +253,7 @@ def estimate_station(
         method=method,
         heading_prior=heading_prior,
         anchor_bias_sigma=cal.bias_sigma(np.where(np.isfinite(first_guess), first_guess, 0.0)),
-        link_sigma=model.field_sigma,
+        link_sigma=link_sigma,
         alpha=project.localization.integrity.alpha,
         anchor_ids=ids,
         base_lever=T_platform_base[:3, 3],

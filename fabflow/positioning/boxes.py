@@ -8,6 +8,7 @@ Frame-agnostic: boxes and queries in one frame, metres.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -108,10 +109,37 @@ def segments_clear(starts: np.ndarray, ends: np.ndarray, boxes: Boxes) -> np.nda
     few thousand candidate set-ups against a whole building stays cheap.
     """
     starts = np.asarray(starts, dtype=float).reshape(-1, 3)
+    blocked = np.zeros(len(starts), dtype=bool)
+    for seg, t0, t1 in _slab_spans(starts, ends, boxes):
+        np.logical_or.at(blocked, seg, t0 < t1)
+    return ~blocked
+
+
+def segments_inside(starts: np.ndarray, ends: np.ndarray, boxes: Boxes) -> np.ndarray:
+    """Length (metres) of each segment ``starts[i] -> ends[i]`` inside the boxes, ``(p,)``.
+
+    Summed over the boxes (where boxes overlap, their common part counts once
+    per box); the same culling as :func:`segments_clear`.
+    """
+    starts = np.asarray(starts, dtype=float).reshape(-1, 3)
     ends = np.asarray(ends, dtype=float).reshape(-1, 3)
-    clear = np.ones(len(starts), dtype=bool)
+    length = np.zeros(len(starts))
+    span = np.linalg.norm(ends - starts, axis=1)
+    for seg, t0, t1 in _slab_spans(starts, ends, boxes):
+        np.add.at(length, seg, np.maximum(t1 - t0, 0.0) * span[seg])
+    return length
+
+
+def _slab_spans(
+    starts: np.ndarray, ends: np.ndarray, boxes: Boxes
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per chunk of segments, the (segment, box) pairs that pass near each other: the
+    segment indices and the parameters ``t0, t1`` in [0, 1] where the segment enters
+    and leaves the box (``t0 >= t1``: it misses)."""
+    starts = np.asarray(starts, dtype=float).reshape(-1, 3)
+    ends = np.asarray(ends, dtype=float).reshape(-1, 3)
     if len(boxes) == 0 or len(starts) == 0:
-        return clear
+        return
     centre = boxes.T_base_box[:, :3, 3]
     radius = 0.5 * np.linalg.norm(boxes.extents, axis=1)
     R = boxes.T_base_box[:, :3, :3]
@@ -159,8 +187,4 @@ def segments_clear(starts: np.ndarray, ends: np.ndarray, boxes: Boxes) -> np.nda
         inside = np.abs(p0) <= half[box]
         tmin = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb))
         tmax = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb))
-        hit = np.maximum(tmin.max(axis=1), 0.0) < np.minimum(tmax.min(axis=1), 1.0)
-        blocked = np.zeros(len(s), dtype=bool)
-        np.logical_or.at(blocked, seg, hit)
-        clear[lo : lo + chunk] = ~blocked
-    return clear
+        yield lo + seg, np.maximum(tmin.max(axis=1), 0.0), np.minimum(tmax.min(axis=1), 1.0)

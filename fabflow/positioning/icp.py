@@ -27,8 +27,8 @@ near ground, averaged over many LiDAR returns per voxel, has far smaller
 residuals than the far walls that fix x, y and heading) nor independent
 residuals: errors shared by the points of one block (a surface's share of the
 map error, voxel-centroid bias along edges and facets) add up in ``g_b``.
-:func:`weakest_direction` reads the least constrained direction off the
-information.
+:func:`~fabflow.positioning.icp_weakness.weakest_direction` reads the least
+constrained direction off the information.
 
 Build the target once with :func:`prepare_target` when the same map is used for
 many registrations (scan-to-map localization): its KD-tree and normals are then
@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from fabflow.errors import InputError, LocalizationError
+from fabflow.errors import InputError, LocalizationError, UnsupportedError
 from fabflow.positioning.pointcloud import as_points, estimate_normals
 from fabflow.transforms.se3 import apply_T
 from fabflow.transforms.so3 import exp_so3, skew
@@ -54,13 +54,14 @@ FloatArray = NDArray[np.float64]
 Method = Literal["point_to_point", "point_to_plane"]
 Kernel = Literal["none", "huber", "tukey", "cauchy"]
 
+MAX_RAY_SIGMA = 1.0
+"""Largest standard deviation (metres) of a range error shared by a group of rays."""
 MIN_CORRESPONDENCES = 10
 """Fewer inlier correspondences than this is a failed registration."""
 MIN_BLOCKS = 30
 """Fewer occupied covariance blocks than this: the blocked sum is too coarse to
 estimate a 6x6 matrix (cluster-robust estimators want some tens of clusters), and
 each correspondence becomes its own block."""
-AXES = ("x", "y", "z")
 
 
 @dataclass(frozen=True, eq=False)
@@ -228,12 +229,18 @@ def _block_sums(scores: FloatArray, points: FloatArray, block: float | None) -> 
 
 
 def _sandwich(
-    info_unit: FloatArray, sums: FloatArray, n: int, sigma2: float
+    info_unit: FloatArray,
+    sums: FloatArray,
+    n: int,
+    sigma2: float,
+    shared: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, float]:
     """Covariance ``N^-1 M N^-1``, its inverse and the condition of ``N``.
 
     ``info_unit`` is ``N``; ``sums`` the ``(K, 6)`` score sums of the blocks
-    (``M = sums^T sums``); ``n`` the number of correspondences. Along numerically
+    (``M = sums^T sums``); ``n`` the number of correspondences; ``shared`` the
+    ``(G, 6)`` rows of errors of known size shared by groups of points, added to
+    ``M`` as they are (no small-sample factor). Along numerically
     degenerate directions of ``N`` (eigenvalue below 1e-12 of the largest) the
     scores carry nothing; there the covariance falls back to ``sigma2 / lambda``
     with the eigenvalue floored, i.e. a huge variance.
@@ -244,7 +251,10 @@ def _sandwich(
     lam = np.maximum(evals, top * 1e-12)
     k = len(sums)
     factor = k / max(k - 1, 1) * (n - 1) / max(n - 6, 1)
-    Mv = evecs.T @ (sums.T @ sums) @ evecs * factor
+    M = (sums.T @ sums) * factor
+    if shared is not None:
+        M = M + shared.T @ shared
+    Mv = evecs.T @ M @ evecs
     Cv = Mv / np.outer(lam, lam)
     weak = evals <= top * 1e-12
     Cv[weak, weak] = np.maximum(Cv[weak, weak], max(sigma2, 1e-18) / lam[weak])
@@ -253,79 +263,6 @@ def _sandwich(
     cev, cvec = np.linalg.eigh(cov)
     cev = np.maximum(cev, max(float(cev[-1]), 1e-300) * 1e-15)
     return cov, (cvec / cev) @ cvec.T, condition
-
-
-@dataclass(frozen=True, eq=False)
-class WeakDirection:
-    """The least constrained direction of a pose, read off its information.
-
-    Translations (metres) and rotations (radians) are made comparable by the
-    ``lever``: a rotation counts as the displacement it causes at that distance.
-
-    Attributes
-    ----------
-    vector
-        ``(6,)`` unit vector over ``[dx, dy, dz, lever rx, lever ry, lever rz]``.
-    sigma
-        Standard deviation of the pose along ``vector`` (metres; for a rotation the
-        displacement at ``lever``).
-    lever
-        ``sqrt(tr(I_rot) / tr(I_trans))`` of the information ``I`` (metres): the RMS
-        lever arm of the constraints, at which rotation and translation are on
-        average equally well determined.
-    translation_share
-        ``|vector[:3]|^2``: 1 for a pure translation, 0 for a pure rotation.
-    label
-        ``"translation x"`` (``y``, ``z``) or ``"rotation about z (heading)"``
-        (``x (roll)``, ``y (pitch)``): the part and axis that dominate ``vector``.
-    condition
-        Smallest over largest eigenvalue of the scaled information.
-    eigenvalues
-        ``(6,)`` eigenvalues of the scaled information, ascending (1/m^2).
-    """
-
-    vector: FloatArray
-    sigma: float
-    lever: float
-    translation_share: float
-    label: str
-    condition: float
-    eigenvalues: FloatArray
-
-
-def weakest_direction(information: ArrayLike) -> WeakDirection:
-    """The eigenvector of the smallest eigenvalue of the (scaled) 6x6 information.
-
-    Parameters
-    ----------
-    information
-        6x6 information over ``[dx, dy, dz, rx, ry, rz]`` (1/m^2, 1/rad^2), e.g.
-        :attr:`IcpResult.information`.
-    """
-    info = np.asarray(information, dtype=float).reshape(6, 6)
-    t_tr = float(np.trace(info[:3, :3]))
-    lever = float(np.sqrt(np.trace(info[3:, 3:]) / t_tr)) if t_tr > 0 else 1.0
-    lever = lever if np.isfinite(lever) and lever > 0 else 1.0
-    scale = np.r_[np.ones(3), np.full(3, 1.0 / lever)]
-    scaled = info * np.outer(scale, scale)
-    evals, evecs = np.linalg.eigh(0.5 * (scaled + scaled.T))
-    v = evecs[:, 0] * (1.0 if evecs[np.argmax(np.abs(evecs[:, 0])), 0] >= 0 else -1.0)
-    share = float(np.sum(v[:3] ** 2))
-    if share >= 0.5:
-        label = f"translation {AXES[int(np.argmax(np.abs(v[:3])))]}"
-    else:
-        axis = int(np.argmax(np.abs(v[3:])))
-        label = f"rotation about {AXES[axis]} ({('roll', 'pitch', 'heading')[axis]})"
-    top = max(float(evals[-1]), 1e-300)
-    return WeakDirection(
-        vector=v,
-        sigma=float(1.0 / np.sqrt(max(float(evals[0]), 1e-300))),
-        lever=lever,
-        translation_share=share,
-        label=label,
-        condition=float(max(float(evals[0]), 0.0) / top),
-        eigenvalues=evals,
-    )
 
 
 def icp(
@@ -343,6 +280,8 @@ def icp(
     min_step: float = 1e-5,
     workers: int = -1,
     covariance_block: float | None = None,
+    ray_groups: ArrayLike | None = None,
+    ray_sigma: float = 0.0,
 ) -> IcpResult:
     """Register ``source`` to ``target`` with ICP.
 
@@ -384,6 +323,14 @@ def icp(
         Edge (metres, target frame) of the cubes whose correspondences the
         covariance treats as sharing their errors (module docstring); ``None``: each
         correspondence alone (independent residuals of unequal variance).
+    ray_groups, ray_sigma
+        ``(N,)`` integer group of every source point whose range errs by one shared
+        amount (a spinning LiDAR's laser channel, whose range bias the residuals
+        cannot show), and that amount's standard deviation (metres, along the ray
+        from the source frame's origin). Adds ``ray_sigma^2 N^-1 (sum_k g_k g_k^T)
+        N^-1`` to the covariance, ``g_k`` the sum over group ``k`` of ``w_i
+        J_i^T`` times the residual's change per metre of range. ``None`` or 0:
+        no such term.
 
     Returns
     -------
@@ -421,6 +368,19 @@ def icp(
         raise InputError(
             f"source cloud needs at least {MIN_CORRESPONDENCES} points, has {len(src)}"
         )
+    rays = None
+    if not (isinstance(ray_sigma, (int, float)) and 0.0 <= ray_sigma <= MAX_RAY_SIGMA):
+        raise InputError(f"ray_sigma must be a number from 0 to {MAX_RAY_SIGMA:g} m")
+    if ray_groups is not None and ray_sigma > 0:
+        if method != "point_to_plane":
+            raise UnsupportedError(
+                "ray_groups needs point_to_plane: a point-to-point residual slides along "
+                "a surface and shows a shared range error only across it"
+            )
+        groups = np.asarray(ray_groups)
+        if groups.shape != (len(src),) or not np.issubdtype(groups.dtype, np.integer):
+            raise InputError("ray_groups needs one integer group per source point")
+        rays = (groups, float(ray_sigma))
 
     plane = method == "point_to_plane"
     src_mean = src.mean(axis=0)
@@ -497,6 +457,7 @@ def icp(
         converged,
         workers,
         covariance_block,
+        rays,
     )
 
 
@@ -511,6 +472,7 @@ def _final_result(
     converged: bool,
     workers: int,
     block: float | None,
+    rays: tuple[NDArray[np.integer], float] | None = None,
 ) -> IcpResult:
     p = apply_T(T, src)
     d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=workers)
@@ -551,7 +513,19 @@ def _final_result(
         scores = w[:, None] * np.c_[e, np.cross(Rs, e)]
         sigma2 = float(np.sum(w * r * r) / max(3 * n_ok - 6, 1))
     sums = _block_sums(scores, p, block)
-    cov, info, condition = _sandwich(info_unit, sums, n_ok, sigma2)
+    shared = None
+    if rays is not None:
+        # the residual's change per metre of range: the point moves along its ray
+        u = Rs / np.maximum(np.linalg.norm(Rs, axis=1), 1e-12)[:, None]
+        per_metre = J * (w * np.einsum("ij,ij->i", u, nn))[:, None]  # point_to_plane only
+        groups, ray_sigma = rays
+        _, inverse = np.unique(groups[ok], return_inverse=True)
+        n_groups = int(inverse.max()) + 1
+        shared = ray_sigma * np.stack(
+            [np.bincount(inverse, weights=per_metre[:, k], minlength=n_groups) for k in range(6)],
+            axis=1,
+        )
+    cov, info, condition = _sandwich(info_unit, sums, n_ok, sigma2, shared)
     return IcpResult(
         T=T,
         fitness=n_ok / len(src),

@@ -75,12 +75,22 @@ class Instrument:
         Distance-proportional part (parts per million of the slope distance).
     angle_sigma
         Standard deviation of the Hz and V angle readings (radians).
+    centring_sigma
+        Standard deviation per axis of where a sighted prism's optical centre
+        lies off its nominal point (metres), drawn per sighting: a 360 deg prism
+        seen from another side, a round prism not facing the instrument.
+    atmosphere_ppm
+        Standard deviation of the scale error the atmospheric correction leaves
+        (ppm of the distance; about 1 ppm per degree Celsius or 3 hPa entered
+        wrongly), shared by a set-up's distances.
     """
 
     name: str
     distance_sigma: float
     distance_ppm: float
     angle_sigma: float
+    centring_sigma: float = 0.0
+    atmosphere_ppm: float = 0.0
 
     def sigma_distance(self, sd: np.ndarray | float) -> np.ndarray:
         """Distance standard deviation (metres) at slope distances ``sd`` (metres)."""
@@ -98,6 +108,8 @@ INSTRUMENT_BOUNDS = {
     "distance_sigma_mm": (0.01, 1000.0, "mm"),
     "distance_ppm": (0.0, 1000.0, "ppm"),
     "angle_sigma_arcsec": (0.01, 3600.0, "arc seconds"),
+    "prism_centring_mm": (0.0, 100.0, "mm"),
+    "atmosphere_ppm": (0.0, 1000.0, "ppm"),
 }
 """Accepted accuracies ``(low, high, unit)``, bounds included: a zero sigma makes
 every point's covariance singular; the best instruments state 0.5 mm and 0.5"."""
@@ -108,6 +120,8 @@ def make_instrument(
     distance_sigma_mm: float | None = None,
     distance_ppm: float | None = None,
     angle_sigma_arcsec: float | None = None,
+    prism_centring_mm: float | None = None,
+    atmosphere_ppm: float | None = None,
 ) -> Instrument:
     """An instrument by preset name, with any of its accuracies overridden.
 
@@ -119,6 +133,9 @@ def make_instrument(
     distance_sigma_mm, distance_ppm, angle_sigma_arcsec
         Overrides in data-sheet units: millimetres, ppm, arc seconds, within
         :data:`INSTRUMENT_BOUNDS`.
+    prism_centring_mm, atmosphere_ppm
+        The prism's centring and the atmosphere's scale error
+        (:class:`Instrument`), in millimetres and ppm.
 
     Raises
     ------
@@ -130,6 +147,8 @@ def make_instrument(
         "distance_sigma_mm": distance_sigma_mm,
         "distance_ppm": distance_ppm,
         "angle_sigma_arcsec": angle_sigma_arcsec,
+        "prism_centring_mm": prism_centring_mm,
+        "atmosphere_ppm": atmosphere_ppm,
     }
     for field, value in given.items():
         low, high, unit = INSTRUMENT_BOUNDS[field]
@@ -166,6 +185,8 @@ def make_instrument(
         else distance_sigma_mm * 1e-3,
         distance_ppm=base.distance_ppm if distance_ppm is None else float(distance_ppm),
         angle_sigma=base.angle_sigma if angle_sigma_arcsec is None else angle_sigma_arcsec * ARCSEC,
+        centring_sigma=(prism_centring_mm or 0.0) * 1e-3,
+        atmosphere_ppm=float(atmosphere_ppm or 0.0),
     )
 
 
@@ -242,19 +263,25 @@ def polar_covariance(
     """First-order covariance (m^2) of the Cartesian points, ``(..., 3, 3)``, instrument frame.
 
     The angles and the distance are taken as independent with the instrument's
-    stated standard deviations.
+    stated standard deviations; the atmosphere's scale error adds to the
+    distance's variance (shared by a set-up's distances in truth, taken per point
+    here; 1 ppm at the tens of metres of a building site is a few hundredths of
+    a millimetre), and the prism's centring adds ``centring_sigma^2`` per axis.
     """
     J = polar_jacobian(hz, v, sd)
     sig_a = instrument.angle_sigma
+    sd_var = instrument.sigma_distance(sd) ** 2
+    sd_var = sd_var + (instrument.atmosphere_ppm * 1e-6 * np.asarray(sd, dtype=float)) ** 2
     var = np.stack(
         np.broadcast_arrays(
             np.full(np.shape(sd), sig_a**2),
             np.full(np.shape(sd), sig_a**2),
-            instrument.sigma_distance(sd) ** 2,
+            sd_var,
         ),
         axis=-1,
     )
-    return np.einsum("...ik,...k,...jk->...ij", J, var, J)
+    cov = np.einsum("...ik,...k,...jk->...ij", J, var, J)
+    return cov + instrument.centring_sigma**2 * np.eye(3)
 
 
 def to_world(

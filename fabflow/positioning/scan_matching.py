@@ -38,12 +38,12 @@ from fabflow.errors import InputError, LocalizationError
 from fabflow.positioning.icp import (
     IcpResult,
     IcpTarget,
-    WeakDirection,
     icp,
     prepare_target,
-    weakest_direction,
 )
+from fabflow.positioning.icp_weakness import WeakDirection, weakest_direction
 from fabflow.positioning.integrity import Integrity
+from fabflow.positioning.lidar_channels import channel_of
 from fabflow.positioning.pointcloud import as_points, estimate_normals, voxel_downsample
 from fabflow.positioning.pointcloud_io import read_point_cloud
 from fabflow.positioning.result import BasePose
@@ -86,12 +86,22 @@ class ScanMap:
         Voxel grid the map was downsampled on (metres).
     T_world_scans
         Poses of the scans the map was built from (empty for a map read from file).
+    map_covariance
+        6x6 covariance (fabflow's pose error, world frame) of where the map's
+        scans lie off their true poses, averaged over the scans: each scan's is
+        its registration's covariance plus the average of those placed before it
+        (:func:`build_map`; on the simulated site it predicts the scans' drift
+        within 0.6-1.05 of its RMS). Added as it is to the covariance of every
+        scan localized in the map: each scan's error is about its own origin and
+        is not carried to the fix's (an approximation). ``None`` for a map taken
+        as exact (read from file, or built from known poses).
     """
 
     target: IcpTarget
     coarse: IcpTarget
     voxel_size: float
     T_world_scans: tuple[FloatArray, ...] = ()
+    map_covariance: FloatArray | None = None
 
     @property
     def points(self) -> FloatArray:
@@ -137,11 +147,16 @@ def transform_map(scan_map: ScanMap, T: ArrayLike) -> ScanMap:
         normals = None if target.normals is None else target.normals @ T[:3, :3].T
         return prepare_target(apply_T(T, target.points), normals)
 
+    C = scan_map.map_covariance
+    if C is not None:  # turned with the map (both its translation and rotation parts)
+        R6 = np.kron(np.eye(2), T[:3, :3])
+        C = R6 @ C @ R6.T
     return ScanMap(
         target=moved(scan_map.target),
         coarse=moved(scan_map.coarse),
         voxel_size=scan_map.voxel_size,
         T_world_scans=tuple(T @ np.asarray(P) for P in scan_map.T_world_scans),
+        map_covariance=C,
     )
 
 
@@ -168,6 +183,7 @@ def build_map(
     T_world_scan_guess: Sequence[ArrayLike],
     voxel_size: float = 0.03,
     register: bool = True,
+    normals: Sequence[ArrayLike] | None = None,
 ) -> ScanMap:
     """Register scans into one map, merge and voxelize them (offline mapping).
 
@@ -183,6 +199,10 @@ def build_map(
     register
         Refine every scan after the first by ICP against the map built so far;
         ``False`` trusts the guesses (known sensor poses).
+    normals
+        Unit normals of every scan's points in its sensor frame (e.g. a
+        simulation's exact ones), turned with the scan as it is placed; ``None``:
+        estimated from the merged map (20 neighbours).
 
     Returns
     -------
@@ -191,23 +211,40 @@ def build_map(
     """
     if len(scans) == 0 or len(scans) != len(T_world_scan_guess):
         raise InputError("build_map needs one pose guess per scan and at least one scan")
+    if normals is not None and len(normals) != len(scans):
+        raise InputError("build_map needs normals for every scan, or none")
     poses: list[FloatArray] = []
     merged = np.zeros((0, 3))
+    turned = None if normals is None else np.zeros((0, 3))
+    # each scan is registered to the map of all before it, so it inherits their average
+    # error (taken as fully shared) on top of its own registration's
+    placed_cov = [np.zeros((6, 6))]
     for i, (scan, guess) in enumerate(zip(scans, T_world_scan_guess, strict=True)):
         s = as_points(scan, f"scan {i}")
         T = np.asarray(guess, dtype=float).reshape(4, 4)
         if i > 0 and register:
-            target = prepare_target(voxel_downsample(merged, voxel_size)[0])
+            target = prepare_target(*voxel_downsample(merged, voxel_size, turned))
             src = voxel_downsample(s, 2 * voxel_size)[0]
-            T = icp(src, target, init=T, max_correspondence_distance=(0.5, 0.2, 0.08)).T
+            res = icp(
+                src,
+                target,
+                init=T,
+                max_correspondence_distance=(0.5, 0.2, 0.08),
+                covariance_block=COVARIANCE_BLOCK,
+            )
+            T = res.T
+            placed_cov.append(res.covariance + np.mean(placed_cov, axis=0))
         poses.append(T)
         merged = np.vstack([merged, apply_T(T, s)])
-    result = map_from_points(merged, voxel_size)
+        if turned is not None and normals is not None:
+            turned = np.vstack([turned, np.asarray(normals[i], dtype=float) @ T[:3, :3].T])
+    result = map_from_points(merged, voxel_size, turned)
     return ScanMap(
         target=result.target,
         coarse=result.coarse,
         voxel_size=voxel_size,
         T_world_scans=tuple(poses),
+        map_covariance=np.mean(placed_cov, axis=0) if register and len(scans) > 1 else None,
     )
 
 
@@ -256,6 +293,8 @@ def localize_scan(
     max_points: int = 6000,
     min_structure_fitness: float = 0.5,
     covariance_block: float | None = COVARIANCE_BLOCK,
+    channel_bias_sigma: float = 0.0,
+    beam_elevations: ArrayLike | None = None,
 ) -> ScanLocalization:
     """Localize one scan in the map from a rough initial pose.
 
@@ -293,6 +332,13 @@ def localize_scan(
         surfaces (see :func:`structure_fitness`).
     covariance_block
         Edge of the covariance blocks (metres; ``None``: independent points).
+    channel_bias_sigma, beam_elevations
+        Standard deviation of the range bias each laser channel keeps over a
+        run (metres; :mod:`fabflow.sensors.lidar_errors`), and the channels'
+        elevations in the sensor frame (radians, ascending): each scan point
+        belongs to the nearest, and the covariance counts the bias shared by a
+        channel's points (:func:`~fabflow.positioning.lidar_channels.channel_of`,
+        :func:`~fabflow.positioning.icp.icp`'s ``ray_groups``).
 
     Returns
     -------
@@ -312,8 +358,10 @@ def localize_scan(
         No pose at all: fewer than 100 scan points after voxelizing, or too few
         correspondences for ICP to run.
     """
+    scan_map_covariance = None
     if isinstance(scan_map, ScanMap):
         target, coarse_target = scan_map.target, scan_map.coarse
+        scan_map_covariance = scan_map.map_covariance
     else:
         target = coarse_target = scan_map
     scan = as_points(scan_lidar, "scan")
@@ -339,6 +387,8 @@ def localize_scan(
         kernel="huber",
         min_step=MIN_STEP,
         covariance_block=covariance_block,
+        ray_groups=None if beam_elevations is None else channel_of(fine, beam_elevations),
+        ray_sigma=channel_bias_sigma,
     )
     structure = structure_fitness(fine, target, res.T, float(fine_schedule[-1]))
     weak = weakest_direction(res.information)
@@ -350,7 +400,9 @@ def localize_scan(
     }
     return ScanLocalization(
         T_world_lidar=res.T,
-        covariance=res.covariance,
+        covariance=res.covariance
+        if scan_map_covariance is None
+        else res.covariance + scan_map_covariance,
         icp=res,
         n_points=len(fine),
         structure_fitness=structure,

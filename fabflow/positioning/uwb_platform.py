@@ -103,7 +103,7 @@ def locate_platform(
     alpha: float = ALPHA,
     anchor_ids: Sequence[str] | None = None,
     base_lever: np.ndarray | None = None,
-    link_sigma: Sigma | None = None,
+    link_sigma: Sigma | np.ndarray | None = None,
 ) -> PlatformFix:
     """Estimate a standing platform's ``x, y, z, yaw`` from the ranges of its tags, and test it.
 
@@ -168,9 +168,11 @@ def locate_platform(
         Standard deviation (metres) of a range error every range of one tag-anchor
         link shares (position-dependent multipath, which stays while the platform
         stands: :mod:`fabflow.sensors.uwb_multipath`), constant or a function of
-        the range; added to each link mean's variance, since averaging over epochs
-        does not reduce it. Links are taken as independent (tags farther apart
-        than the multipath's correlation length).
+        the range, or an ``(n_tags, n_anchors)`` array of one value per link (e.g.
+        the multipath and what remains of a predicted through-material delay);
+        added to each link mean's variance, since averaging over epochs does not
+        reduce it. Links are taken as independent (tags farther apart than the
+        multipath's correlation length).
 
     Raises
     ------
@@ -203,7 +205,15 @@ def locate_platform(
         A.shape[0],
     )
     link = links.pop("link")
-    if link_sigma is not None:
+    if isinstance(link_sigma, np.ndarray):
+        per_link = np.asarray(link_sigma, dtype=float)
+        if per_link.shape != (n_tags, A.shape[0]) or not np.isfinite(per_link).all():
+            raise InputError(
+                f"link_sigma as an array must be finite, (tags, anchors) = "
+                f"{(n_tags, A.shape[0])}, got {per_link.shape}"
+            )
+        links["s"] = np.hypot(links["s"], per_link[links["tag_idx"], links["anc_idx"]])
+    elif link_sigma is not None:
         links["s"] = np.hypot(links["s"], sigma_of(link_sigma, links["d"]))
     adj = PlatformAdjustment(
         anchors=A,

@@ -19,6 +19,13 @@ import trimesh
 from numpy.typing import ArrayLike, NDArray
 
 from fabflow.errors import InputError
+from fabflow.sensors.lidar_errors import (
+    NO_ERRORS,
+    LidarErrorModel,
+    column_poses,
+    draw_channel_bias,
+    incidence_sigma,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -57,15 +64,21 @@ class LidarModel:
             raise InputError("LiDAR model needs n_beams >= 1 and -90 <= fov_min <= fov_max <= 90")
         if self.horizontal_resolution_deg <= 0 or self.max_range <= self.min_range:
             raise InputError("LiDAR model needs a positive resolution and max_range > min_range")
+        if not (self.rate_hz > 0 and self.range_sigma >= 0):
+            raise InputError("LiDAR model needs rate_hz > 0 and range_sigma >= 0")
 
     @property
     def n_columns(self) -> int:
         """Number of azimuth steps per revolution."""
         return round(360.0 / self.horizontal_resolution_deg)
 
+    def elevations(self) -> FloatArray:
+        """Elevation of every channel (radians, ascending)."""
+        return np.radians(np.linspace(*self.vertical_fov_deg, self.n_beams))
+
     def directions(self) -> FloatArray:
         """Unit ray directions in the sensor frame, ``(n_beams * n_columns, 3)``, beam-major."""
-        elev = np.radians(np.linspace(*self.vertical_fov_deg, self.n_beams))
+        elev = self.elevations()
         azim = np.radians(np.arange(self.n_columns) * 360.0 / self.n_columns)
         e, a = np.meshgrid(elev, azim, indexing="ij")
         ce = np.cos(e)
@@ -110,46 +123,86 @@ def simulate_scan(
     T_world_lidar: ArrayLike,
     rng: np.random.Generator,
     model: LidarModel = HESAI_QT64,
+    errors: LidarErrorModel = NO_ERRORS,
+    channel_bias: ArrayLike | None = None,
+    twist: ArrayLike | None = None,
 ) -> LidarScan:
-    """Cast every ray of one revolution against ``scene`` and add range noise.
+    """Cast every ray of one revolution against ``scene`` and add the range errors.
 
     Parameters
     ----------
     scene
         The site mesh in the world frame (see :func:`fabflow.sensors.site_scene.site_scene`).
     T_world_lidar
-        4x4 sensor pose in the world (metres).
+        4x4 sensor pose in the world (metres); with ``twist``, at mid-revolution.
     rng
-        Source of the range noise.
+        Source of the range noise (and of the channel bias when not given).
     model
-        Beam pattern, range limits and noise.
+        Beam pattern, range limits and white range noise.
+    errors
+        Channel bias, incidence-angle noise and clutter
+        (:class:`~fabflow.sensors.lidar_errors.LidarErrorModel`; default none).
+    channel_bias
+        ``(n_beams,)`` range offset of each channel for this run (metres); drawn
+        from ``errors`` when ``None`` (a new run).
+    twist
+        ``(6,)`` velocity of the sensor during the revolution (m/s, rad/s, world
+        frame, :func:`~fabflow.sensors.lidar_errors.column_poses`); ``None``: still.
 
     Returns
     -------
     LidarScan
-        Points in the sensor frame; rays that hit nothing within range are dropped.
+        Points in the sensor frame of each column's firing (no de-skewing); rays
+        that hit nothing within range, or hit a surface beyond the largest
+        incidence, are dropped.
     """
     T = np.asarray(T_world_lidar, dtype=float).reshape(4, 4)
     dirs_lidar = model.directions()
-    dirs_world = dirs_lidar @ T[:3, :3].T
-    origins = np.broadcast_to(T[:3, 3], dirs_world.shape)
+    if twist is not None:
+        twist = np.asarray(twist, dtype=float)
+        if twist.shape != (6,) or not np.all(np.isfinite(twist)):
+            raise InputError("a scan's twist must be 6 finite numbers (m/s, rad/s)")
+    if channel_bias is not None:
+        channel_bias = np.asarray(channel_bias, dtype=float)
+        if channel_bias.shape != (model.n_beams,) or not np.all(np.isfinite(channel_bias)):
+            raise InputError(f"a scan's channel bias must be {model.n_beams} finite numbers (m)")
+    if twist is None:
+        dirs_world = dirs_lidar @ T[:3, :3].T
+        origins = np.broadcast_to(T[:3, 3], dirs_world.shape)
+    else:
+        poses = column_poses(T, twist, model.n_columns, model.rate_hz)
+        column = np.arange(len(dirs_lidar)) % model.n_columns
+        dirs_world = np.einsum("nij,nj->ni", poses[column, :3, :3], dirs_lidar)
+        origins = poses[column, :3, 3]
     if len(scene.faces) == 0:
         none = np.zeros(0, dtype=np.int64)
         return LidarScan(np.zeros((0, 3)), np.zeros(0), none, T, none)
     locations, index_ray, index_tri = scene.ray.intersects_location(
         origins, dirs_world, multiple_hits=False
     )
-    true_range = np.linalg.norm(locations - T[:3, 3], axis=1)
+    index_ray = np.asarray(index_ray, dtype=np.int64)
+    index_tri = np.asarray(index_tri, dtype=np.int64)
+    true_range = np.linalg.norm(locations - origins[index_ray], axis=1)
+    cos_inc = np.abs(np.einsum("ij,ij->i", scene.face_normals[index_tri], dirs_world[index_ray]))
     keep = (true_range >= model.min_range) & (true_range <= model.max_range)
-    index_ray = np.asarray(index_ray[keep], dtype=np.int64)
-    order = np.argsort(index_ray, kind="stable")
-    index_ray = index_ray[order]
-    ranges = true_range[keep][order] + rng.normal(0.0, model.range_sigma, len(order))
+    keep &= cos_inc >= np.cos(np.radians(errors.max_incidence_deg)) - 1e-12
+    order = np.flatnonzero(keep)[np.argsort(index_ray[keep], kind="stable")]
+    index_ray, true_range, cos_inc = index_ray[order], true_range[order], cos_inc[order]
+    bias = draw_channel_bias(errors, model.n_beams, rng) if channel_bias is None else channel_bias
+    sigma = np.hypot(
+        model.range_sigma, incidence_sigma(true_range, cos_inc, errors.beam_divergence)
+    )
+    ranges = (
+        true_range + bias[index_ray // model.n_columns] + sigma * rng.standard_normal(len(order))
+    )
+    if errors.clutter_fraction > 0:
+        early = rng.random(len(order)) < errors.clutter_fraction
+        ranges[early] = rng.uniform(model.min_range, true_range[early])
     points = dirs_lidar[index_ray] * ranges[:, None]
     return LidarScan(
         points=points,
         ranges=ranges,
         ray_index=index_ray,
         T_world_lidar=T,
-        face_index=np.asarray(index_tri, dtype=np.int64)[keep][order],
+        face_index=index_tri[order],
     )

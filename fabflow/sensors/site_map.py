@@ -14,10 +14,11 @@ import numpy as np
 import trimesh
 
 from fabflow.design.elements import Element, element_boxes
-from fabflow.positioning.scan_matching import FloatArray, ScanMap, map_from_points
+from fabflow.positioning.scan_matching import FloatArray, ScanMap, build_map, map_from_points
 from fabflow.sensors.lidar import HESAI_QT64, LidarModel, simulate_scan
+from fabflow.sensors.lidar_errors import NO_ERRORS, LidarErrorModel, draw_channel_bias
 from fabflow.sensors.site_scene import boxes_mesh, site_scene
-from fabflow.transforms.se3 import apply_T
+from fabflow.transforms.se3 import apply_T, perturb
 
 
 def mapping_poses(center: Sequence[float] = (2.0, 1.65), height: float = 1.8) -> FloatArray:
@@ -39,14 +40,15 @@ def simulated_site_map(
     seed: int = 0,
     model: LidarModel | None = None,
     prisms: tuple[tuple[tuple[tuple[float, float], ...], float, float], ...] = (),
+    errors: LidarErrorModel = NO_ERRORS,
+    registered: bool = False,
 ) -> ScanMap:
     """A map of the simulated site built from nine simulated scans (cached).
 
     The scans are taken on a ring around the cabin before construction starts, so
     the map holds the ground, the landmarks and the given box obstacles, but no
-    blocks. Poses are the true ones (as after an offline SLAM run), and the
-    normals are those of the scene triangles hit (as a SLAM map with surface
-    normals would carry), which saves the PCA over 160k points.
+    blocks. The normals are those of the scene triangles hit (as a SLAM map with
+    surface normals would carry), which saves the PCA over 160k points.
 
     Parameters
     ----------
@@ -55,17 +57,39 @@ def simulated_site_map(
     voxel_size
         Map voxel grid (metres).
     seed
-        Seed of the range noise of the mapping scans.
+        Seed of the range errors of the mapping scans.
     model
         The mapping LiDAR (default: the Hesai QT64 model).
     prisms
         Polygon obstacles ``(plan polygon, z_min, z_max)`` of the site (metres).
+    errors
+        Range errors of the mapping scans (one run: one channel bias for all).
+    registered
+        ``False``: the scans are placed at their true poses (a perfect offline
+        SLAM). ``True``: as a mapping run places them
+        (:func:`~fabflow.positioning.scan_matching.build_map`), each registered
+        to the map of the scans before it from its true pose off by
+        :data:`ODOMETRY_ERROR` (the odometry), the first at its true pose (the
+        map's tie to the site survey): the map drifts by what each registration
+        errs.
     """
 
     rng = np.random.default_rng(seed)
     scene = site_scene(obstacles=obstacles, prisms=prisms)
+    model = model or HESAI_QT64
     poses = mapping_poses()
-    scans = [simulate_scan(scene, T, rng, model or HESAI_QT64) for T in poses]
+    bias = draw_channel_bias(errors, model.n_beams, rng)
+    scans = [simulate_scan(scene, T, rng, model, errors, bias) for T in poses]
+    if registered:
+        # as a mapping run places them: from the odometry, then registered
+        err = np.zeros((len(poses), 6))
+        err[:, :3] = rng.normal(0.0, ODOMETRY_ERROR[0], (len(poses), 3))
+        err[:, 5] = rng.normal(0.0, np.radians(ODOMETRY_ERROR[1]), len(poses))
+        guesses = [poses[0], *(perturb(T, e) for T, e in zip(poses[1:], err[1:], strict=True))]
+        normals_lidar = [
+            scene.face_normals[s.face_index] @ T[:3, :3] for s, T in zip(scans, poses, strict=True)
+        ]
+        return build_map([s.points for s in scans], guesses, voxel_size, True, normals_lidar)
     points = np.vstack([apply_T(s.T_world_lidar, s.points) for s in scans])
     normals = np.vstack([scene.face_normals[s.face_index] for s in scans])
     result = map_from_points(points, voxel_size, normals)
@@ -75,6 +99,10 @@ def simulated_site_map(
         voxel_size=voxel_size,
         T_world_scans=tuple(poses),
     )
+
+
+ODOMETRY_ERROR = (0.03, 1.0)
+"""Pose guess error of a mapping scan: (metres per axis, degrees of heading)."""
 
 
 def with_as_built(scan_map: ScanMap, built: Sequence[Element], rng: np.random.Generator) -> ScanMap:
@@ -103,4 +131,5 @@ def with_as_built(scan_map: ScanMap, built: Sequence[Element], rng: np.random.Ge
         coarse=merged.coarse,
         voxel_size=scan_map.voxel_size,
         T_world_scans=scan_map.T_world_scans,
+        map_covariance=scan_map.map_covariance,
     )

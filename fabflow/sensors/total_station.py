@@ -2,7 +2,8 @@
 
 The noise follows the instrument's data-sheet accuracy model
 (:class:`fabflow.positioning.polar.Instrument`): independent normal errors of
-the angles and of the distance (``a + b * sd``).
+the angles and of the distance (``a + b * sd``), plus, where set, the prism's
+centring (per sighting) and the atmosphere's scale error (per set-up).
 """
 
 from __future__ import annotations
@@ -27,9 +28,17 @@ def simulate_polar(
     """Noisy ``(hz, v, sd)`` readings of true target ``points`` (``(..., 3)``, instrument frame).
 
     Angle and distance errors are drawn independently from zero-mean normals
-    with the instrument's stated standard deviations.
+    with the instrument's stated standard deviations. With the instrument's
+    ``centring_sigma`` each sighted prism's optical centre lies off its point by
+    a normal offset per axis; with ``atmosphere_ppm`` one scale error (drawn once
+    per call: one set-up's readings) stretches every distance.
     """
+    points = np.asarray(points, dtype=float)
+    if instrument.centring_sigma > 0:
+        points = points + rng.normal(0.0, instrument.centring_sigma, points.shape)
     hz, v, sd = cartesian_to_polar(points, instrument_height, prism_height)
+    if instrument.atmosphere_ppm > 0:
+        sd = sd * (1.0 + rng.normal(0.0, instrument.atmosphere_ppm * 1e-6))
     hz = hz + rng.normal(0.0, instrument.angle_sigma, np.shape(hz))
     v = v + rng.normal(0.0, instrument.angle_sigma, np.shape(v))
     sd = sd + rng.normal(0.0, 1.0, np.shape(sd)) * instrument.sigma_distance(sd)

@@ -20,6 +20,7 @@ from fabflow.errors import InputError, LocalizationError
 from fabflow.localize.icp import COARSE_REACH, coarse_schedule, localize_station
 from fabflow.localize.methods import localizer_arguments
 from fabflow.localize.plan import parked_pose
+from fabflow.positioning import scan_matching
 from fabflow.positioning.pointcloud_io import write_point_cloud
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.scan_matching import (
@@ -30,7 +31,7 @@ from fabflow.positioning.scan_matching import (
     scan_integrity,
     to_base_pose,
 )
-from fabflow.project import IcpSetup, load_project, parse_project
+from fabflow.project import IcpSetup, Project, load_project, parse_project
 from fabflow.sensors.lidar import LidarModel, simulate_scan
 from fabflow.sensors.site_map import mapping_poses, simulated_site_map
 from fabflow.sensors.site_scene import site_scene
@@ -265,9 +266,8 @@ def sim_stations(n: int) -> list[tuple[np.ndarray, np.random.Generator]]:
     return out
 
 
-def test_covariance_is_consistent_over_stations() -> None:
-    """RMS error over RMS predicted sigma near 1 in x, y and heading (10 stations)."""
-    project = load_project(ROOT / "tests" / "data" / "sim")
+def _consistency(project: Project) -> np.ndarray:
+    """RMS error over RMS predicted sigma per axis of 10 seeded ICP stations."""
     study = prepare_study(project, "icp")
     extra = localizer_arguments(project, "icp", study.stations[0])
     errs, sds = [], []
@@ -277,8 +277,39 @@ def test_covariance_is_consistent_over_stations() -> None:
         errs.append(pose_error(pose.T_world_base, T_true))
         sds.append(np.sqrt(np.diag(pose.covariance)))
     rms = np.sqrt(np.mean(np.square(errs), axis=0))
-    ratio = rms / np.sqrt(np.mean(np.square(sds), axis=0))
+    return rms / np.sqrt(np.mean(np.square(sds), axis=0))
+
+
+def test_covariance_is_consistent_over_stations() -> None:
+    """RMS error over RMS predicted sigma near 1 in x, y and heading (10 stations)."""
+    ratio = _consistency(load_project(ROOT / "tests" / "data" / "sim"))
     assert np.all(ratio[[0, 1, 5]] > 0.6) and np.all(ratio[[0, 1, 5]] < 1.6), ratio
+
+
+def test_covariance_counts_the_channel_range_bias(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a 2 cm range bias per laser channel the fixes err several times more; the
+    covariance counts it (x, y, heading consistent), and without that term it would be
+    over-confident."""
+    project = load_project(ROOT / "tests" / "data" / "sim")
+    setup = project.localization.icp or IcpSetup()
+    biased = project.model_copy(
+        update={
+            "localization": project.localization.model_copy(
+                update={"icp": setup.model_copy(update={"channel_bias_sigma": 0.02})}
+            )
+        }
+    )
+    ratio = _consistency(biased)
+    assert np.all(ratio[[0, 1, 5]] > 0.6) and np.all(ratio[[0, 1, 5]] < 1.6), ratio
+    real_icp = scan_matching.icp
+
+    def without_the_term(*args: object, **kwargs: object) -> object:
+        kwargs["ray_sigma"] = 0.0
+        return real_icp(*args, **kwargs)
+
+    monkeypatch.setattr(scan_matching, "icp", without_the_term)
+    blind = _consistency(biased)
+    assert np.max(blind[[0, 1]]) > 1.6, blind
 
 
 PROJECT = """

@@ -19,15 +19,18 @@ from fabflow.localize.setups import (
     plan_setups,
 )
 from fabflow.localize.stationing import register_setup
-from fabflow.positioning.boxes import Boxes, segments_clear
+from fabflow.positioning.boxes import Boxes, segments_clear, segments_inside
 from fabflow.project import TotalStationSetup, load_project
 from fabflow.schema import PoseSpec
 from fabflow.tasks.planner import plan_project
 from fabflow.transforms.so3 import exp_so3
 
 
-def _slab_hit(p0: np.ndarray, p1: np.ndarray, T: np.ndarray, extents: np.ndarray) -> bool:
-    """One segment against one box, written plainly (the reference)."""
+def _slab_span(
+    p0: np.ndarray, p1: np.ndarray, T: np.ndarray, extents: np.ndarray
+) -> tuple[float, float]:
+    """Where one segment enters and leaves one box (``lo >= hi``: it misses), written
+    plainly (the reference)."""
     a = T[:3, :3].T @ (p0 - T[:3, 3])
     b = T[:3, :3].T @ (p1 - T[:3, 3])
     lo, hi = 0.0, 1.0
@@ -36,29 +39,58 @@ def _slab_hit(p0: np.ndarray, p1: np.ndarray, T: np.ndarray, extents: np.ndarray
         h = 0.5 * extents[k]
         if abs(d) < 1e-12:
             if abs(a[k]) > h:
-                return False
+                return 1.0, 0.0
             continue
         t0, t1 = sorted(((-h - a[k]) / d, (h - a[k]) / d))
         lo, hi = max(lo, t0), min(hi, t1)
+    return lo, hi
+
+
+def _slab_hit(p0: np.ndarray, p1: np.ndarray, T: np.ndarray, extents: np.ndarray) -> bool:
+    lo, hi = _slab_span(p0, p1, T, extents)
     return lo < hi
 
 
-@settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), n_boxes=st.integers(1, 60))
-def test_segments_clear_matches_a_plain_slab_test(seed: int, n_boxes: int) -> None:
+def _random_scene(seed: int, n_boxes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Box poses and extents, and 50 segment starts and ends, drawn from ``seed``."""
     rng = np.random.default_rng(seed)
     T = np.repeat(np.eye(4)[None], n_boxes, axis=0)
     T[:, :3, :3] = exp_so3(rng.normal(0.0, 1.0, (n_boxes, 3)))
     T[:, :3, 3] = rng.uniform(0.0, 6.0, (n_boxes, 3))
     extents = rng.uniform(0.05, 1.0, (n_boxes, 3))
-    starts = rng.uniform(-1.0, 7.0, (50, 3))
-    ends = rng.uniform(-1.0, 7.0, (50, 3))
+    return T, extents, rng.uniform(-1.0, 7.0, (50, 3)), rng.uniform(-1.0, 7.0, (50, 3))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n_boxes=st.integers(1, 60))
+def test_segments_clear_matches_a_plain_slab_test(seed: int, n_boxes: int) -> None:
+    T, extents, starts, ends = _random_scene(seed, n_boxes)
     clear = segments_clear(starts, ends, Boxes(T, extents))
     reference = [
         not any(_slab_hit(s, e, T[k], extents[k]) for k in range(n_boxes))
         for s, e in zip(starts, ends, strict=True)
     ]
     assert clear.tolist() == reference
+
+
+def _slab_length(p0: np.ndarray, p1: np.ndarray, T: np.ndarray, extents: np.ndarray) -> float:
+    lo, hi = _slab_span(p0, p1, T, extents)
+    return max(hi - lo, 0.0) * float(np.linalg.norm(p1 - p0))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n_boxes=st.integers(1, 60))
+def test_segments_inside_matches_a_plain_slab_length(seed: int, n_boxes: int) -> None:
+    T, extents, starts, ends = _random_scene(seed, n_boxes)
+    inside = segments_inside(starts, ends, Boxes(T, extents))
+    reference = [
+        sum(_slab_length(s, e, T[k], extents[k]) for k in range(n_boxes))
+        for s, e in zip(starts, ends, strict=True)
+    ]
+    np.testing.assert_allclose(inside, reference, atol=1e-9)
+    # a segment is clear exactly where no length of it lies inside
+    clear = segments_clear(starts, ends, Boxes(T, extents))
+    assert (clear == (inside == 0)).all()
 
 
 @pytest.fixture(scope="module")

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from fabflow.design.elements import Element, element_boxes
+from fabflow.errors import LocalizationError
 from fabflow.localize.prism_points import boxes_near_base
 from fabflow.localize.total_station import localize_station
 from fabflow.positioning.boxes import Boxes, boxes_overlap
@@ -114,3 +115,14 @@ def test_localize_station_other_robots(model: str) -> None:
     P = np.asarray(bp.quality["points_base"])
     assert len(P) == 5 and np.all(P[:, 0] > 0)
     assert np.linalg.norm(pose_error(bp.T_world_base, T)[:3]) < 0.005
+
+
+def test_a_given_instrument_too_imprecise_for_the_tolerance_says_so() -> None:
+    """A 3 mm prism centring puts the predicted base sigma above 10 % of the 10 mm
+    tolerance: the error names the figure and the remedies, not the line of sight."""
+    p = parse_project(
+        PROJECT.replace("    n_points: 5\n", "    n_points: 5\n    prism_centring_mm: 3\n")
+    )
+    T = make_T(exp_so3([0.0, 0.0, 0.7]), [2.0, 1.0, 0.6])
+    with pytest.raises(LocalizationError, match=r"predicted \d+\.\d+ mm \(XY\).*n_points"):
+        localize_station(p, T, np.random.default_rng(0), "S1")

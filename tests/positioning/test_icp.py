@@ -8,7 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fabflow.errors import InputError, LocalizationError
-from fabflow.positioning.icp import icp, prepare_target, weakest_direction
+from fabflow.positioning.icp import icp, prepare_target
+from fabflow.positioning.icp_weakness import weakest_direction
 from fabflow.transforms.se3 import apply_T, inv_T, perturb, pose_error
 
 

@@ -202,6 +202,45 @@ def test_covariance_is_consistent_with_errors() -> None:
     )
 
 
+def test_prism_centring_and_atmosphere_are_simulated_and_in_the_covariance() -> None:
+    """2 mm centring and 20 ppm of atmosphere: the point covariances carry them and the
+    pose covariance predicts the errors; the data sheet's alone would be over-confident."""
+    rng = np.random.default_rng(6)
+    field = make_instrument("leica_ms50", prism_centring_mm=2.0, atmosphere_ppm=20.0)
+    T = make_T(exp_so3([0.01, -0.02, 0.8]), [3.0, 2.0, 0.6])
+    P = spread_points(rng, 5)
+    T_wi = make_T(exp_so3([0, 0, 0.4]), [-8.0, -6.0, 1.6])
+    local = apply_T(inv_T(T_wi), apply_T(T, P))
+    # one set-up per run: the atmosphere's scale is drawn per call
+    runs = [measure_points(local, field, rng) for _ in range(400)]
+    scatter = np.std([m - local for m, _ in runs], axis=0).mean()
+    assert scatter > 1.5e-3  # the centring dominates MS50's 1 mm + 1"
+    hz, v, sd = cartesian_to_polar(local)
+    plain = polar_covariance(hz, v, sd, MS50)
+    no_centring = make_instrument("leica_ms50", atmosphere_ppm=20.0)
+    np.testing.assert_allclose(
+        polar_covariance(hz, v, sd, field) - polar_covariance(hz, v, sd, no_centring),
+        np.broadcast_to(4e-6 * np.eye(3), plain.shape),
+        atol=1e-15,
+    )
+    # the atmosphere adds (20 ppm x distance)^2 along the line of sight only
+    u = local / np.linalg.norm(local, axis=1)[:, None]
+    extra = polar_covariance(hz, v, sd, no_centring) - plain
+    along = np.einsum("ni,nij,nj->n", u, extra, u)
+    np.testing.assert_allclose(along, (20e-6 * sd) ** 2, rtol=1e-6)
+    nees_field, nees_sheet = [], []
+    for m, c in runs:
+        M, C = to_world(T_wi, m, c)
+        fit = register_points(P, M, point_cov=C)
+        e = pose_error(fit.T_world_base, T)
+        nees_field.append(e @ np.linalg.solve(fit.covariance, e))
+        _, C0 = to_world(T_wi, m, polar_covariance(*cartesian_to_polar(m), MS50))
+        cov0 = register_points(P, M, point_cov=C0).covariance
+        nees_sheet.append(e @ np.linalg.solve(cov0, e))
+    assert 6 * 0.8 < np.mean(nees_field) < 6 * 1.2, np.mean(nees_field)
+    assert np.mean(nees_sheet) > 6 * 2, np.mean(nees_sheet)
+
+
 def test_full_covariance_beats_isotropic_fit() -> None:
     rng = np.random.default_rng(5)
     T = make_T(exp_so3([0.0, 0.0, 1.2]), [5.0, -1.0, 0.6])
