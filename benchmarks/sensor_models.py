@@ -30,10 +30,14 @@ end-effector's ICP RMSE (section IV-A) is the held-out check. The paper's
 kinematics-only RMSE (2.23 cm) needs an excavator arm model, which fabflow does
 not have yet: not simulated.
 
+Last, UWB through the built cabin: the wood's delay (``material_delay``) taken
+off as the design predicts, and left on.
+
 Prints per table, estimator and axis the paper's value, the simulated one and
 their ratio, then the mean ratio per role; ``--json FILE`` writes the rows
 ``{paper, table, estimator, axis, paper_value_m, simulated_value_m, role}``
-(``role``: ``fit`` or ``holdout``).
+(``role``: ``fit`` or ``holdout``; table I's orientation rows, from the fit's
+table but not fitted, carry ``"unit": "deg"`` and degrees in the value fields).
 
     python benchmarks/sensor_models.py [--quick] [--seed N] [--json FILE]
 """

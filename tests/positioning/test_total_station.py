@@ -27,7 +27,7 @@ from fabflow.positioning.three_point import (
     three_point_base_points,
     three_point_localization,
 )
-from fabflow.sensors.total_station import measure_points
+from fabflow.sensors.total_station import measure_points, simulate_polar
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, pose_error
 from fabflow.transforms.so3 import exp_so3
 
@@ -420,3 +420,15 @@ def test_two_faults_on_a_nearly_collinear_set_fail_without_a_traceback() -> None
         if reg.integrity.status != "failed":
             assert reg.integrity.global_test["passed"]
     assert "failed" in statuses
+
+
+def test_the_atmosphere_stretches_a_set_up_s_distances_alike() -> None:
+    """One scale error per call (one set-up): within a call the distances' relative
+    errors agree, between calls they differ by the stated ppm."""
+    rng = np.random.default_rng(8)
+    exact = make_instrument("custom", 0.01, 0.0, 0.01, atmosphere_ppm=500.0)
+    P = rng.uniform(-40.0, 40.0, (20, 3)) + np.array([0.0, 0.0, 60.0])
+    _, _, sd_true = cartesian_to_polar(P)
+    scales = np.array([simulate_polar(P, exact, rng)[2] / sd_true - 1.0 for _ in range(300)])
+    assert scales.std(axis=1).max() < 2e-6  # within a set-up: one scale (0.01 mm noise)
+    assert np.std(scales[:, 0]) == pytest.approx(500e-6, rel=0.15)  # between set-ups
