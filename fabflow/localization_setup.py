@@ -205,6 +205,12 @@ class IcpSetup(StrictModel):
     """Largest accepted inlier RMSE (metres)."""
     map_as_built: Switch = True
     """Add the blocks built so far (at their design poses) to the map before localizing."""
+    as_built_sigma: Annotated[NonNegativeFloat, Field(le=0.1)] = 0.003
+    """How far (metres per axis) the blocks added to the map may stand off their design
+    poses: the localization of the visits that placed them and the arm's repeatability.
+    Every fix's covariance counts it for the map points it matches on those blocks.
+    3 mm: what the cabin's simulated ICP-localized runs place to (1.4 mm RMS in 3D),
+    with room for a coarser localization of the visits before."""
     beam_divergence_mrad: Annotated[NonNegativeFloat, Field(le=50.0)] = 3.0
     """Full beam divergence of the LiDAR (milliradians): a surface seen obliquely
     spreads the return over the beam's footprint (:mod:`fabflow.sensors.lidar_errors`).

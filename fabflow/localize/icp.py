@@ -216,7 +216,7 @@ def simulate_station(
 
     scan_map = _project_map(setup, project)
     if setup.map_as_built:
-        scan_map = with_as_built(scan_map, built, rng)
+        scan_map = with_as_built(scan_map, built, rng, setup.as_built_sigma)
     return StationScan(
         scan=scan.points,
         scan_map=scan_map,

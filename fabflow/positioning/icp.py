@@ -282,6 +282,8 @@ def icp(
     covariance_block: float | None = None,
     ray_groups: ArrayLike | None = None,
     ray_sigma: float = 0.0,
+    target_groups: ArrayLike | None = None,
+    target_sigma: float = 0.0,
 ) -> IcpResult:
     """Register ``source`` to ``target`` with ICP.
 
@@ -329,8 +331,16 @@ def icp(
         cannot show), and that amount's standard deviation (metres, along the ray
         from the source frame's origin). Adds ``ray_sigma^2 N^-1 (sum_k g_k g_k^T)
         N^-1`` to the covariance, ``g_k`` the sum over group ``k`` of ``w_i
-        J_i^T`` times the residual's change per metre of range. ``None`` or 0:
-        no such term.
+        J_i^T`` times the residual's change per metre of range (``n_i . u_i``).
+        ``None`` or 0: no such term. point_to_plane only
+        (:class:`~fabflow.errors.UnsupportedError` otherwise).
+    target_groups, target_sigma
+        ``(M,)`` integer group of every target point that moves with one rigid
+        part of the target (a block of the as-built structure added to a map at
+        its design pose; ``-1``: none), and the standard deviation per axis of
+        that part's translation (metres). Adds the same sandwich over groups and
+        axes, the residual's change per metre of shift being ``-n_i``;
+        point_to_plane only.
 
     Returns
     -------
@@ -381,6 +391,16 @@ def icp(
         if groups.shape != (len(src),) or not np.issubdtype(groups.dtype, np.integer):
             raise InputError("ray_groups needs one integer group per source point")
         rays = (groups, float(ray_sigma))
+    if not (isinstance(target_sigma, (int, float)) and 0.0 <= target_sigma <= MAX_RAY_SIGMA):
+        raise InputError(f"target_sigma must be a number from 0 to {MAX_RAY_SIGMA:g} m")
+    parts = None
+    if target_groups is not None and target_sigma > 0:
+        if method != "point_to_plane":
+            raise UnsupportedError("target_groups needs point_to_plane")
+        tg = np.asarray(target_groups)
+        if tg.shape != (len(tgt.points),) or not np.issubdtype(tg.dtype, np.integer):
+            raise InputError("target_groups needs one integer group per target point")
+        parts = (tg, float(target_sigma))
 
     plane = method == "point_to_plane"
     src_mean = src.mean(axis=0)
@@ -458,6 +478,7 @@ def icp(
         workers,
         covariance_block,
         rays,
+        parts,
     )
 
 
@@ -473,6 +494,7 @@ def _final_result(
     workers: int,
     block: float | None,
     rays: tuple[NDArray[np.integer], float] | None = None,
+    parts: tuple[NDArray[np.integer], float] | None = None,
 ) -> IcpResult:
     p = apply_T(T, src)
     d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=workers)
@@ -525,6 +547,21 @@ def _final_result(
             [np.bincount(inverse, weights=per_metre[:, k], minlength=n_groups) for k in range(6)],
             axis=1,
         )
+    if parts is not None:
+        part_of, part_sigma = parts
+        g = part_of[ii]
+        on = g >= 0
+        if on.any():
+            _, inverse = np.unique(g[on], return_inverse=True)
+            Jw = J[on] * w[on, None]
+            rows = [
+                np.stack(
+                    [np.bincount(inverse, weights=Jw[:, k] * nn[on, a]) for k in range(6)], axis=1
+                )
+                for a in range(3)
+            ]
+            moved = part_sigma * np.concatenate(rows)
+            shared = moved if shared is None else np.concatenate([shared, moved])
     cov, info, condition = _sandwich(info_unit, sums, n_ok, sigma2, shared)
     return IcpResult(
         T=T,

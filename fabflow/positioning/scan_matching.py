@@ -14,14 +14,10 @@ reason, never as a silently wrong pose; only a scan that yields no pose at all
 :class:`~fabflow.errors.LocalizationError`.
 
 The covariance is the blocked sandwich of :mod:`fabflow.positioning.icp` over
-cubes of :data:`COVARIANCE_BLOCK`. A global test of the variance factor, as for
-the other methods, is not meaningful here: thousands of point-to-plane residuals
-whose errors are shared within surfaces are far from the independent
-observations of known variance it assumes, so the redundancy (inliers - 6) is
-recorded as information only.
-
-The simulated station and the files of ``fabflow localize icp`` are joined to
-these estimators in :mod:`fabflow.localize.icp`.
+cubes of :data:`COVARIANCE_BLOCK`. A global test of the variance factor is not
+meaningful here: thousands of residuals whose errors are shared within surfaces
+are far from independent, so the redundancy is recorded as information only.
+:mod:`fabflow.localize.icp` joins the simulated station and files to these.
 """
 
 from __future__ import annotations
@@ -95,6 +91,11 @@ class ScanMap:
         scan localized in the map: each scan's error is about its own origin and
         is not carried to the fix's (an approximation). ``None`` for a map taken
         as exact (read from file, or built from known poses).
+    point_groups, group_sigma
+        ``(M,)`` the block each point of ``target`` was sampled from where blocks
+        were added at their design poses (``-1``: none), and those blocks'
+        placement error per axis (metres): the fix's covariance counts it
+        (:func:`~fabflow.positioning.icp.icp`'s ``target_groups``).
     """
 
     target: IcpTarget
@@ -102,6 +103,8 @@ class ScanMap:
     voxel_size: float
     T_world_scans: tuple[FloatArray, ...] = ()
     map_covariance: FloatArray | None = None
+    point_groups: NDArray[np.intp] | None = None
+    group_sigma: float = 0.0
 
     @property
     def points(self) -> FloatArray:
@@ -358,10 +361,11 @@ def localize_scan(
         No pose at all: fewer than 100 scan points after voxelizing, or too few
         correspondences for ICP to run.
     """
-    scan_map_covariance = None
+    scan_map_covariance, groups, group_sigma = None, None, 0.0
     if isinstance(scan_map, ScanMap):
         target, coarse_target = scan_map.target, scan_map.coarse
         scan_map_covariance = scan_map.map_covariance
+        groups, group_sigma = scan_map.point_groups, scan_map.group_sigma
     else:
         target = coarse_target = scan_map
     scan = as_points(scan_lidar, "scan")
@@ -389,6 +393,8 @@ def localize_scan(
         covariance_block=covariance_block,
         ray_groups=None if beam_elevations is None else channel_of(fine, beam_elevations),
         ray_sigma=channel_bias_sigma,
+        target_groups=groups,
+        target_sigma=group_sigma,
     )
     structure = structure_fitness(fine, target, res.T, float(fine_schedule[-1]))
     weak = weakest_direction(res.information)

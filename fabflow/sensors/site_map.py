@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from fabflow.design.elements import Element, element_boxes
 from fabflow.positioning.scan_matching import FloatArray, ScanMap, build_map, map_from_points
@@ -105,14 +106,22 @@ ODOMETRY_ERROR = (0.03, 1.0)
 """Pose guess error of a mapping scan: (metres per axis, degrees of heading)."""
 
 
-def with_as_built(scan_map: ScanMap, built: Sequence[Element], rng: np.random.Generator) -> ScanMap:
+def with_as_built(
+    scan_map: ScanMap,
+    built: Sequence[Element],
+    rng: np.random.Generator,
+    placement_sigma: float = 0.0,
+) -> ScanMap:
     """The map plus the surfaces of the blocks built so far, at their design poses.
 
     From inside a growing structure most of a scan sees new blocks, which the site
     map does not hold; adding them (sampled on the map's voxel grid, with their
     face normals) keeps the fitness up and removes the pull of unmatched block
-    points on nearby map surfaces. The blocks stand where the design puts them:
-    placement errors of real blocks (within tolerance) become map errors.
+    points on nearby map surfaces. The blocks stand where the design puts them,
+    the real ones where they were placed: with ``placement_sigma`` (metres per
+    axis) each map point is labelled with its block (the nearest sample within
+    a voxel) and the fixes' covariance counts that error
+    (``ScanMap.point_groups``).
     """
 
     T_boxes, extents = element_boxes(built)
@@ -126,10 +135,20 @@ def with_as_built(scan_map: ScanMap, built: Sequence[Element], rng: np.random.Ge
         scan_map.voxel_size,
         np.vstack([scan_map.normals, mesh.face_normals[face]]),
     )
+    groups = None
+    if placement_sigma > 0:
+        # boxes_mesh gives every box the same triangles, in order
+        block = np.asarray(face) // (len(mesh.faces) // len(extents))
+        d, nearest = cKDTree(pts).query(
+            merged.target.points, distance_upper_bound=scan_map.voxel_size
+        )
+        groups = np.where(np.isfinite(d), block[np.minimum(nearest, len(block) - 1)], -1)
     return ScanMap(
         target=merged.target,
         coarse=merged.coarse,
         voxel_size=scan_map.voxel_size,
         T_world_scans=scan_map.T_world_scans,
         map_covariance=scan_map.map_covariance,
+        point_groups=None if groups is None else groups.astype(np.intp),
+        group_sigma=float(placement_sigma) if groups is not None else 0.0,
     )

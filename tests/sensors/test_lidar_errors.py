@@ -11,6 +11,7 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fabflow.design.elements import Element
 from fabflow.errors import InputError, UnsupportedError
 from fabflow.positioning.icp import icp, prepare_target
 from fabflow.positioning.lidar_channels import channel_of
@@ -22,7 +23,7 @@ from fabflow.sensors.lidar_errors import (
     draw_channel_bias,
     incidence_sigma,
 )
-from fabflow.sensors.site_map import mapping_poses, simulated_site_map
+from fabflow.sensors.site_map import mapping_poses, simulated_site_map, with_as_built
 from fabflow.sensors.site_scene import site_scene
 from fabflow.transforms.se3 import apply_T, inv_T, make_T, pose_error
 from fabflow.transforms.so3 import exp_so3
@@ -272,3 +273,36 @@ def test_a_map_with_a_covariance_adds_it_to_every_fix() -> None:
     moved = transform_map(drifting, make_T(R, [1.0, 2.0, 0.0]))
     R6 = np.kron(np.eye(2), R)
     np.testing.assert_allclose(moved.map_covariance, R6 @ drifting.map_covariance @ R6.T)
+
+
+def test_blocks_added_to_the_map_carry_their_placement_error_into_the_fix() -> None:
+    """The map's as-built blocks are labelled by block; with a placement sigma the
+    fix's covariance grows by a positive semi-definite term, the pose stays."""
+    model = LidarModel(n_beams=32, horizontal_resolution_deg=1.0)
+    base = simulated_site_map(model=model)
+    blocks = [
+        Element(
+            f"B{i}",
+            "block",
+            make_T(np.eye(3), [1.0 + 0.7 * i, 3.0, 0.3]),
+            extents=np.array([0.6, 0.2, 0.6]),
+        )
+        for i in range(4)
+    ]
+    plain = with_as_built(base, blocks, np.random.default_rng(1))
+    labelled = with_as_built(base, blocks, np.random.default_rng(1), placement_sigma=0.003)
+    assert plain.point_groups is None and labelled.group_sigma == 0.003
+    groups = labelled.point_groups
+    assert groups is not None and set(np.unique(groups)) == {-1, 0, 1, 2, 3}
+    # a labelled point lies on its own block (within a voxel)
+    on = groups >= 0
+    centre = np.array([[1.0 + 0.7 * i, 3.0, 0.3] for i in range(4)])[groups[on]]
+    assert (np.abs(labelled.points[on] - centre) <= np.array([0.3, 0.1, 0.3]) + 0.031).all()
+    T = make_T(np.eye(3), [2.0, 1.0, 1.2])
+    scene = site_scene(built=blocks)
+    scan = simulate_scan(scene, T, np.random.default_rng(2), model)
+    a = localize_scan(scan.points, plain, T, coarse_schedule=None)
+    b = localize_scan(scan.points, labelled, T, coarse_schedule=None)
+    np.testing.assert_array_equal(a.T_world_lidar, b.T_world_lidar)
+    extra = b.covariance - a.covariance
+    assert np.linalg.eigvalsh(extra).min() > -1e-15 and np.trace(extra[:3, :3]) > 0
