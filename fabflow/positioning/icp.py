@@ -54,8 +54,9 @@ FloatArray = NDArray[np.float64]
 Method = Literal["point_to_point", "point_to_plane"]
 Kernel = Literal["none", "huber", "tukey", "cauchy"]
 
-MAX_RAY_SIGMA = 1.0
-"""Largest standard deviation (metres) of a range error shared by a group of rays."""
+MAX_SHARED_SIGMA = 1.0
+"""Largest standard deviation (metres) of an error shared by a group of points (a
+channel's range bias, a map part's shift)."""
 MIN_CORRESPONDENCES = 10
 """Fewer inlier correspondences than this is a failed registration."""
 MIN_BLOCKS = 30
@@ -219,13 +220,40 @@ def _block_sums(scores: FloatArray, points: FloatArray, block: float | None) -> 
         return scores
     keys = np.floor(points / block).astype(np.int64)
     _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    if int(inverse.max()) + 1 < MIN_BLOCKS:
+        return scores
+    return _group_sums(scores, inverse)
+
+
+def _group_sums(rows: FloatArray, groups: NDArray[np.integer]) -> FloatArray:
+    """The rows ``(n, c)`` summed over the distinct values of ``groups`` ``(n,)``: ``(G, c)``."""
+    _, inverse = np.unique(np.ravel(groups), return_inverse=True)
     inverse = inverse.ravel()
     n = int(inverse.max()) + 1
-    if n < MIN_BLOCKS:
-        return scores
     return np.stack(
-        [np.bincount(inverse, weights=scores[:, k], minlength=n) for k in range(6)], axis=1
+        [np.bincount(inverse, weights=rows[:, k], minlength=n) for k in range(rows.shape[1])],
+        axis=1,
     )
+
+
+def _shared_errors(
+    groups: ArrayLike | None, sigma: float, size: int, method: Method, name: str
+) -> tuple[NDArray[np.integer], float] | None:
+    """Validated ``(groups, sigma)`` of an error shared by groups of ``size`` points, or
+    ``None`` when there is none (``name``: the parameters' prefix, for the messages)."""
+    if not (isinstance(sigma, (int, float)) and 0.0 <= sigma <= MAX_SHARED_SIGMA):
+        raise InputError(f"{name}_sigma must be a number from 0 to {MAX_SHARED_SIGMA:g} m")
+    if groups is None or sigma == 0:
+        return None
+    if method != "point_to_plane":
+        raise UnsupportedError(
+            f"{name}_groups needs point_to_plane: a point-to-point residual slides along "
+            "a surface and shows a shared error only across it"
+        )
+    g = np.asarray(groups)
+    if g.shape != (size,) or not np.issubdtype(g.dtype, np.integer):
+        raise InputError(f"{name}_groups needs one integer group per point ({size})")
+    return g, float(sigma)
 
 
 def _sandwich(
@@ -378,29 +406,8 @@ def icp(
         raise InputError(
             f"source cloud needs at least {MIN_CORRESPONDENCES} points, has {len(src)}"
         )
-    rays = None
-    if not (isinstance(ray_sigma, (int, float)) and 0.0 <= ray_sigma <= MAX_RAY_SIGMA):
-        raise InputError(f"ray_sigma must be a number from 0 to {MAX_RAY_SIGMA:g} m")
-    if ray_groups is not None and ray_sigma > 0:
-        if method != "point_to_plane":
-            raise UnsupportedError(
-                "ray_groups needs point_to_plane: a point-to-point residual slides along "
-                "a surface and shows a shared range error only across it"
-            )
-        groups = np.asarray(ray_groups)
-        if groups.shape != (len(src),) or not np.issubdtype(groups.dtype, np.integer):
-            raise InputError("ray_groups needs one integer group per source point")
-        rays = (groups, float(ray_sigma))
-    if not (isinstance(target_sigma, (int, float)) and 0.0 <= target_sigma <= MAX_RAY_SIGMA):
-        raise InputError(f"target_sigma must be a number from 0 to {MAX_RAY_SIGMA:g} m")
-    parts = None
-    if target_groups is not None and target_sigma > 0:
-        if method != "point_to_plane":
-            raise UnsupportedError("target_groups needs point_to_plane")
-        tg = np.asarray(target_groups)
-        if tg.shape != (len(tgt.points),) or not np.issubdtype(tg.dtype, np.integer):
-            raise InputError("target_groups needs one integer group per target point")
-        parts = (tg, float(target_sigma))
+    rays = _shared_errors(ray_groups, ray_sigma, len(src), method, "ray")
+    parts = _shared_errors(target_groups, target_sigma, len(tgt.points), method, "target")
 
     plane = method == "point_to_plane"
     src_mean = src.mean(axis=0)
@@ -541,25 +548,15 @@ def _final_result(
         u = Rs / np.maximum(np.linalg.norm(Rs, axis=1), 1e-12)[:, None]
         per_metre = J * (w * np.einsum("ij,ij->i", u, nn))[:, None]  # point_to_plane only
         groups, ray_sigma = rays
-        _, inverse = np.unique(groups[ok], return_inverse=True)
-        n_groups = int(inverse.max()) + 1
-        shared = ray_sigma * np.stack(
-            [np.bincount(inverse, weights=per_metre[:, k], minlength=n_groups) for k in range(6)],
-            axis=1,
-        )
+        shared = ray_sigma * _group_sums(per_metre, groups[ok])
     if parts is not None:
         part_of, part_sigma = parts
         g = part_of[ii]
         on = g >= 0
         if on.any():
-            _, inverse = np.unique(g[on], return_inverse=True)
+            # a part's shift along axis a changes each residual by -n_a per metre
             Jw = J[on] * w[on, None]
-            rows = [
-                np.stack(
-                    [np.bincount(inverse, weights=Jw[:, k] * nn[on, a]) for k in range(6)], axis=1
-                )
-                for a in range(3)
-            ]
+            rows = [_group_sums(Jw * nn[on, a : a + 1], g[on]) for a in range(3)]
             moved = part_sigma * np.concatenate(rows)
             shared = moved if shared is None else np.concatenate([shared, moved])
     cov, info, condition = _sandwich(info_unit, sums, n_ok, sigma2, shared)

@@ -22,9 +22,9 @@ tool pointing down, A1, A4 and A6 stand still and only A2, A3 and A5 turn.
 
 :func:`prefer_regular` takes these levels out of the reach matrix of the
 chosen stations: the singular levels wherever another level, at the same
-station or another one, reaches the block; then the swinging ones wherever another level of
-the same station reaches it. The build
-order and the lift of every visit then follow from what is left.
+station or another one, reaches the block; then the swinging ones wherever
+another level of the same station reaches it. The build order and the lift of
+every visit then follow from what is left.
 """
 
 from __future__ import annotations

@@ -59,9 +59,7 @@ from fabflow.tasks.reachability import (
 )
 from fabflow.tasks.split import split_wide_paths
 from fabflow.tasks.stations import Candidates, generate_candidates, lift_levels
-from fabflow.tasks.targets import (
-    tool_frames,
-)
+from fabflow.tasks.targets import tool_frames
 from fabflow.tasks.verify import unreachable_targets
 
 SPLIT_FRACTION = 0.35
