@@ -116,7 +116,7 @@ def incidence_sigma(
         broadcast; incidences beyond 89 deg count as 89 deg.
     """
     c = np.clip(np.abs(np.asarray(cos_incidence, dtype=float)), GRAZING_COS, 1.0)
-    tan = np.sqrt(1.0 - c**2) / c
+    tan = np.sqrt((1.0 - c) * (1.0 + c)) / c  # 1 - c is exact near normal incidence
     return np.asarray(ranges, dtype=float) * beam_divergence * tan / np.sqrt(12.0)
 
 

@@ -59,8 +59,10 @@ def test_incidence_sigma_grows_with_the_angle_and_the_range(
     s_lo, s_hi = incidence_sigma([r, r], np.cos(np.radians([lo, hi])), divergence)
     assert 0.0 <= s_lo <= s_hi + 1e-15
     assert incidence_sigma(r, 1.0, divergence) == pytest.approx(0.0, abs=1e-12)
-    expected = r * divergence * np.tan(np.radians(hi)) / np.sqrt(12.0)
-    # tan from the cosine loses digits near normal incidence
+    # the angle the given cosine holds: near normal incidence a float cosine keeps
+    # only a few digits of the angle, which no formula of it can give back
+    held = np.arccos(np.cos(np.radians(hi)))
+    expected = r * divergence * np.tan(held) / np.sqrt(12.0)
     assert s_hi == pytest.approx(expected, rel=1e-6, abs=1e-12)
 
 
