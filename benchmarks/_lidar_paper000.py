@@ -27,7 +27,8 @@ from __future__ import annotations
 import numpy as np
 
 from fabflow.errors import LocalizationError
-from fabflow.positioning.scan_matching import ScanMap, localize_scan
+from fabflow.positioning.scan_map import ScanMap
+from fabflow.positioning.scan_matching import localize_scan
 from fabflow.sensors.lidar import HESAI_QT64, simulate_scan
 from fabflow.sensors.lidar_errors import LidarErrorModel, draw_channel_bias
 from fabflow.sensors.site_map import simulated_site_map

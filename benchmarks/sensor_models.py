@@ -24,11 +24,16 @@ LiDAR ICP (paper 000; scenarios in ``_lidar_paper000.py``). The range error is
 the white noise (1 cm), the incidence-angle spread of a 3 mrad beam, and a
 per-channel range bias drawn per run; the map is built by a simulated mapping
 run that registers its scans one after the other, so it drifts. The one free
-parameter, the channel bias's standard deviation, is fitted on table I (a
-stationary sensor outdoors, the deviation of the runs' positions); the moving
-end-effector's ICP RMSE (section IV-A) is the held-out check. The paper's
-kinematics-only RMSE (2.23 cm) needs an excavator arm model, which fabflow does
-not have yet: not simulated.
+parameter, the channel bias's standard deviation, is fitted on section IV-A
+(the moving end-effector's ICP RMSE against the total station, 0.58 cm: the
+construction machine the simulator stands for, and the figure issue 20 asks
+for); table I (a stationary sensor outdoors, runs at other times of day: the
+deviation of the runs' positions) is the held-out check. It cannot fit both:
+the paper's static outdoor spread (0.35-0.47 cm per axis) exceeds its moving
+RMSE (0.58 cm in 3D), which the paper puts down to the sunlight and the
+features' distance there; fitted on table I (3.5 cm) the moving RMSE came out at
+2.1 times the paper's. The paper's kinematics-only RMSE (2.23 cm) needs an
+excavator arm model, which fabflow does not have yet: not simulated.
 
 Last, UWB through the built cabin: the wood's delay (``material_delay``) taken
 off as the design predicts, and left on.
@@ -36,8 +41,8 @@ off as the design predicts, and left on.
 Prints per table, estimator and axis the paper's value, the simulated one and
 their ratio, then the mean ratio per role; ``--json FILE`` writes the rows
 ``{paper, table, estimator, axis, paper_value_m, simulated_value_m, role}``
-(``role``: ``fit`` or ``holdout``; table I's orientation rows, from the fit's
-table but not fitted, carry ``"unit": "deg"`` and degrees in the value fields).
+(``role``: ``fit`` or ``holdout``; table I's orientation rows carry
+``"unit": "deg"`` and degrees in the value fields).
 
     python benchmarks/sensor_models.py [--quick] [--seed N] [--json FILE]
 """
@@ -105,7 +110,7 @@ MOVING_TABLES = {"rect2d": "3", "line3d": "4", "rect3d": "5", "u": "7"}
 TWO_D = {"rect2d": True, "line3d": False, "rect3d": False, "u": True}
 FIT_SIGMAS = (0.0, 0.01, 0.02, 0.025, 0.03, 0.035, 0.04, 0.05, 0.06, 0.08)
 """Candidate multipath standard deviations (metres) of the fit."""
-LIDAR_BIAS_SIGMAS = (0.0, 0.01, 0.015, 0.02, 0.025, 0.03, 0.035, 0.04)
+LIDAR_BIAS_SIGMAS = (0.0, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03)
 """Candidate channel range bias standard deviations (metres) of the LiDAR fit."""
 WOOD_DELAY = 0.41
 """``sqrt(eps_r) - 1`` of wood of relative permittivity 2 (the UWB structure table)."""
@@ -189,11 +194,11 @@ def lidar_static_rows(errors: LidarErrorModel, runs: int, seed: int) -> list[dic
     as the paper gives them, in the value fields)."""
     pos, ang, _ = static_deviation(errors, runs, seed)
     rows = [
-        _row("I outdoor", "icp", axis, TABLE_I_OUTDOOR_CM[axis], v, "fit", paper="000")
+        _row("I outdoor", "icp", axis, TABLE_I_OUTDOOR_CM[axis], v, "holdout", paper="000")
         for axis, v in zip("xyz", pos, strict=True)
     ]
     rows += [
-        _row("I outdoor", "icp", axis, 100 * p, v, "fit", paper="000", unit="deg")
+        _row("I outdoor", "icp", axis, 100 * p, v, "holdout", paper="000", unit="deg")
         for (axis, p), v in zip(TABLE_I_OUTDOOR_DEG.items(), ang, strict=True)
     ]
     return rows
@@ -304,39 +309,33 @@ def main() -> None:
 
 
 def lidar_rows(quick: bool, seed: int) -> list[dict]:
-    """Fit the LiDAR channel bias on table I's positions, check section IV-A; print both."""
+    """Fit the LiDAR channel bias on section IV-A's moving RMSE, check table I; print both."""
     runs, moving_runs, scans = (4, 1, 8) if quick else (30, 6, 40)
-    sigmas = (0.025,) if quick else LIDAR_BIAS_SIGMAS
+    sigmas = (LIDAR_BIAS_SIGMAS[2],) if quick else LIDAR_BIAS_SIGMAS
     print(
-        f"\nLiDAR ICP, paper 000. Fit: the channel range bias on table I outdoor "
-        f"(positions; {runs} runs of a stationary sensor); beam divergence "
+        f"\nLiDAR ICP, paper 000. Fit: the channel range bias on section IV-A's moving "
+        f"end-effector (RMSE over {moving_runs} runs of {scans} scans); beam divergence "
         f"{1000 * LIDAR_FIXED.beam_divergence:.0f} mrad, incidence up to "
         f"{LIDAR_FIXED.max_incidence_deg:.0f} deg, not fitted."
     )
-    print("   bias cm   misfit (positions)")
+    print("   bias cm   RMSE cm   ratio   failed scans")
     fits = []
     for sigma in sigmas:
         errors = dataclasses.replace(LIDAR_FIXED, channel_bias_sigma=sigma)
-        rows = lidar_static_rows(errors, runs, seed)
-        misfit = _log_misfit([r for r in rows if "unit" not in r])
-        fits.append((misfit, sigma, rows))
-        print(f"   {100 * sigma:7.1f}   {misfit:8.3f}")
+        rmse, failed = moving_rmse(errors, moving_runs, scans, seed + 1)
+        row = _row("IV-A moving", "icp", "xyz", ICP_RMSE_CM, rmse, "fit", paper="000")
+        fits.append((_log_misfit([row]), sigma, row))
+        print(f"   {100 * sigma:7.1f}   {100 * rmse:7.2f}   {rmse / 0.01 / ICP_RMSE_CM:5.2f}"
+              f"   {failed}")  # fmt: skip
     _, sigma, fit = min(fits, key=lambda f: f[0])
     errors = dataclasses.replace(LIDAR_FIXED, channel_bias_sigma=sigma)
-    _print(fit, f"Table I outdoor (fit on x, y, z): channel bias {100 * sigma:.1f} cm")
-    rmse, failed = moving_rmse(errors, moving_runs, scans, seed + 1)
-    holdout = [_row("IV-A moving", "icp", "xyz", ICP_RMSE_CM, rmse, "holdout", paper="000")]
-    _print(
-        holdout,
-        f"Moving end-effector (held out; RMSE over {moving_runs} runs of {scans} scans, "
-        f"{failed} failed)",
-    )
-    still, _ = moving_rmse(LIDAR_FIXED, moving_runs, scans, seed + 1)
+    _print([fit], f"Section IV-A moving end-effector (fit): channel bias {100 * sigma:.1f} cm")
+    holdout = lidar_static_rows(errors, runs, seed)
+    _print(holdout, f"Table I outdoor (held out; {runs} runs of a stationary sensor)")
     print(
-        f"   without the channel bias: {100 * still:.2f} cm; kinematics only "
-        f"(paper {KINEMATICS_RMSE_CM} cm): not simulated, no excavator arm model"
+        f"   kinematics only (paper {KINEMATICS_RMSE_CM} cm): not simulated, no excavator arm model"
     )
-    return fit + holdout
+    return [fit, *holdout]
 
 
 def structure_table(visits: int) -> None:

@@ -9,7 +9,6 @@ when it runs, so that ``fabflow --help`` and a mistyped command answer at once
 from __future__ import annotations
 
 import functools
-import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -195,43 +194,6 @@ def program(
     run_stages(p, out, "program", until="program")
 
 
-def parse_numbers(text: str, option: str, names: str, units: str = "") -> tuple[float, ...]:
-    """Comma-separated finite numbers given to ``option``, one per name in ``names``.
-
-    Parameters
-    ----------
-    text
-        What the user typed, e.g. ``"1, -2.5,30"`` (``;`` also separates).
-    option
-        The option, named in the error (``--init``).
-    names
-        What the numbers are, comma-separated (``"x,y,yaw"``).
-    units
-        Their units, shown in the error (``" (metres, metres, degrees)"``).
-
-    Raises
-    ------
-    InputError
-        Not exactly that many finite numbers.
-    """
-    from fabflow.errors import InputError
-
-    expected = len(names.split(","))
-    try:
-        values = [float(v) for v in text.replace(";", ",").split(",")]
-    except ValueError:
-        values = []
-    if len(values) != expected or not all(math.isfinite(v) for v in values):
-        raise InputError(f"expected '{names}'{units}, got {text!r}", location=option)
-    return tuple(values)
-
-
-def _optional_numbers(
-    text: str | None, option: str, names: str, units: str
-) -> tuple[float, ...] | None:
-    return None if text is None else parse_numbers(text, option, names, units)
-
-
 def report_base_pose(
     pose: BasePose, out: Path, method: str, rows: list[tuple[str, str]], alert_limit: float
 ) -> None:
@@ -294,6 +256,8 @@ def localize_total_station(
     distance_sigma_mm: Annotated[float | None, typer.Option(help="Distance sigma (mm).")] = None,
     distance_ppm: Annotated[float | None, typer.Option(help="Distance ppm part.")] = None,
     angle_sigma_arcsec: Annotated[float | None, typer.Option(help='Angle sigma (").')] = None,
+    prism_centring_mm: Annotated[float | None, typer.Option(help="Prism centring (mm).")] = None,
+    atmosphere_ppm: Annotated[float | None, typer.Option(help="Atmosphere scale (ppm).")] = None,
     instrument_xyz: Annotated[
         str | None, typer.Option(help="Instrument position 'x,y,z' in the world (m).")
     ] = None,
@@ -321,7 +285,7 @@ def localize_total_station(
 ) -> None:
     """Localize the robot base from total station readings of prisms on the robot."""
 
-    from fabflow.localize.report import alert_limit_for, check_options
+    from fabflow.localize.report import alert_limit_for, check_options, optional_numbers
     from fabflow.localize.total_station import localize_files
     from fabflow.project import load_project
 
@@ -329,15 +293,17 @@ def localize_total_station(
         "distance_sigma_mm": distance_sigma_mm,
         "distance_ppm": distance_ppm,
         "angle_sigma_arcsec": angle_sigma_arcsec,
-        "instrument_xyz": _optional_numbers(
+        "prism_centring_mm": prism_centring_mm,
+        "atmosphere_ppm": atmosphere_ppm,
+        "instrument_xyz": optional_numbers(
             instrument_xyz, "--instrument-xyz", "x,y,z", " (metres, world frame)"
         ),
-        "instrument_abc_deg": _optional_numbers(
+        "instrument_abc_deg": optional_numbers(
             instrument_abc_deg, "--instrument-abc-deg", "A,B,C", " (degrees, Rz Ry Rx)"
         ),
         "instrument_height": instrument_height,
         "robot_sigma": robot_sigma,
-        "tcp_xyz": _optional_numbers(tcp_xyz, "--tcp-xyz", "x,y,z", " (metres, flange frame)"),
+        "tcp_xyz": optional_numbers(tcp_xyz, "--tcp-xyz", "x,y,z", " (metres, flange frame)"),
     }
     check_options(numbers, cli=True)
     loaded = None if project is None else load_project(project)
@@ -412,7 +378,7 @@ def localize_icp(
     """Localize the robot base by ICP of a LiDAR scan against a map; writes OUT/base_pose.json."""
 
     from fabflow.localize.icp import localize_files
-    from fabflow.localize.report import alert_limit_for, check_options
+    from fabflow.localize.report import alert_limit_for, check_options, parse_numbers
     from fabflow.project import load_project
 
     start = parse_numbers(init, "--init", "x,y,yaw", " (metres, metres, degrees)")

@@ -9,7 +9,8 @@ of its ``x, y, z, yaw`` from one ranging epoch of all its tags, each range
 weighted by the chance that it is clean (:func:`_information`): a geometry
 figure, as the dilution of precision of satellite positioning is, which a
 dwell then averages down. A station is covered when it is within
-``target_sigma``, by default :data:`DEFAULT_HDOP` times the range sigma.
+``target_sigma``, by default :data:`DEFAULT_HDOP` times the range sigma at 1 m
+(white noise and multipath together).
 
 :func:`check_anchors` tests a given layout and :func:`coverage_error` names the
 first station it does not cover and what to change. :func:`plan_anchors`
@@ -46,7 +47,7 @@ from fabflow.tasks.plan import Plan, Station
 from fabflow.transforms.se3 import inv_T
 
 DEFAULT_HDOP = 2.0
-"""Default ``target_sigma`` in range sigmas (a horizontal dilution of precision of 2,
+"""Default ``target_sigma`` in range sigmas at 1 m (a horizontal dilution of precision of 2,
 a common bound of good geometry in satellite and radio positioning)."""
 ANCHOR_CLEARANCE = 0.5
 """Distance (metres) a planned anchor keeps from the structure, obstacles and parking places."""
@@ -156,9 +157,12 @@ def _setup(project: Project) -> UwbSetup:
 
 
 def target_sigma(project: Project) -> float:
-    """``uwb.target_sigma``, or :data:`DEFAULT_HDOP` x ``uwb.sigma`` (metres)."""
+    """``uwb.target_sigma``, or :data:`DEFAULT_HDOP` x the range sigma at 1 m, ``uwb.sigma``
+    and ``uwb.multipath_sigma`` together (metres)."""
     setup = _setup(project)
-    return DEFAULT_HDOP * setup.sigma if setup.target_sigma is None else setup.target_sigma
+    if setup.target_sigma is not None:
+        return setup.target_sigma
+    return DEFAULT_HDOP * float(np.hypot(setup.sigma, setup.multipath_sigma))
 
 
 def package_tags(project: Project, plan: Plan) -> np.ndarray:

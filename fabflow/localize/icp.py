@@ -26,13 +26,8 @@ from fabflow.localize.report import check_options
 from fabflow.localize.site import parking_accuracy, site_obstacles
 from fabflow.positioning.pointcloud_io import read_point_cloud
 from fabflow.positioning.result import BasePose
-from fabflow.positioning.scan_matching import (
-    ScanLocalization,
-    ScanMap,
-    load_map,
-    localize_scan,
-    to_base_pose,
-)
+from fabflow.positioning.scan_map import ScanMap, load_map
+from fabflow.positioning.scan_matching import ScanLocalization, localize_scan, to_base_pose
 from fabflow.project import IcpSetup, Platform, Project
 from fabflow.robots import platform
 from fabflow.sensors.lidar import HESAI_QT64, simulate_scan

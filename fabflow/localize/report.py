@@ -42,6 +42,42 @@ quantity can have. A robot sigma of more than a metre, a zero instrument sigma
 (every covariance singular) or a prism 10 m from the flange is a mistake."""
 
 
+def parse_numbers(text: str, option: str, names: str, units: str = "") -> tuple[float, ...]:
+    """Comma-separated finite numbers given to ``option``, one per name in ``names``.
+
+    Parameters
+    ----------
+    text
+        What the user typed, e.g. ``"1, -2.5,30"`` (``;`` also separates).
+    option
+        The option, named in the error (``--init``).
+    names
+        What the numbers are, comma-separated (``"x,y,yaw"``).
+    units
+        Their units, shown in the error (``" (metres, metres, degrees)"``).
+
+    Raises
+    ------
+    InputError
+        Not exactly that many finite numbers.
+    """
+    expected = len(names.split(","))
+    try:
+        values = [float(v) for v in text.replace(";", ",").split(",")]
+    except ValueError:
+        values = []
+    if len(values) != expected or not all(math.isfinite(v) for v in values):
+        raise InputError(f"expected '{names}'{units}, got {text!r}", location=option)
+    return tuple(values)
+
+
+def optional_numbers(
+    text: str | None, option: str, names: str, units: str
+) -> tuple[float, ...] | None:
+    """:func:`parse_numbers` of ``text``, or ``None`` when the option was not given."""
+    return None if text is None else parse_numbers(text, option, names, units)
+
+
 def check_options(values: Mapping[str, float | Sequence[float] | None], cli: bool = False) -> None:
     """Refuse option values outside :data:`OPTION_BOUNDS` (``None`` is not given).
 

@@ -389,10 +389,12 @@ def plan_setups(
         alive = np.flatnonzero(allowed)
         worst = np.zeros(len(alive))  # the largest predicted sigma over the run so far
         end = i
+        nearest = np.inf  # the best predicted sigma at package i, where none is within
         while end < len(packages) and len(alive):
             sigma = _sigma(eyes[alive], packages[end], project)
             ok = sigma <= limit
             if not ok.any():
+                nearest = float(sigma.min()) if end == i else nearest
                 break
             alive, worst, end = alive[ok], np.maximum(worst[ok], sigma[ok]), end + 1
             keep = np.argsort(worst, kind="stable")[:FOLLOWED]
@@ -405,6 +407,14 @@ def plan_setups(
                 out.append(replace(last, packages=tuple(range(last.packages[0], handover))))
                 i = handover
                 continue
+        if end == i and np.isfinite(nearest):
+            raise LocalizationError(
+                f"no total station set-up localizes work package {i + 1} (station {ids[i]}) "
+                f"to 0.1 of tolerances.position ({1e3 * limit:.2f} mm): the best of those that "
+                f"see its prism points and {why.split(' ', 1)[1]} predicts {1e3 * nearest:.2f} mm "
+                "(XY); measure more prism points (n_points), use a more accurate instrument "
+                "or prism (prism_centring_mm), or give control points closer to the work"
+            )
         if end == i:
             raise LocalizationError(
                 f"no total station set-up on the site sees the prism points of work package "

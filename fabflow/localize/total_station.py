@@ -272,6 +272,8 @@ def localize_files(
     distance_sigma_mm: float | None = None,
     distance_ppm: float | None = None,
     angle_sigma_arcsec: float | None = None,
+    prism_centring_mm: float | None = None,
+    atmosphere_ppm: float | None = None,
     instrument_xyz: Sequence[float] | None = None,
     instrument_abc_deg: Sequence[float] | None = None,
     instrument_height: float | None = None,
@@ -287,11 +289,11 @@ def localize_files(
     The instrument and its pose come from the project's
     ``localization.total_station`` section when ``project`` is given, else from
     the defaults (Leica MS50, instrument frame = world); the keyword arguments
-    override either: ``instrument_xyz`` in metres, ``instrument_abc_deg`` in
-    degrees (R = Rz(A) Ry(B) Rx(C)). A robot point file of joint values is
-    turned into prism positions by forward kinematics of ``robot`` (else the
-    project's robot) with the prism at the project's TCP, or at ``tcp_xyz``
-    (metres, flange frame).
+    override either: ``instrument_xyz`` in
+    metres, ``instrument_abc_deg`` in degrees (R = Rz(A) Ry(B) Rx(C)). A robot
+    point file of joint values is turned into prism positions by forward
+    kinematics of ``robot`` (else the project's robot) with the prism at the
+    project's TCP, or at ``tcp_xyz`` (metres, flange frame).
 
     Raises
     ------
@@ -309,6 +311,8 @@ def localize_files(
             "distance_sigma_mm": distance_sigma_mm,
             "distance_ppm": distance_ppm,
             "angle_sigma_arcsec": angle_sigma_arcsec,
+            "prism_centring_mm": prism_centring_mm,
+            "atmosphere_ppm": atmosphere_ppm,
             "instrument_xyz": instrument_xyz,
             "instrument_abc_deg": instrument_abc_deg,
             "instrument_height": instrument_height,
@@ -327,6 +331,8 @@ def localize_files(
         "distance_sigma_mm": distance_sigma_mm,
         "distance_ppm": distance_ppm,
         "angle_sigma_arcsec": angle_sigma_arcsec,
+        "prism_centring_mm": prism_centring_mm,
+        "atmosphere_ppm": atmosphere_ppm,
     }
     inst = instrument_for(
         setup.model_copy(update={k: v for k, v in overrides.items() if v is not None})

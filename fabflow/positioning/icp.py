@@ -45,7 +45,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from fabflow.errors import InputError, LocalizationError, UnsupportedError
+from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.icp_shared import SharedErrors, group_sums, shared_errors, shared_rows
 from fabflow.positioning.pointcloud import as_points, estimate_normals
 from fabflow.transforms.se3 import apply_T
 from fabflow.transforms.so3 import exp_so3, skew
@@ -54,9 +55,6 @@ FloatArray = NDArray[np.float64]
 Method = Literal["point_to_point", "point_to_plane"]
 Kernel = Literal["none", "huber", "tukey", "cauchy"]
 
-MAX_SHARED_SIGMA = 1.0
-"""Largest standard deviation (metres) of an error shared by a group of points (a
-channel's range bias, a map part's shift)."""
 MIN_CORRESPONDENCES = 10
 """Fewer inlier correspondences than this is a failed registration."""
 MIN_BLOCKS = 30
@@ -222,38 +220,7 @@ def _block_sums(scores: FloatArray, points: FloatArray, block: float | None) -> 
     _, inverse = np.unique(keys, axis=0, return_inverse=True)
     if int(inverse.max()) + 1 < MIN_BLOCKS:
         return scores
-    return _group_sums(scores, inverse)
-
-
-def _group_sums(rows: FloatArray, groups: NDArray[np.integer]) -> FloatArray:
-    """The rows ``(n, c)`` summed over the distinct values of ``groups`` ``(n,)``: ``(G, c)``."""
-    _, inverse = np.unique(np.ravel(groups), return_inverse=True)
-    inverse = inverse.ravel()
-    n = int(inverse.max()) + 1
-    return np.stack(
-        [np.bincount(inverse, weights=rows[:, k], minlength=n) for k in range(rows.shape[1])],
-        axis=1,
-    )
-
-
-def _shared_errors(
-    groups: ArrayLike | None, sigma: float, size: int, method: Method, name: str
-) -> tuple[NDArray[np.integer], float] | None:
-    """Validated ``(groups, sigma)`` of an error shared by groups of ``size`` points, or
-    ``None`` when there is none (``name``: the parameters' prefix, for the messages)."""
-    if not (isinstance(sigma, (int, float)) and 0.0 <= sigma <= MAX_SHARED_SIGMA):
-        raise InputError(f"{name}_sigma must be a number from 0 to {MAX_SHARED_SIGMA:g} m")
-    if groups is None or sigma == 0:
-        return None
-    if method != "point_to_plane":
-        raise UnsupportedError(
-            f"{name}_groups needs point_to_plane: a point-to-point residual slides along "
-            "a surface and shows a shared error only across it"
-        )
-    g = np.asarray(groups)
-    if g.shape != (size,) or not np.issubdtype(g.dtype, np.integer):
-        raise InputError(f"{name}_groups needs one integer group per point ({size})")
-    return g, float(sigma)
+    return group_sums(scores, inverse)
 
 
 def _sandwich(
@@ -312,6 +279,7 @@ def icp(
     ray_sigma: float = 0.0,
     target_groups: ArrayLike | None = None,
     target_sigma: float = 0.0,
+    map_rays: tuple[ArrayLike, ArrayLike, float] | None = None,
 ) -> IcpResult:
     """Register ``source`` to ``target`` with ICP.
 
@@ -369,6 +337,12 @@ def icp(
         that part's translation (metres). Adds the same sandwich over groups and
         axes, the residual's change per metre of shift being ``-n_i``;
         point_to_plane only.
+    map_rays
+        ``(groups (M,), directions (M, 3), sigma)``: the channel of the mapping
+        run that measured each target point (``-1``: none), the unit direction
+        it measured it along, and that channel's range bias (metres): the same
+        sandwich, a residual changing by ``-n_i . u_i`` per metre of bias
+        (:mod:`fabflow.positioning.icp_shared`); point_to_plane only.
 
     Returns
     -------
@@ -406,8 +380,14 @@ def icp(
         raise InputError(
             f"source cloud needs at least {MIN_CORRESPONDENCES} points, has {len(src)}"
         )
-    rays = _shared_errors(ray_groups, ray_sigma, len(src), method, "ray")
-    parts = _shared_errors(target_groups, target_sigma, len(tgt.points), method, "target")
+    shared = shared_errors(
+        method == "point_to_plane",
+        len(src),
+        len(tgt.points),
+        (ray_groups, ray_sigma),
+        (target_groups, target_sigma),
+        map_rays,
+    )
 
     plane = method == "point_to_plane"
     src_mean = src.mean(axis=0)
@@ -484,8 +464,7 @@ def icp(
         converged,
         workers,
         covariance_block,
-        rays,
-        parts,
+        shared,
     )
 
 
@@ -500,8 +479,7 @@ def _final_result(
     converged: bool,
     workers: int,
     block: float | None,
-    rays: tuple[NDArray[np.integer], float] | None = None,
-    parts: tuple[NDArray[np.integer], float] | None = None,
+    errors: SharedErrors | None = None,
 ) -> IcpResult:
     p = apply_T(T, src)
     d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=workers)
@@ -543,22 +521,8 @@ def _final_result(
         sigma2 = float(np.sum(w * r * r) / max(3 * n_ok - 6, 1))
     sums = _block_sums(scores, p, block)
     shared = None
-    if rays is not None:
-        # the residual's change per metre of range: the point moves along its ray
-        u = Rs / np.maximum(np.linalg.norm(Rs, axis=1), 1e-12)[:, None]
-        per_metre = J * (w * np.einsum("ij,ij->i", u, nn))[:, None]  # point_to_plane only
-        groups, ray_sigma = rays
-        shared = ray_sigma * _group_sums(per_metre, groups[ok])
-    if parts is not None:
-        part_of, part_sigma = parts
-        g = part_of[ii]
-        on = g >= 0
-        if on.any():
-            # a part's shift along axis a changes each residual by -n_a per metre
-            Jw = J[on] * w[on, None]
-            rows = [_group_sums(Jw * nn[on, a : a + 1], g[on]) for a in range(3)]
-            moved = part_sigma * np.concatenate(rows)
-            shared = moved if shared is None else np.concatenate([shared, moved])
+    if plane and errors is not None:
+        shared = shared_rows(errors, J * w[:, None], nn, Rs, ok, ii)
     cov, info, condition = _sandwich(info_unit, sums, n_ok, sigma2, shared)
     return IcpResult(
         T=T,

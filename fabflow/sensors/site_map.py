@@ -15,7 +15,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from fabflow.design.elements import Element, element_boxes
-from fabflow.positioning.scan_matching import FloatArray, ScanMap, build_map, map_from_points
+from fabflow.positioning.scan_map import FloatArray, ScanMap, build_map, map_from_points
 from fabflow.sensors.lidar import HESAI_QT64, LidarModel, simulate_scan
 from fabflow.sensors.lidar_errors import NO_ERRORS, LidarErrorModel, draw_channel_bias
 from fabflow.sensors.site_scene import boxes_mesh, site_scene
@@ -68,7 +68,7 @@ def simulated_site_map(
     registered
         ``False``: the scans are placed at their true poses (a perfect offline
         SLAM). ``True``: as a mapping run places them
-        (:func:`~fabflow.positioning.scan_matching.build_map`), each registered
+        (:func:`~fabflow.positioning.scan_map.build_map`), each registered
         to the map of the scans before it from its true pose off by
         :data:`ODOMETRY_ERROR` (the odometry), the first at its true pose (the
         map's tie to the site survey): the map drifts by what each registration
@@ -94,11 +94,24 @@ def simulated_site_map(
     points = np.vstack([apply_T(s.T_world_lidar, s.points) for s in scans])
     normals = np.vstack([scene.face_normals[s.face_index] for s in scans])
     result = map_from_points(points, voxel_size, normals)
+    channels, rays = None, None
+    if errors.channel_bias_sigma > 0:
+        # each map point (a voxel's centroid) errs as the scan point nearest it: along
+        # that point's ray, by its channel's bias
+        channel = np.concatenate([s.ray_index // model.n_columns for s in scans])
+        ray = np.vstack(
+            [model.directions()[s.ray_index] @ s.T_world_lidar[:3, :3].T for s in scans]
+        )
+        nearest = cKDTree(points).query(result.target.points)[1]
+        channels, rays = channel[nearest].astype(np.intp), ray[nearest]
     return ScanMap(
         target=result.target,
         coarse=result.coarse,
         voxel_size=voxel_size,
         T_world_scans=tuple(poses),
+        ray_groups=channels,
+        ray_directions=rays,
+        ray_sigma=errors.channel_bias_sigma if channels is not None else 0.0,
     )
 
 
@@ -135,6 +148,19 @@ def with_as_built(
         scan_map.voxel_size,
         np.vstack([scan_map.normals, mesh.face_normals[face]]),
     )
+    rays: dict[str, object] = {}
+    if scan_map.ray_groups is not None and scan_map.ray_directions is not None:
+        # the site's points keep the channel and ray of the map point they came from
+        d, nearest = cKDTree(scan_map.points).query(
+            merged.target.points, distance_upper_bound=scan_map.voxel_size / 2
+        )
+        found = np.isfinite(d)
+        nearest = np.minimum(nearest, len(scan_map.points) - 1)
+        rays = {
+            "ray_groups": np.where(found, scan_map.ray_groups[nearest], -1).astype(np.intp),
+            "ray_directions": np.where(found[:, None], scan_map.ray_directions[nearest], 0.0),
+            "ray_sigma": scan_map.ray_sigma,
+        }
     groups = None
     if placement_sigma > 0:
         # boxes_mesh gives every box the same triangles, in order
@@ -151,4 +177,5 @@ def with_as_built(
         map_covariance=scan_map.map_covariance,
         point_groups=None if groups is None else groups.astype(np.intp),
         group_sigma=float(placement_sigma) if groups is not None else 0.0,
+        **rays,  # type: ignore[arg-type]
     )

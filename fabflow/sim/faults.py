@@ -30,7 +30,7 @@ from fabflow.localize import icp, uwb
 from fabflow.localize import total_station as ts
 from fabflow.localize.plan import check_visit, parking_covariance
 from fabflow.positioning.result import BasePose
-from fabflow.positioning.scan_matching import transform_map
+from fabflow.positioning.scan_map import transform_map
 from fabflow.project import Project, TotalStationSetup
 from fabflow.schema import PoseSpec
 from fabflow.transforms.se3 import make_T, perturb, pose_error

@@ -14,23 +14,17 @@ from helpers import ROOT
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fabflow.cli import parse_numbers
 from fabflow.design.elements import Element
 from fabflow.errors import InputError, LocalizationError
 from fabflow.localize.icp import COARSE_REACH, coarse_schedule, localize_station
 from fabflow.localize.methods import localizer_arguments
 from fabflow.localize.plan import parked_pose
+from fabflow.localize.report import parse_numbers
 from fabflow.positioning import scan_matching
 from fabflow.positioning.pointcloud_io import write_point_cloud
 from fabflow.positioning.result import BasePose
-from fabflow.positioning.scan_matching import (
-    ScanMap,
-    build_map,
-    localize_scan,
-    map_from_points,
-    scan_integrity,
-    to_base_pose,
-)
+from fabflow.positioning.scan_map import ScanMap, build_map, map_from_points
+from fabflow.positioning.scan_matching import localize_scan, scan_integrity, to_base_pose
 from fabflow.project import IcpSetup, Project, load_project, parse_project
 from fabflow.sensors.lidar import LidarModel, simulate_scan
 from fabflow.sensors.site_map import mapping_poses, simulated_site_map

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import PROJECTS
+from helpers import DATA, PROJECTS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -20,7 +20,7 @@ from fabflow.localize.setups import (
 )
 from fabflow.localize.stationing import register_setup
 from fabflow.positioning.boxes import Boxes, segments_clear, segments_inside
-from fabflow.project import TotalStationSetup, load_project
+from fabflow.project import TotalStationSetup, load_project, parse_project
 from fabflow.schema import PoseSpec
 from fabflow.tasks.planner import plan_project
 from fabflow.transforms.so3 import exp_so3
@@ -225,3 +225,18 @@ def test_procedure_a_inherits_the_robots_error(cabin) -> None:
     )
     assert np.linalg.norm(b.T_est[:2, 3] - eye[:2]) < 0.003
     assert b.covariance[0, 0] < 0.1 * a.covariance[0, 0]
+
+
+def test_set_ups_that_see_but_miss_the_accuracy_say_by_how_much() -> None:
+    """Planned set-ups that see the prisms but predict more than 0.1 of the tolerance:
+    the error gives the best predicted sigma and the remedies, not the line of sight."""
+    text = (DATA / "sim" / "project.yaml").read_text()
+    text = text.replace("  method: uwb\n", "  method: total_station\n", 1)
+    text = text.replace(
+        "localization:\n", "localization:\n  total_station: {prism_centring_mm: 3}\n", 1
+    )
+    project = parse_project(text)
+    elements = generate_elements(project.elements, project.path)
+    plan = plan_project(project, elements)
+    with pytest.raises(LocalizationError, match=r"predicts \d+\.\d\d mm \(XY\).*prism_centring_mm"):
+        plan_setups(project, plan, elements)

@@ -10,8 +10,9 @@ import pytest
 from helpers import TS_DATA
 from typer.testing import CliRunner
 
-from fabflow.cli import app, parse_numbers
+from fabflow.cli import app
 from fabflow.errors import InputError
+from fabflow.localize.report import parse_numbers
 from fabflow.localize.total_station import localize_files
 from fabflow.positioning.polar import GON
 from fabflow.positioning.result import BasePose

@@ -15,7 +15,8 @@ from fabflow.design.elements import Element
 from fabflow.errors import InputError, UnsupportedError
 from fabflow.positioning.icp import icp, prepare_target
 from fabflow.positioning.lidar_channels import channel_of
-from fabflow.positioning.scan_matching import localize_scan, transform_map
+from fabflow.positioning.scan_map import transform_map
+from fabflow.positioning.scan_matching import localize_scan
 from fabflow.sensors.lidar import LidarModel, simulate_scan
 from fabflow.sensors.lidar_errors import (
     LidarErrorModel,
@@ -206,6 +207,43 @@ def test_the_channel_term_only_adds_to_the_icp_covariance() -> None:
             icp(scan, tgt, ray_groups=groups, ray_sigma=bad)
     with pytest.raises(UnsupportedError):
         icp(scan, tgt, method="point_to_point", ray_groups=groups, ray_sigma=0.02)
+
+
+def test_the_map_channel_term_predicts_the_spread_of_map_channel_biases() -> None:
+    """A map measured by a biased mapping run: each point moved along the ray it was
+    measured on by its channel's bias. Over seeded draws of the biases the fixes of
+    one exact scan spread as the ``map_rays`` term predicts."""
+    rng = np.random.default_rng(5)
+    truth = trimesh.sample.sample_surface(ROOM, 20000, seed=2)[0]
+    mapper = np.array([-1.0, 0.5, 0.2])  # where the mapping run's sensor stood
+    ray = truth - mapper
+    u = ray / np.linalg.norm(ray, axis=1)[:, None]
+    elevation = np.arcsin(np.clip(u[:, 2], -1.0, 1.0))
+    channel = np.clip(((elevation + 0.6) / 1.2 * 16).astype(np.intp), 0, 15)
+    T_sensor = make_T(exp_so3([0.0, 0.0, 0.3]), [1.5, -1.0, 0.4])
+    scan = apply_T(inv_T(T_sensor), truth[rng.choice(len(truth), 3000, replace=False)])
+    sigma = 0.02
+    kwargs = {"init": T_sensor, "max_correspondence_distance": 0.2}
+    errors, predicted = [], []
+    for _ in range(40):
+        bias = rng.normal(0.0, sigma, 16)
+        mapped = truth + bias[channel][:, None] * u
+        tgt = prepare_target(mapped)
+        res = icp(scan, tgt, **kwargs, map_rays=(channel, u, sigma))
+        errors.append(pose_error(res.T, T_sensor))
+        predicted.append(res.covariance)
+    e = np.array(errors)
+    C = np.mean(predicted, axis=0)
+    ratio = np.sqrt(np.mean(e[:, :3] ** 2, axis=0) / np.diag(C)[:3])
+    assert np.all((ratio > 0.6) & (ratio < 1.5)), ratio
+    plain = icp(scan, prepare_target(truth), **kwargs)
+    assert np.trace(C[:3, :3]) > 10 * np.trace(plain.covariance[:3, :3])
+    with pytest.raises(InputError):
+        icp(scan, tgt, map_rays=(channel, 2 * u, sigma))
+    with pytest.raises(InputError):
+        icp(scan, tgt, map_rays=(channel[:-1], u[:-1], sigma))
+    with pytest.raises(UnsupportedError):
+        icp(scan, tgt, method="point_to_point", map_rays=(channel, u, sigma))
 
 
 def test_bad_scan_inputs_are_refused() -> None:

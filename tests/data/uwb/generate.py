@@ -35,6 +35,7 @@ def _anchors_yaml(path: Path, bias, tags: np.ndarray) -> None:
         "anchors": {k: [float(v) for v in a] for k, a in zip(IDS, ANCHORS, strict=True)},
         "T_world_uwb": {"xyz": [float(v) for v in T_WORLD_UWB]},
         "sigma": 0.05,
+        "multipath_sigma": 0.0,  # simulated without multipath: an open site
         "tags": [[float(v) for v in t] for t in tags],
         "calibration": {
             k: [round(float(a), 4), round(float(b), 5)]
