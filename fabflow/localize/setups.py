@@ -410,10 +410,15 @@ def plan_setups(
         if end == i and np.isfinite(nearest):
             raise LocalizationError(
                 f"no total station set-up localizes work package {i + 1} (station {ids[i]}) "
-                f"to 0.1 of tolerances.position ({1e3 * limit:.2f} mm): the best of those that "
-                f"see its prism points and {why.split(' ', 1)[1]} predicts {1e3 * nearest:.2f} mm "
-                "(XY); measure more prism points (n_points), use a more accurate instrument "
-                "or prism (prism_centring_mm), or give control points closer to the work"
+                f"to {SIGMA_SHARE:g} of tolerances.position ({1e3 * limit:.2f} mm): the best of "
+                f"those that see its prism points and {why.split(' ', 1)[1]} predicts "
+                f"{1e3 * nearest:.2f} mm (XY); measure more prism points (n_points), use a more "
+                "accurate instrument or prism (prism_centring_mm)"
+                + (
+                    ", or use stationing 'control_points' (free stationing on fixed points)"
+                    if registration_on_robot
+                    else ", or give control points closer to the work"
+                )
             )
         if end == i:
             raise LocalizationError(

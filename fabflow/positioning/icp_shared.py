@@ -74,7 +74,8 @@ def _groups(
     groups: ArrayLike | None, sigma: float, size: int, plane: bool, name: str
 ) -> Groups | None:
     """Validated groups of an error shared by groups of ``size`` points, or ``None``
-    when there is none (``name``: the parameters' prefix, for the messages)."""
+    when there is none (``name``: the parameters' prefix, for the messages; for
+    ``map_rays`` its first and last items)."""
     if not (isinstance(sigma, (int, float)) and 0.0 <= sigma <= MAX_SHARED_SIGMA):
         raise InputError(f"{name}_sigma must be a number from 0 to {MAX_SHARED_SIGMA:g} m")
     if groups is None or sigma == 0:
@@ -113,15 +114,20 @@ def shared_errors(
     part_groups = _groups(*parts, n_target, plane, "target")
     mapped = None
     if map_rays is not None:
+        if not (isinstance(map_rays, tuple) and len(map_rays) == 3):
+            raise InputError("map_rays must be (groups, directions, sigma)")
         groups, directions, sigma = map_rays
-        g = _groups(groups, sigma, n_target, plane, "map_ray")
+        g = _groups(groups, sigma, n_target, plane, "map_rays")
         if g is not None:
-            u = np.asarray(directions, dtype=float)
+            try:
+                u = np.asarray(directions, dtype=float)
+            except (TypeError, ValueError):
+                u = np.zeros((0, 3))
             if u.shape != (n_target, 3) or not np.all(
                 np.abs(np.linalg.norm(u[g >= 0], axis=1) - 1.0) < 1e-6
             ):
                 raise InputError(
-                    f"map_ray directions need one unit vector per grouped point ({n_target})"
+                    f"map_rays directions need one unit vector per grouped point ({n_target})"
                 )
             mapped = (g, u, float(sigma))
     return SharedErrors(

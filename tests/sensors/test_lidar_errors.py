@@ -242,6 +242,8 @@ def test_the_map_channel_term_predicts_the_spread_of_map_channel_biases() -> Non
         icp(scan, tgt, map_rays=(channel, 2 * u, sigma))
     with pytest.raises(InputError):
         icp(scan, tgt, map_rays=(channel[:-1], u[:-1], sigma))
+    with pytest.raises(InputError):
+        icp(scan, tgt, map_rays=(channel, u))  # type: ignore[arg-type]
     with pytest.raises(UnsupportedError):
         icp(scan, tgt, method="point_to_point", map_rays=(channel, u, sigma))
 
