@@ -342,11 +342,11 @@ def plan_setups(
     if setup.T_world_instrument is not None:
         T = trunnion_pose(setup.T_world_instrument.matrix(), setup.instrument_height)
         eye = T[None, :3, 3]
-        for k, package in enumerate(packages):
-            if _covers(eye, package, project)[0]:
+        sigmas = [float(_sigma(eye, package, project)[0]) for package in packages]
+        limit = SIGMA_SHARE * project.tolerances.position
+        for k, sigma_k in enumerate(sigmas):
+            if sigma_k <= limit:
                 continue
-            sigma_k = float(_sigma(eye, package, project)[0])
-            limit = SIGMA_SHARE * project.tolerances.position
             if np.isfinite(sigma_k):
                 raise LocalizationError(
                     f"the total station at localization.total_station.T_world_instrument "
@@ -363,8 +363,7 @@ def plan_setups(
                 + ("" if setup.max_range is None else f" or farther than {setup.max_range:g} m")
                 + "; remove T_world_instrument to have the set-ups planned, or move it"
             )
-        sigma = max(float(_sigma(eye, p, project)[0]) for p in packages)
-        return (InstrumentSetup("T1", T, tuple(range(len(packages))), "given", (), sigma),)
+        return (InstrumentSetup("T1", T, tuple(range(len(packages))), "given", (), max(sigmas)),)
 
     eyes = candidate_positions(project, elements, plan)
     controls = control_points(project)

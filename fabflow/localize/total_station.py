@@ -289,11 +289,11 @@ def localize_files(
     The instrument and its pose come from the project's
     ``localization.total_station`` section when ``project`` is given, else from
     the defaults (Leica MS50, instrument frame = world); the keyword arguments
-    override either: ``instrument_xyz`` in
-    metres, ``instrument_abc_deg`` in degrees (R = Rz(A) Ry(B) Rx(C)). A robot
-    point file of joint values is turned into prism positions by forward
-    kinematics of ``robot`` (else the project's robot) with the prism at the
-    project's TCP, or at ``tcp_xyz`` (metres, flange frame).
+    override either: ``instrument_xyz`` in metres, ``instrument_abc_deg`` in
+    degrees (R = Rz(A) Ry(B) Rx(C)). A robot point file of joint values is
+    turned into prism positions by forward kinematics of ``robot`` (else the
+    project's robot) with the prism at the project's TCP, or at ``tcp_xyz``
+    (metres, flange frame).
 
     Raises
     ------

@@ -165,10 +165,12 @@ def simulate_station(
     if len(ext):
         starts = np.repeat(tags_world, len(ids), axis=0)
         ends = np.tile(A, (len(L), 1))
-        occluded = segments_occluded(starts, ends, T_boxes, ext).reshape(len(L), len(ids))
-        if model.material_delay > 0:
-            material = segments_inside(starts, ends, Boxes(T_boxes, ext)).reshape(occluded.shape)
+        if model.material_delay > 0:  # a line of sight is blocked where it crosses material
+            material = segments_inside(starts, ends, Boxes(T_boxes, ext)).reshape(len(L), len(ids))
+            occluded = material > 0
             excess = material_excess(model, material, rng)
+        else:
+            occluded = segments_occluded(starts, ends, T_boxes, ext).reshape(len(L), len(ids))
 
     n_rounds = max(1, round(setup.dwell_s * setup.rate_hz))
     tags_t = np.broadcast_to(tags_world, (n_rounds, *tags_world.shape))

@@ -2,11 +2,10 @@
 
 The map is :mod:`fabflow.positioning.scan_map`'s (read from a file, or built
 offline from several scans of the site). Online, :func:`localize_scan` aligns a
-new scan to the map
-from a rough initial pose (the platform's planned station) with a coarse-to-fine
-point-to-plane ICP and checks the result (fitness, inlier RMSE, structure fitness,
-the weakest direction of the information). The outcome is an
-:class:`~fabflow.positioning.integrity.Integrity` record on every result: a pose
+new scan to the map from a rough initial pose (the platform's planned station)
+with a coarse-to-fine point-to-plane ICP and checks the result (fitness, inlier
+RMSE, structure fitness, the weakest direction of the information). The outcome
+is an :class:`~fabflow.positioning.integrity.Integrity` record on every result: a pose
 that was computed but fails a check is returned with status ``"failed"`` and the
 reason, never as a silently wrong pose; only a scan that yields no pose at all
 (too few points, no correspondences) raises

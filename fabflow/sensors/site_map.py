@@ -98,10 +98,9 @@ def simulated_site_map(
     if errors.channel_bias_sigma > 0:
         # each map point (a voxel's centroid) errs as the scan point nearest it: along
         # that point's ray, by its channel's bias
+        directions = model.directions()
         channel = np.concatenate([s.ray_index // model.n_columns for s in scans])
-        ray = np.vstack(
-            [model.directions()[s.ray_index] @ s.T_world_lidar[:3, :3].T for s in scans]
-        )
+        ray = np.vstack([directions[s.ray_index] @ s.T_world_lidar[:3, :3].T for s in scans])
         nearest = cKDTree(points).query(result.target.points)[1]
         channels, rays = channel[nearest].astype(np.intp), ray[nearest]
     return ScanMap(
@@ -148,7 +147,7 @@ def with_as_built(
         scan_map.voxel_size,
         np.vstack([scan_map.normals, mesh.face_normals[face]]),
     )
-    rays: dict[str, object] = {}
+    ray_groups, ray_directions = None, None
     if scan_map.ray_groups is not None and scan_map.ray_directions is not None:
         # the site's points keep the channel and ray of the map point they came from
         d, nearest = cKDTree(scan_map.points).query(
@@ -156,11 +155,8 @@ def with_as_built(
         )
         found = np.isfinite(d)
         nearest = np.minimum(nearest, len(scan_map.points) - 1)
-        rays = {
-            "ray_groups": np.where(found, scan_map.ray_groups[nearest], -1).astype(np.intp),
-            "ray_directions": np.where(found[:, None], scan_map.ray_directions[nearest], 0.0),
-            "ray_sigma": scan_map.ray_sigma,
-        }
+        ray_groups = np.where(found, scan_map.ray_groups[nearest], -1).astype(np.intp)
+        ray_directions = np.where(found[:, None], scan_map.ray_directions[nearest], 0.0)
     groups = None
     if placement_sigma > 0:
         # boxes_mesh gives every box the same triangles, in order
@@ -177,5 +173,7 @@ def with_as_built(
         map_covariance=scan_map.map_covariance,
         point_groups=None if groups is None else groups.astype(np.intp),
         group_sigma=float(placement_sigma) if groups is not None else 0.0,
-        **rays,  # type: ignore[arg-type]
+        ray_groups=ray_groups,
+        ray_directions=ray_directions,
+        ray_sigma=scan_map.ray_sigma if ray_groups is not None else 0.0,
     )
