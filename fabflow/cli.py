@@ -160,7 +160,7 @@ def plan(
     from fabflow.tasks.planner import make_plan
     from fabflow.tasks.split import with_pieces
 
-    p = load_project(project)
+    p = load_project(project).without_stone_wall("plan")
     with console.status("planning"), atomic_output_dir(out) as staging:
         elements = generate_elements(p.elements, p.path, p.limits)
         result = make_plan(p, elements)
@@ -503,6 +503,26 @@ def simulate(
     columns = ("{task.description}", BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     in_process = scheduler is None and workers == 0
     cluster = dask_client(scheduler, n_workers=workers, timeout=timeout, dashboard=dashboard)
+    if p.stone_wall() is not None:  # found stones: no stations to localize
+        from fabflow.sim.stones import simulate_stones, stone_table_rows
+
+        with (
+            atomic_output_dir(out) as staging,
+            nullcontext(None) if in_process else cluster as client,
+            Progress(*columns, console=console) as bar,
+        ):
+            task = bar.add_task("stone wall runs", total=n_runs)
+            study_seed = p.simulation.seed if seed is None else seed
+            advance = lambda n: bar.advance(task, n)  # noqa: E731
+            summary = simulate_stones(p, staging, n_runs, study_seed, advance, client)
+        table = Table(title=f"fabflow simulate: {p.name}, {n_runs} runs")
+        for name in ("figure", "simulated", "paper 002"):
+            table.add_column(name)
+        for row in stone_table_rows(summary):
+            table.add_row(*row)
+        console.print(table)
+        console.print(f"[green]wrote[/] {Path(out).resolve()}")
+        return
     with (
         atomic_output_dir(out) as staging,
         nullcontext(None) if in_process else cluster as client,

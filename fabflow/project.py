@@ -23,7 +23,7 @@ from pydantic import (
 )
 
 from fabflow.design.generate import element_count_bound
-from fabflow.design.specs import ElementSource
+from fabflow.design.specs import ELEMENT_KINDS, ElementSource, StoneWallSpec
 from fabflow.errors import InputError
 from fabflow.localization_setup import IcpSetup, IntegrityPolicy, TotalStationSetup, UwbSetup
 from fabflow.robots.catalog import (
@@ -336,16 +336,40 @@ class Project(StrictModel):
         return self
 
     @model_validator(mode="after")
+    def _stone_wall_alone(self) -> Project:
+        walls = [i for i, e in enumerate(self.elements) if e.stone_wall is not None]
+        if walls and len(self.elements) > 1:
+            raise located(
+                ("elements", walls[0], "stone_wall"),
+                "a stone wall is built from found stones by its own pipeline: make it the "
+                "project's only 'elements' entry",
+            )
+        return self
+
+    def stone_wall(self) -> StoneWallSpec | None:
+        """The project's stone wall (its only element source), or ``None``."""
+        return self.elements[0].stone_wall
+
+    def without_stone_wall(self, command: str) -> Project:
+        """This project; an :class:`InputError` if it is a stone wall, which ``command`` does
+        not handle (no stations to plan: the machine stands still)."""
+        if self.stone_wall() is not None:
+            raise InputError(
+                f"'fabflow {command}' plans stations for designed elements; a stone wall is "
+                "built from found stones by 'fabflow build' (its preview.html included) and "
+                "studied by 'fabflow simulate'",
+                self.path,
+                "elements[0].stone_wall",
+            )
+        return self
+
+    @model_validator(mode="after")
     def _work_within_limits(self) -> Project:
         lim = self.limits
         bounds = [element_count_bound(source) for source in self.elements]
         if sum(bounds) > lim.max_elements:
             i = max(range(len(bounds)), key=bounds.__getitem__)
-            kind = next(
-                k
-                for k in ("cabin", "print_path", "task_points")
-                if getattr(self.elements[i], k) is not None
-            )
+            kind = next(k for k in ELEMENT_KINDS if getattr(self.elements[i], k) is not None)
             raise located(
                 ("elements", i, kind),
                 f"the project makes up to {sum(bounds):.4g} elements ({bounds[i]:.4g} from "

@@ -28,3 +28,34 @@ def run_cli(
         env=env,
         check=False,
     )
+
+
+SMALL_STONE_WALL = """\
+name: small_stone_wall
+robot:
+  model: excavator_gripper
+  tool:
+    name: two-jaw gripper
+    T_flange_tool: {xyz: [0.0, 0.0, 0.95]}
+    mass: 800.0
+    cog: [0.0, 0.0, 0.35]
+  platform: {footprint: [3.0, 2.4], lift: [0.0, 0.0], T_platform_base: {xyz: [0, 0, 0]}}
+elements:
+  - stone_wall:
+      stockpile: {seed: 3, n_stones: 3, region_min: [2.0, -3.5], region_max: [5.5, 3.5]}
+      slots:
+        - {id: A, pose: {xyz: [-4.2, -0.9, 0.45], abc_deg: [90, 0, 0]}, size: [1.6, 1.25, 0.9]}
+        - {id: B, pose: {xyz: [-4.2, 0.9, 0.45], abc_deg: [90, 0, 0]}, size: [1.5, 1.2, 0.9]}
+      swing_deg: [-180, 160]
+      swing_step_deg: 20
+program: {format: json}
+simulation: {robot_repeatability: 0.013}
+"""
+"""A stone wall of two slots from three stones: the stone pipeline in a few seconds."""
+
+
+def small_stone_wall(folder: Path) -> Path:
+    """Write :data:`SMALL_STONE_WALL` as ``folder/project.yaml`` and return its path."""
+    path = folder / "project.yaml"
+    path.write_text(SMALL_STONE_WALL, encoding="utf-8")
+    return path

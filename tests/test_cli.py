@@ -116,7 +116,7 @@ def test_atomic_output_keeps_previous_result_on_failure(tmp_path, monkeypatch) -
         raise InfeasibleError("cannot build this")
 
     original = runner.stages
-    monkeypatch.setattr(runner, "stages", lambda: [*original(), ("fail", failing_stage)])
+    monkeypatch.setattr(runner, "stages", lambda p: [*original(p), ("fail", failing_stage)])
     with pytest.raises(InfeasibleError):
         run_build(project, out)
     assert written and not written[0].exists(), "staging folder must be removed"

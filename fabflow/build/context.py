@@ -19,6 +19,7 @@ from fabflow.localize.setups import InstrumentSetup
 from fabflow.preview.export import ExportResult
 from fabflow.programs.ir import Program
 from fabflow.project import Project
+from fabflow.stones.run import StoneRun
 from fabflow.tasks.plan import Plan
 
 
@@ -43,6 +44,8 @@ class BuildContext:
         Per work package, the estimated base pose and the true one (``localize``).
     programs
         One checked program per non-empty work package (``program``).
+    stones
+        The stone wall's run: objects, grasps, releases (``stones``; stone walls only).
     preview
         The exported preview file (``preview``).
     summary
@@ -56,6 +59,7 @@ class BuildContext:
     setups: tuple[InstrumentSetup, ...] | None = None
     localization: VisitPoses | None = None
     programs: list[Program] | None = None
+    stones: StoneRun | None = None
     preview: ExportResult | None = None
     summary: list[tuple[str, str, str]] = field(default_factory=list)
 
@@ -74,6 +78,12 @@ class BuildContext:
         if self.plan is None:
             raise RuntimeError("the plan stage must run before this stage")
         return self.plan
+
+    def need_stones(self) -> StoneRun:
+        """The stone wall's run of the ``stones`` stage."""
+        if self.stones is None:
+            raise RuntimeError("the stones stage must run before this stage")
+        return self.stones
 
     def need_localization(self) -> VisitPoses:
         """The base poses of the ``localize`` stage."""

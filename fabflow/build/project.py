@@ -16,5 +16,8 @@ def stage_project(ctx: BuildContext) -> None:
     )
     ctx.add("project", "name", p.name)
     ctx.add("project", "robot", p.robot.model)
-    ctx.add("project", "localization", p.localization.method)
+    if p.stone_wall() is None:
+        ctx.add("project", "localization", p.localization.method)
+    else:
+        ctx.add("project", "localization", "none: the machine stands still, stones are scanned")
     ctx.add("project", "element sources", len(p.elements))

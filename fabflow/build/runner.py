@@ -1,7 +1,7 @@
 """The build runner: every stage, in order, into one output folder.
 
 Each stage lives in its own module of this package (``project``, ``design``,
-``plan``, ``localize``, ``program``, ``preview``) and shares a typed
+``plan``, ``localize``, ``program``, ``preview``; ``stones`` for a stone wall) and shares a typed
 :class:`~fabflow.build.context.BuildContext`. :func:`run_build` runs the stages
 into a staging folder and moves it into place only when all have completed.
 """
@@ -18,12 +18,25 @@ from fabflow.build.plan import stage_plan
 from fabflow.build.preview import stage_preview
 from fabflow.build.program import stage_program
 from fabflow.build.project import stage_project
+from fabflow.build.stones import stage_stone_preview, stage_stone_programs, stage_stones
 from fabflow.output import atomic_output_dir, write_json
 from fabflow.project import Project
 
 
-def stages() -> list[tuple[str, Stage]]:
-    """The stages of ``fabflow build``, in order."""
+def stages(project: Project | None = None) -> list[tuple[str, Stage]]:
+    """The stages of ``fabflow build`` for ``project``, in order.
+
+    A stone wall is built from found stones: no stations to plan nor base to
+    localize (the machine stands still), one program per stone.
+    """
+    if project is not None and project.stone_wall() is not None:
+        return [
+            ("project", stage_project),
+            ("design", stage_design),
+            ("stones", stage_stones),
+            ("program", stage_stone_programs),
+            ("preview", stage_stone_preview),
+        ]
     return [
         ("project", stage_project),
         ("design", stage_design),
@@ -53,7 +66,7 @@ def run_build(
     until
         Name of the last stage to run (default: all stages).
     """
-    selected = stages()
+    selected = stages(project)
     if until is not None:
         names = [name for name, _ in selected]
         selected = selected[: names.index(until) + 1]

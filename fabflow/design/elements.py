@@ -3,7 +3,8 @@
 Frames: ``T_world_element`` places the element frame in the world. For a block
 the element frame sits at the centre of the block, x along its length, z up;
 for a print path it is the frame the path's points are given in; for a task
-point it is the tool frame to reach.
+point it is the tool frame to reach; for a stone (a found object) it is the
+slot the stone is set in, centre, x along the wall, z up.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-ElementType = Literal["block", "print_path", "task_point"]
+ElementType = Literal["block", "print_path", "task_point", "stone"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -26,7 +27,7 @@ class Element:
     id
         Unique id within a project (e.g. ``"B0123"``).
     type
-        ``"block"``, ``"print_path"`` or ``"task_point"``.
+        ``"block"``, ``"print_path"``, ``"task_point"`` or ``"stone"``.
     T_world_element
         4x4 pose of the element frame in the world frame (metres).
     layer
@@ -38,7 +39,8 @@ class Element:
     robot_built
         Whether the robot places it (pre-built parts are not).
     extents
-        Box size (length, width, height) in metres for blocks, else ``None``.
+        Box size (length, width, height) in metres for blocks and stone slots,
+        else ``None``.
     polyline
         (N, 3) points in the element frame for print paths, else ``None``.
     attributes

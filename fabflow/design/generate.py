@@ -12,7 +12,7 @@ import numpy as np
 from fabflow.design.cabin import cabin_block_bound, cabin_elements
 from fabflow.design.elements import Element
 from fabflow.design.print_path import print_path_elements
-from fabflow.design.specs import ElementSource, TaskPoint
+from fabflow.design.specs import ElementSource, StoneWallSpec, TaskPoint
 from fabflow.design.supports import compute_supports
 from fabflow.errors import InputError
 from fabflow.schema import Limits
@@ -31,7 +31,30 @@ def element_count_bound(source: ElementSource) -> float:
         spec = source.print_path
         given = spec.dxf is not None or "n_layers" in spec.model_fields_set
         return float(spec.n_layers) if given else 0.0
+    if source.stone_wall is not None:
+        return float(len(source.stone_wall.slots))
     return float(len(source.task_points or ()))
+
+
+def stone_slot_elements(spec: StoneWallSpec, source_index: int = 0) -> list[Element]:
+    """The slots of a stone wall as ``stone`` elements: a found object's target.
+
+    The element's pose is the slot's (centre, x along the wall, z up) and its
+    extents the slot's size; the stone that fills it, its geometry and its pose
+    come from the scans at build time (``objects.json``).
+    """
+    return [
+        Element(
+            id=slot.id,
+            type="stone",
+            T_world_element=slot.pose.matrix(),
+            layer=0,
+            robot_built=True,
+            extents=np.array(slot.size, dtype=float),
+            attributes={"found_object": True, "source_index": source_index},
+        )
+        for slot in spec.slots
+    ]
 
 
 def task_point_elements(points: list[TaskPoint], source_index: int = 0) -> list[Element]:
@@ -109,6 +132,8 @@ def generate_elements(
                 source.print_path, id_start=n_paths, source_index=i, limits=limits
             )
             n_paths += len(new)
+        elif source.stone_wall is not None:
+            new = stone_slot_elements(source.stone_wall, source_index=i)
         else:
             assert source.task_points is not None
             new = task_point_elements(source.task_points, source_index=i)

@@ -2,7 +2,8 @@
 
 One entry of ``elements`` is a parametric cabin (:class:`CabinSpec`), print paths
 from a drawing or a mesh (:class:`PrintPathSpec`) or explicit task points
-(:class:`TaskPoint`). Lengths are metres, ``*_deg`` fields degrees. The design
+(:class:`TaskPoint`) or a dry-stone wall course filled with found stones
+(:class:`StoneWallSpec`). Lengths are metres, ``*_deg`` fields degrees. The design
 functions (:mod:`fabflow.design.cabin`, :mod:`fabflow.design.print_path`,
 :mod:`fabflow.design.generate`) turn them into elements in the world frame.
 """
@@ -20,6 +21,7 @@ from pydantic import (
 
 from fabflow.schema import (
     Count,
+    Fraction,
     ModelPath,
     NonNegativeFloat,
     PoseSpec,
@@ -210,19 +212,103 @@ class TaskPoint(StrictModel):
     """Build-order layer (0 = first)."""
 
 
+MAX_STONES = 200
+"""Most stones a simulated stockpile may hold (each is meshed, scanned and registered)."""
+
+
+class StoneSlot(StrictModel):
+    """A place in a dry-stone wall course for one found stone.
+
+    ``pose`` is the slot's centre, x along the wall, z up; ``size`` its length
+    (x), width (y) and height (z) in metres. The stone chosen for it is the one
+    whose principal extents match ``size`` best; it is set with its longest axis
+    along x, its shortest up, its centroid over the slot's centre and its lowest
+    point on the slot's floor.
+    """
+
+    id: Annotated[str, Field(min_length=1, max_length=64)]
+    pose: PoseSpec
+    size: tuple[PositiveFloat, PositiveFloat, PositiveFloat]
+
+
+class Stockpile(StrictModel):
+    """The stones to build from, as the simulated site lays them out (seeded).
+
+    The build scans this site with the machine's LiDARs (and, with
+    ``vision_map``, a drone reconstruction): the stones' geometry and pose come
+    from the scans, never from here.
+    """
+
+    seed: Count = 0
+    n_stones: Annotated[int, Field(strict=True, ge=1, le=MAX_STONES)] = 7
+    region_min: tuple[Real, Real] = (2.0, -4.0)
+    region_max: tuple[Real, Real] = (8.0, 4.0)
+    volume_range: tuple[PositiveFloat, PositiveFloat] = (0.5, 1.0)
+    """Stone volumes (m^3): paper 002's gneiss rocks, 0.5 to 1 m^3."""
+    convex_share: Fraction = 0.5
+    """Share of convex rocks; the others have dents (non-convex meshes)."""
+    terrain_rms: Annotated[float, Field(strict=True, ge=0.0, le=0.5)] = 0.03
+    """RMS height of the uneven ground (metres): gentle undulations that the 10 cm
+    margin of the ground plane fit accounts for (paper 002, section 4.3)."""
+    terrain_wavelength: Annotated[float, Field(strict=True, ge=0.5, le=100.0)] = 4.0
+    """Typical wavelength of the undulations (metres)."""
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Stockpile:
+        if self.volume_range[0] > self.volume_range[1]:
+            raise ValueError("'volume_range' must be [min, max] with min <= max")
+        if any(a >= b for a, b in zip(self.region_min, self.region_max, strict=True)):
+            raise ValueError("'region_min' must lie below 'region_max' in x and y")
+        return self
+
+
+class StoneWallSpec(StrictModel):
+    """A dry-stone wall course filled with found stones (paper 002).
+
+    The machine stands at ``station`` (the paper keeps the base fixed while it
+    manipulates), scans the stockpile by swinging its cabin through
+    ``swing_deg`` (degrees about the base's z, at ``swing_step_deg`` steps),
+    segments the stones, and sets one in each slot in the order given.
+    """
+
+    slots: Annotated[list[StoneSlot], Field(min_length=1, max_length=MAX_STONES)]
+    station: PoseSpec = PoseSpec()
+    stockpile: Stockpile = Stockpile()
+    vision_map: Switch = True
+    """Register a drone reconstruction of the stockpile to the LiDAR map (section
+    4.4) and merge the matched segments into the object models."""
+    swing_deg: tuple[Real, Real] = (-100.0, 100.0)
+    swing_step_deg: Annotated[float, Field(strict=True, ge=1.0, le=90.0)] = 10.0
+
+    @model_validator(mode="after")
+    def _unique_slots(self) -> StoneWallSpec:
+        ids = [s.id for s in self.slots]
+        dup = sorted({i for i in ids if ids.count(i) > 1})
+        if dup:
+            raise ValueError(f"slot id {dup[0]!r} is used twice")
+        if self.swing_deg[0] > self.swing_deg[1]:
+            raise ValueError("'swing_deg' must be [from, to] with from <= to")
+        return self
+
+
+ELEMENT_KINDS = ("cabin", "print_path", "task_points", "stone_wall")
+"""The keys of one ``elements`` entry."""
+
+
 class ElementSource(StrictModel):
-    """One entry of ``elements``: exactly one of ``cabin``, ``print_path``, ``task_points``."""
+    """One entry of ``elements``: exactly one of :data:`ELEMENT_KINDS`."""
 
     cabin: CabinSpec | None = None
     print_path: PrintPathSpec | None = None
     task_points: list[TaskPoint] | None = None
+    stone_wall: StoneWallSpec | None = None
 
     @model_validator(mode="after")
     def _exactly_one(self) -> ElementSource:
-        given = [k for k in ("cabin", "print_path", "task_points") if getattr(self, k) is not None]
+        given = [k for k in ELEMENT_KINDS if getattr(self, k) is not None]
         if len(given) != 1:
             raise ValueError(
-                "each entry needs exactly one of 'cabin', 'print_path', 'task_points'"
-                + (f" (got {', '.join(given)})" if given else "")
+                "each entry needs exactly one of 'cabin', 'print_path', 'task_points', "
+                "'stone_wall'" + (f" (got {', '.join(given)})" if given else "")
             )
         return self

@@ -74,6 +74,39 @@ def check_colour_mode(colour_by: str | None, sim: Path | None) -> None:
         raise InputError("--colour-by deviation needs simulation results: pass --sim DIR")
 
 
+def _export_stone_wall(
+    project: Project,
+    export: Path | None,
+    colour_by: str | None,
+    sim: Path | None,
+    say: Callable[[str], None],
+) -> None:
+    """A stone wall's preview: the simulated run, exported as one HTML file."""
+    where = "elements[0].stone_wall"
+    if export is None:
+        raise InputError(
+            "a stone wall's preview is one HTML file of a simulated run: pass --export "
+            "FILE.html ('fabflow build' writes it as preview.html)",
+            project.path,
+            where,
+        )
+    if sim is not None or colour_by is not None:
+        raise InputError(
+            "--sim and --colour-by apply to designed elements, not to a stone wall",
+            project.path,
+            where,
+        )
+    from fabflow.preview.stones import export_stone_html
+    from fabflow.stones.run import run_stone_wall
+
+    say(f"building the stone wall of '{project.name}' in simulation")
+    result = export_stone_html(run_stone_wall(project), export, project)
+    say(
+        f"wrote {result.path.resolve()} ({result.size_bytes / 1e6:.1f} MB, "
+        f"{result.n_steps} steps, plays {result.duration_s:.0f} s)"
+    )
+
+
 def run_preview(
     project_path: Path,
     port: int = 8080,
@@ -85,6 +118,9 @@ def run_preview(
     wait: Callable[[], None] | None = None,
 ) -> None:
     """Load a project, plan it and show it live, or export it as one HTML file.
+
+    A stone wall has no stations to plan: its preview is the simulated build,
+    exported only (``export`` required, ``colour_by`` and ``sim`` refused).
 
     Parameters
     ----------
@@ -109,6 +145,9 @@ def run_preview(
     if export is not None:
         check_export_target(export)
     project = load_project(project_path)
+    if project.stone_wall() is not None:
+        _export_stone_wall(project, export, colour_by, sim, say)
+        return
     elements, plan = read_build_outputs(sim) if sim is not None else (None, None)
     if plan is None or elements is None:
         elements = generate_elements(project.elements, project.path, project.limits)

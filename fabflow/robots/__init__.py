@@ -6,12 +6,18 @@ Public API::
     from fabflow.robots.kuka_config import kuka_status_turn
     from fabflow.robots import reach_map
 
-    robot = get_robot("kuka_kr60_3")          # also ur10e, abb_irb4600_60_205, brokk_170
+    robot = get_robot("kuka_kr60_3")          # or any name in ROBOT_NAMES (below)
     T_base_flange = robot.fk(q)               # q (dof,) or (N, dof), radians
     solutions = robot.ik(T_base_flange, q_ref=q)
     S, T = kuka_status_turn(q)
     rm = reach_map("kuka_kr60_3", T_flange_tool)
     ok = rm.reachable(p_base)                 # (N, 3) TCP positions, tool pointing down
+
+The catalogue (:data:`ROBOT_NAMES`): ``kuka_kr60_3`` (KUKA KR 60-3),
+``abb_irb4600_60_205`` (ABB IRB 4600-60/2.05), ``ur10e`` (Universal Robots
+UR10e), ``brokk_170`` (5-axis demolition machine in the style of the BROKK 170,
+APPROXIMATE) and ``excavator_gripper`` (walking-excavator-like arm in the style
+of HEAP with a two-jaw rotating gripper, APPROXIMATE).
 """
 
 from fabflow.robots.catalog import ROBOT_NAMES, get_robot

@@ -13,6 +13,13 @@ Joint values are the ones the robot's own controller shows (radians here):
 * ``brokk_170`` - a 5-axis demolition machine in the style of the BROKK 170
   (slew, boom, arm 2, arm 3, tool tilt; all but the slew pitch joints).
   APPROXIMATE geometry estimated from the brochure; not the manufacturer's data.
+* ``excavator_gripper`` - a walking-excavator-like arm in the style of HEAP
+  (paper 002) with a two-jaw rotating gripper: slew, boom, stick, and a wrist
+  of three intersecting axes (pitch, tilt, rotator) with a closed-form IK
+  (:mod:`fabflow.robots.excavator`). All zero: boom and stick level forward,
+  the gripper continuing the stick; home 0, 30, -100, -20, 0, 0 deg with the
+  gripper pointing down in front of the machine. APPROXIMATE, lengths
+  estimated, not manufacturer data.
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ import numpy as np
 
 from fabflow.errors import UnsupportedError
 from fabflow.robots.chain import RobotModel, dh_table
+from fabflow.robots.excavator import ExcavatorParameters, excavator_dh, excavator_ik
 from fabflow.robots.opw import OPWParameters, opw_ik
 from fabflow.robots.ur_ik import ur_ik
 
@@ -187,6 +195,39 @@ def _brokk_170() -> RobotModel:
     )
 
 
+HEAP_GRIPPER = ExcavatorParameters(d1=1.80, a1=0.50, a2=4.00, a3=2.50, d6=0.40)
+"""The excavator arm's lengths (metres), estimates for a machine of HEAP's size, not
+measured: boom pivot 0.5 m ahead of and 1.8 m above the foot of the slew axis,
+boom 4.0 m, stick 2.5 m (7.0 m from the boom pivot to the wrist centre), wrist
+centre to flange 0.4 m."""
+
+
+def _excavator_gripper() -> RobotModel:
+    p = HEAP_GRIPPER
+    return RobotModel(
+        name="excavator_gripper",
+        dh=excavator_dh(p),
+        joint_sign=np.ones(6),
+        joint_limits=np.array(
+            [[-180, 180], [-40, 70], [-150, -30], [-90, 90], [-45, 45], [-360, 360]], dtype=float
+        )
+        * _DEG,
+        velocity_limits=np.array([30, 20, 25, 30, 20, 40], dtype=float) * _DEG,
+        T_n_flange=np.eye(4),
+        reach=p.a1 + p.a2 + p.a3 + p.d6,
+        approximate=True,
+        description=(
+            "APPROXIMATE walking-excavator-like arm in the style of HEAP (paper 002) with a "
+            "two-jaw rotating gripper; lengths estimated, not manufacturer data"
+        ),
+        motion_groups=((0, 1, 2, 3, 4, 5),),
+        analytic_ik=lambda T, q_ref=None: excavator_ik(p, T, q_ref),
+        q_nominal=np.array([0, 15, -80, -25, 0, 0], dtype=float) * _DEG,
+        q_home=np.array([0, 30, -100, -20, 0, 0], dtype=float) * _DEG,
+        payload=4000.0,
+    )
+
+
 @dataclass(frozen=True)
 class Vendor:
     """A machine maker and the controller fabflow writes programs for.
@@ -212,6 +253,7 @@ VENDORS: dict[str, Vendor] = {
     "abb": Vendor("ABB", "IRC5 / RobotWare 6", "rapid"),
     "ur": Vendor("Universal Robots", "e-Series / PolyScope 5", "urscript"),
     "brokk": Vendor("Brokk", "retrofitted gateway (UDP/CAN)", None),
+    "heap": Vendor("Menzi Muck (HEAP-style retrofit)", "retrofitted gateway (UDP/CAN)", None),
 }
 """Makers by key; every catalogue robot names one."""
 
@@ -249,6 +291,7 @@ CONTROLLERS: dict[str, ControllerProfile] = {
     "omnicore": ControllerProfile("OmniCore / RobotWare 7", "abb", 2000),
     "ur_eseries": ControllerProfile("e-Series / PolyScope 5", "ur", None),
     "gateway": ControllerProfile("retrofitted gateway (UDP/CAN)", "brokk", None),
+    "heap_gateway": ControllerProfile("retrofitted gateway (UDP/CAN)", "heap", None),
 }
 """Controller profiles by key; every vendor's first is its default."""
 
@@ -336,6 +379,7 @@ _CATALOGUE = {
     "ur10e": (_ur10e, "ur"),
     "abb_irb4600_60_205": (_abb_irb4600_60_205, "abb"),
     "brokk_170": (_brokk_170, "brokk"),
+    "excavator_gripper": (_excavator_gripper, "heap"),
 }
 
 ROBOT_NAMES: tuple[str, ...] = tuple(_CATALOGUE)

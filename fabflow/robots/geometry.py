@@ -27,6 +27,20 @@ wrist         wrist centre -> flange (0.17 m)              0.09
 ABB IRB 4600-60/2.05 has the same layout with its own lengths (radii 0.28,
 0.22, 0.18, 0.13, 0.13, 0.10, 0.08 m); the UR10e and the BROKK 170 take
 capsules between consecutive frame origins (0.075 m and 0.15 m).
+
+The excavator with the rotating gripper (APPROXIMATE, like its lengths; DH
+frame 1 on the boom pivot, 2 on the stick pivot, 3 the wrist centre, 7 the
+flange) is a chain of four capsules. Its cabin, counterweight and legs are
+not links: they belong to the platform's footprint.
+
+============  ===========================================  ==========
+link          segment                                      radius (m)
+============  ===========================================  ==========
+boom foot     foot of the slew axis -> boom pivot          0.40
+boom          boom pivot -> stick pivot (4.0 m)            0.25
+stick         stick pivot -> wrist centre (2.5 m)          0.25
+tiltrotator   wrist centre -> flange (0.4 m)               0.30
+============  ===========================================  ==========
 """
 
 from __future__ import annotations
@@ -68,6 +82,17 @@ def _industrial(radii: tuple[float, ...], dof: int = 6) -> tuple[LinkCapsule, ..
     )
 
 
+def _excavator() -> tuple[LinkCapsule, ...]:
+    """Capsules of the excavator arm: boom foot, boom, stick, tiltrotator (see above)."""
+    o = (0.0, 0.0, 0.0)
+    return (
+        LinkCapsule("boom foot", 0, o, 1, o, 0.40),
+        LinkCapsule("boom", 1, o, 2, o, 0.25),
+        LinkCapsule("stick", 2, o, 3, o, 0.25),
+        LinkCapsule("tiltrotator", 3, o, 7, o, 0.30),
+    )
+
+
 def _chain(dof: int, radius: float) -> tuple[LinkCapsule, ...]:
     """Capsules between consecutive frame origins (base to flange)."""
     o = (0.0, 0.0, 0.0)
@@ -79,6 +104,7 @@ LINK_CAPSULES: dict[str, tuple[LinkCapsule, ...]] = {
     "abb_irb4600_60_205": _industrial((0.28, 0.22, 0.18, 0.13, 0.13, 0.10, 0.08)),
     "ur10e": _chain(6, 0.075),
     "brokk_170": _chain(5, 0.15),
+    "excavator_gripper": _excavator(),
 }
 """Link capsules per catalogue robot."""
 

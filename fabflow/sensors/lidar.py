@@ -88,6 +88,20 @@ class LidarModel:
 HESAI_QT64 = LidarModel()
 """The LiDAR of paper 000 (Hesai QT64: 64 beams, 104.2 deg vertical field, 20 m, 10 Hz)."""
 
+VLP16 = LidarModel(
+    n_beams=16,
+    vertical_fov_deg=(-15.0, 15.0),
+    horizontal_resolution_deg=0.2,
+    max_range=100.0,
+    range_sigma=0.03,
+    rate_hz=10.0,
+)
+"""The Velodyne VLP-16 (Puck) of paper 002, after Velodyne's VLP-16 user manual
+(63-9243, specifications): 16 channels 2 deg apart over -15..+15 deg, 0.1-0.4 deg
+horizontal resolution at 5-20 Hz (0.2 deg at 10 Hz: 1800 columns, 28 800 rays per
+scan), range up to 100 m, "typical accuracy +-3 cm", taken here as the 1-sigma
+white range noise. The manual states no minimum range: the class default is kept."""
+
 
 @dataclass(frozen=True, eq=False)
 class LidarScan:

@@ -59,7 +59,7 @@ def child(case: dict, project: str) -> None:
         output._reached = stop
         original = runner.stages
 
-        def stages() -> list:
+        def stages(project=None) -> list:
             def wrap(name, stage):
                 def run(ctx):
                     stop(f"stage-{name}")
@@ -67,7 +67,7 @@ def child(case: dict, project: str) -> None:
 
                 return run
 
-            return [(name, wrap(name, stage)) for name, stage in original()]
+            return [(name, wrap(name, stage)) for name, stage in original(project)]
 
         runner.stages = stages
         if not case.get("exchange", True):

@@ -137,10 +137,23 @@ def test_live_page_moves_through_the_steps(browser, model: PreviewModel) -> None
         preview.stop()
 
 
-def test_exported_file_plays_offline(browser, model: PreviewModel, tmp_path: Path) -> None:
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    out = ARTIFACTS / "wall.html"
-    export_html(model, out, colour_mode="station", seconds_per_step=0.5)
+def scene_changes(page, seek, name: str, early: float, late: float) -> None:  # type: ignore[no-untyped-def]
+    """The canvas at two points of the playback: neither blank, and different."""
+    seek(early)
+    first = canvas_shot(page, f"{name}_early")
+    seek(late)
+    second = canvas_shot(page, f"{name}_late")
+    assert_not_blank(first)
+    assert_not_blank(second)
+    assert_differ(first, second)
+
+
+def open_offline(browser, path: Path):  # type: ignore[no-untyped-def]
+    """Open an exported file with the network blocked; pause it at its first frame.
+
+    Returns the context, the page, a ``seek(fraction)`` on its time slider and the
+    list of blocked requests (to stay empty).
+    """
     context = browser.new_context(viewport=VIEWPORT)
     external: list[str] = []
 
@@ -159,11 +172,10 @@ def test_exported_file_plays_offline(browser, model: PreviewModel, tmp_path: Pat
     page.on(
         "console", lambda m: loaded.append(m.text) if "Embedded data loaded" in m.text else None
     )
-    page.goto(out.as_uri())
+    page.goto(path.as_uri())
     page.wait_for_selector("canvas", timeout=60_000)
     wait_until(lambda: bool(loaded), timeout=60.0)
     page.keyboard.press("Space")  # pause playback
-
     track = page.locator(".mantine-Slider-track").first
     track.wait_for(timeout=60_000)
     box = track.bounding_box()
@@ -172,12 +184,32 @@ def test_exported_file_plays_offline(browser, model: PreviewModel, tmp_path: Pat
     def seek(fraction: float) -> None:
         page.mouse.click(box["x"] + fraction * box["width"], box["y"] + box["height"] / 2)
 
-    seek(0.08)
-    early = canvas_shot(page, "export_early")
-    seek(0.9)
-    late = canvas_shot(page, "export_late")
-    assert_not_blank(early)
-    assert_not_blank(late)
-    assert_differ(early, late)
+    return context, page, seek, external
+
+
+def test_exported_file_plays_offline(browser, model: PreviewModel, tmp_path: Path) -> None:
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    out = ARTIFACTS / "wall.html"
+    export_html(model, out, colour_mode="station", seconds_per_step=0.5)
+    context, page, seek, external = open_offline(browser, out)
+    scene_changes(page, seek, "export", 0.08, 0.9)
+    assert external == []
+    context.close()
+
+
+def test_stone_wall_preview_plays_offline(browser, tmp_path: Path) -> None:
+    from helpers import small_stone_wall
+
+    from fabflow.preview.stones import export_stone_html
+    from fabflow.project import load_project
+    from fabflow.stones.run import run_stone_wall
+
+    project = load_project(small_stone_wall(tmp_path))
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    out = ARTIFACTS / "stone_wall.html"
+    result = export_stone_html(run_stone_wall(project, seed=4), out, project, 1.0)
+    assert result.n_steps == 4
+    context, page, seek, external = open_offline(browser, out)
+    scene_changes(page, seek, "stones", 0.05, 0.95)
     assert external == []
     context.close()

@@ -33,7 +33,13 @@ def wrap(a: np.ndarray) -> np.ndarray:
 
 
 def test_get_robot_names_and_fields() -> None:
-    assert set(ROBOT_NAMES) == {"kuka_kr60_3", "ur10e", "abb_irb4600_60_205", "brokk_170"}
+    assert set(ROBOT_NAMES) == {
+        "kuka_kr60_3",
+        "ur10e",
+        "abb_irb4600_60_205",
+        "brokk_170",
+        "excavator_gripper",
+    }
     for name in ROBOT_NAMES:
         r = get_robot(name)
         assert r.name == name
