@@ -19,9 +19,11 @@ from fabflow.preview.export import check_export_target, export_html
 from fabflow.preview.gui import ProgramSource
 from fabflow.preview.inputs import model_for_project, read_build_outputs
 from fabflow.preview.model import COLOUR_MODES, PreviewModel
+from fabflow.preview.stones import export_stone_html
 from fabflow.programs.compile import work_package_program
 from fabflow.programs.writers import writer_for
 from fabflow.project import Project, load_project
+from fabflow.stones.run import run_stone_wall
 from fabflow.tasks.plan import Plan
 from fabflow.tasks.planner import plan_project
 from fabflow.tasks.split import with_pieces
@@ -96,8 +98,6 @@ def _export_stone_wall(
             project.path,
             where,
         )
-    from fabflow.preview.stones import export_stone_html
-    from fabflow.stones.run import run_stone_wall
 
     say(f"building the stone wall of '{project.name}' in simulation")
     result = export_stone_html(run_stone_wall(project), export, project)
