@@ -582,5 +582,18 @@ def simulate(
     check_runs_completed(rows, out)
 
 
+@app.command()
+@user_errors
+def track(
+    project: ProjectArg,
+    out: OutOption,
+    seed: Annotated[int | None, typer.Option(help="Seed (default: simulation.seed).")] = None,
+) -> None:
+    """Print a path on the simulated hydraulic excavator, closed and open loop (paper 000)."""
+    from fabflow.tracking.command import run_track
+
+    run_track(project, out, seed, console)
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

@@ -289,6 +289,32 @@ class Simulation(StrictModel):
     """Default number of Monte Carlo runs of ``fabflow simulate``."""
 
 
+class Tracking(StrictModel):
+    """How ``fabflow track`` runs a print on the simulated hydraulic machine (paper 000).
+
+    The sensor errors are :class:`~fabflow.sensors.excavator.ExcavatorErrors`'
+    (``simulation.sensor_noise: false`` turns them off); docs/tracking.md
+    states each with its source.
+    """
+
+    dead_time_s: Annotated[float, Field(ge=0.0, le=2.0)] = 0.08
+    """Delay between a valve command and the joint's response (s)."""
+    lag_s: Annotated[float, Field(ge=0.0, le=2.0)] = 0.1
+    """Time constant of the flow build-up (s)."""
+    deadband: Annotated[float, Field(ge=0.0, lt=0.5)] = 0.02
+    """Valve fraction below which no oil flows."""
+    icp_latency_s: Annotated[float, Field(ge=0.0, le=1.0)] = 0.1
+    """Time from a LiDAR scan to its ICP pose reaching the filter (s)."""
+    kp: Annotated[float, Field(ge=0.0, le=5.0)] = 0.5
+    """Print-head loop: proportional gain (the share of the pose error corrected at once)."""
+    ki: Annotated[float, Field(ge=0.0, le=5.0)] = 0.5
+    """Print-head loop: integral gain (1/s); a bias decays with ``(1 + kp) / ki`` seconds."""
+    settle_s: Annotated[float, Field(ge=0.0, le=60.0)] = 10.0
+    """Time the machine holds the path's start before it prints (s): the loop settles."""
+    max_duration_s: Annotated[float, Field(gt=0.0, le=3600.0)] = 600.0
+    """The longest print accepted (s): bounds the simulation's work."""
+
+
 def _grid_points(lo: float, hi: float, spacing: float) -> float:
     return math.floor((hi - lo) / spacing) + 1.0
 
@@ -306,6 +332,8 @@ class Project(StrictModel):
     planning: Planning = Planning()
     program: ProgramSettings = ProgramSettings()
     simulation: Simulation = Simulation()
+    tracking: Tracking = Tracking()
+    """Settings of ``fabflow track`` (a print path on a hydraulic machine)."""
     limits: Limits = Limits()
     """The most work the project may ask for (:class:`~fabflow.schema.Limits`)."""
     allow_outside_paths: Switch = False

@@ -28,6 +28,8 @@ def test_every_area_has_a_benchmark() -> None:
         "programs",
         "preview",
         "simulate",
+        "stones",
+        "tracking",
     } <= names
 
 

@@ -16,6 +16,7 @@ All angles in radians, rates in rad/s, times in seconds.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -91,39 +92,81 @@ class TurnJointKF:
             raise InputError("t, encoder and gyro_rate must be 1-D arrays of the same length")
         if np.any(np.diff(t) <= 0):
             raise InputError("sample times must increase")
-        r_enc = self.resolution**2 / 12.0
-        r_gyr = self.gyro_sigma**2
         first = enc[np.flatnonzero(np.isfinite(enc))[0]] if np.isfinite(enc).any() else 0.0
-        x = np.array([first + 0.5 * self.resolution, gyr[0], 0.0])
-        P = np.diag([self.resolution**2, r_gyr + self.bias_sigma**2, self.bias_sigma**2])
-        H_both = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]])
-        R_both = np.diag([r_enc, r_gyr])
-        H_gyr = H_both[1:]
-        R_gyr = R_both[1:, 1:]
+        x, P = self.start(first, gyr[0])
         out = np.empty((len(t), 2))
         prev = t[0]
         for k in range(len(t)):  # a recursive filter: one step per sample
-            dt = t[k] - prev
+            x, P = self.step(x, P, t[k] - prev, enc[k], gyr[k])
             prev = t[k]
-            F = np.array([[1.0, dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-            q = self.accel_sigma**2
-            Q = np.zeros((3, 3))
-            Q[:2, :2] = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
-            Q[2, 2] = self.bias_walk**2 * dt
-            x = F @ x
-            P = F @ P @ F.T + Q
-            if np.isfinite(enc[k]):
-                z = np.array([enc[k] + 0.5 * self.resolution, gyr[k]])
-                H, R = H_both, R_both
-            else:
-                z = gyr[k : k + 1]
-                H, R = H_gyr, R_gyr
-            S = H @ P @ H.T + R
-            K = np.linalg.solve(S, H @ P).T
-            x = x + K @ (z - H @ x)
-            P = (np.eye(3) - K @ H) @ P
             out[k] = x[:2]
         return out[:, 0], out[:, 1]
+
+    def start(self, encoder: float, gyro_rate: float) -> tuple[FloatArray, FloatArray]:
+        """The state ``[psi, psi_dot, b]`` and its covariance before the first sample.
+
+        Parameters
+        ----------
+        encoder
+            First encoder reading (radians, the floor of the angle).
+        gyro_rate
+            First gyro-difference rate (rad/s).
+        """
+        r_gyr = self.gyro_sigma**2
+        x = np.array([encoder + 0.5 * self.resolution, gyro_rate, 0.0])
+        P = np.diag([self.resolution**2, r_gyr + self.bias_sigma**2, self.bias_sigma**2])
+        return x, P
+
+    def step(
+        self, x: FloatArray, P: FloatArray, dt: float, encoder: float, gyro_rate: float
+    ) -> tuple[FloatArray, FloatArray]:
+        """One filter step: predict over ``dt`` seconds, then update with one sample.
+
+        Parameters
+        ----------
+        x, P
+            State ``[psi, psi_dot, b]`` (rad, rad/s, rad/s) and its covariance.
+        dt
+            Time since the previous sample (s; 0 for the first).
+        encoder
+            Encoder reading (radians, the floor of the angle; NaN: none).
+        gyro_rate
+            Gyro-difference rate (rad/s).
+
+        Returns
+        -------
+        x, P
+            The updated state and covariance.
+        """
+        F, Q = _transition(dt, self.accel_sigma, self.bias_walk)
+        x = F @ x
+        P = F @ P @ F.T + Q
+        if np.isfinite(encoder):
+            z = np.array([encoder + 0.5 * self.resolution, gyro_rate])
+            H, R = _BOTH, np.diag([self.resolution**2 / 12.0, self.gyro_sigma**2])
+        else:
+            z = np.array([gyro_rate])
+            H, R = _GYRO, np.array([[self.gyro_sigma**2]])
+        S = H @ P @ H.T + R
+        K = np.linalg.solve(S, H @ P).T
+        return x + K @ (z - H @ x), (np.eye(3) - K @ H) @ P
+
+
+_BOTH = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]])
+"""Observation of ``[psi, psi_dot, b]`` by the encoder and the gyro difference (eq. 3)."""
+_GYRO = _BOTH[1:]
+
+
+@lru_cache(maxsize=64)
+def _transition(dt: float, accel_sigma: float, bias_walk: float) -> tuple[FloatArray, FloatArray]:
+    """Transition ``F`` and process noise ``Q`` of the constant-velocity model over ``dt``."""
+    F = np.array([[1.0, dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    q = accel_sigma**2
+    Q = np.zeros((3, 3))
+    Q[:2, :2] = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+    Q[2, 2] = bias_walk**2 * dt
+    F.flags.writeable = Q.flags.writeable = False
+    return F, Q
 
 
 def complementary_filter(

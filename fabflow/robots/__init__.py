@@ -16,8 +16,9 @@ Public API::
 The catalogue (:data:`ROBOT_NAMES`): ``kuka_kr60_3`` (KUKA KR 60-3),
 ``abb_irb4600_60_205`` (ABB IRB 4600-60/2.05), ``ur10e`` (Universal Robots
 UR10e), ``brokk_170`` (5-axis demolition machine in the style of the BROKK 170,
-APPROXIMATE) and ``excavator_gripper`` (walking-excavator-like arm in the style
-of HEAP with a two-jaw rotating gripper, APPROXIMATE).
+APPROXIMATE), ``excavator_gripper`` (walking-excavator-like arm in the style
+of HEAP with a two-jaw rotating gripper, APPROXIMATE) and ``excavator_printer``
+(the same arm with a print head, APPROXIMATE).
 """
 
 from fabflow.robots.catalog import ROBOT_NAMES, get_robot

@@ -20,6 +20,8 @@ Joint values are the ones the robot's own controller shows (radians here):
   the gripper continuing the stick; home 0, 30, -100, -20, 0, 0 deg with the
   gripper pointing down in front of the machine. APPROXIMATE, lengths
   estimated, not manufacturer data.
+* ``excavator_printer`` - the same arm (HEAP is the Menzi Muck M545 of paper
+  000 too) carrying a print head, a LiDAR and a prism on its tilt-rotator.
 """
 
 from __future__ import annotations
@@ -202,10 +204,10 @@ boom 4.0 m, stick 2.5 m (7.0 m from the boom pivot to the wrist centre), wrist
 centre to flange 0.4 m."""
 
 
-def _excavator_gripper() -> RobotModel:
+def _excavator(name: str, tool: str, paper: str) -> RobotModel:
     p = HEAP_GRIPPER
     return RobotModel(
-        name="excavator_gripper",
+        name=name,
         dh=excavator_dh(p),
         joint_sign=np.ones(6),
         joint_limits=np.array(
@@ -217,8 +219,8 @@ def _excavator_gripper() -> RobotModel:
         reach=p.a1 + p.a2 + p.a3 + p.d6,
         approximate=True,
         description=(
-            "APPROXIMATE walking-excavator-like arm in the style of HEAP (paper 002) with a "
-            "two-jaw rotating gripper; lengths estimated, not manufacturer data"
+            f"APPROXIMATE walking-excavator-like arm in the style of HEAP ({paper}) with "
+            f"{tool}; lengths estimated, not manufacturer data"
         ),
         motion_groups=((0, 1, 2, 3, 4, 5),),
         analytic_ik=lambda T, q_ref=None: excavator_ik(p, T, q_ref),
@@ -226,6 +228,14 @@ def _excavator_gripper() -> RobotModel:
         q_home=np.array([0, 30, -100, -20, 0, 0], dtype=float) * _DEG,
         payload=4000.0,
     )
+
+
+def _excavator_gripper() -> RobotModel:
+    return _excavator("excavator_gripper", "a two-jaw rotating gripper", "paper 002")
+
+
+def _excavator_printer() -> RobotModel:
+    return _excavator("excavator_printer", "a print head on its tilt-rotator", "paper 000")
 
 
 @dataclass(frozen=True)
@@ -380,6 +390,7 @@ _CATALOGUE = {
     "abb_irb4600_60_205": (_abb_irb4600_60_205, "abb"),
     "brokk_170": (_brokk_170, "brokk"),
     "excavator_gripper": (_excavator_gripper, "heap"),
+    "excavator_printer": (_excavator_printer, "heap"),
 }
 
 ROBOT_NAMES: tuple[str, ...] = tuple(_CATALOGUE)

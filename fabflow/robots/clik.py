@@ -244,14 +244,21 @@ class Clik:
         """Forget the joint-limit gradient history (start of a new motion)."""
         self._prev_grad = np.full(self.robot.dof, np.inf)
 
-    def pinv(self, J: FloatArray, w: FloatArray, lam: float) -> FloatArray:
-        """Weighted damped pseudo-inverse ``W^-1 J^T (J W^-1 J^T + lambda^2 I)^-1`` (eq. 7)."""
-        WiJt = J.T / w[:, None]
+    def pinv(self, J: FloatArray, w: FloatArray, lam: float | FloatArray) -> FloatArray:
+        """Weighted damped pseudo-inverse ``W^-1 J^T (J W^-1 J^T + lambda^2 I)^-1`` (eq. 7).
+
+        ``J`` is ``(M, dof)`` or a stack ``(K, M, dof)`` with weights ``(K, dof)``
+        and damping ``(K,)``.
+        """
+        WiJt = np.swapaxes(J, -1, -2) / w[..., :, None]
         A = J @ WiJt
-        A.flat[:: A.shape[0] + 1] += lam * lam
+        m = A.shape[-1]
+        A = A + (np.asarray(lam, dtype=float) ** 2)[..., None, None] * np.eye(m)
         try:
-            return np.linalg.solve(A, WiJt.T).T
+            return np.swapaxes(np.linalg.solve(A, np.swapaxes(WiJt, -1, -2)), -1, -2)
         except np.linalg.LinAlgError:
+            if J.ndim != 2:
+                raise
             return np.linalg.lstsq(A, WiJt.T, rcond=None)[0].T
 
     def step(

@@ -28,15 +28,16 @@ ABB IRB 4600-60/2.05 has the same layout with its own lengths (radii 0.28,
 0.22, 0.18, 0.13, 0.13, 0.10, 0.08 m); the UR10e and the BROKK 170 take
 capsules between consecutive frame origins (0.075 m and 0.15 m).
 
-The excavator with the rotating gripper (APPROXIMATE, like its lengths; DH
-frame 1 on the boom pivot, 2 on the stick pivot, 3 the wrist centre, 7 the
-flange) is a chain of four capsules. Its cabin, counterweight and legs are
-not links: they belong to the platform's footprint.
+The excavator (with the rotating gripper or the print head; APPROXIMATE, like
+its lengths; DH frame 1 on the boom pivot, 2 on the stick pivot, 3 the wrist
+centre, 7 the flange) is a chain of four capsules. Its cabin, counterweight and
+legs are not links: they belong to the platform's footprint, so the boom foot
+starts one radius (plus 5 cm) above the slew axis's foot, on the chassis.
 
 ============  ===========================================  ==========
 link          segment                                      radius (m)
 ============  ===========================================  ==========
-boom foot     foot of the slew axis -> boom pivot          0.40
+boom foot     0.45 m above the slew foot -> boom pivot     0.40
 boom          boom pivot -> stick pivot (4.0 m)            0.25
 stick         stick pivot -> wrist centre (2.5 m)          0.25
 tiltrotator   wrist centre -> flange (0.4 m)               0.30
@@ -86,7 +87,7 @@ def _excavator() -> tuple[LinkCapsule, ...]:
     """Capsules of the excavator arm: boom foot, boom, stick, tiltrotator (see above)."""
     o = (0.0, 0.0, 0.0)
     return (
-        LinkCapsule("boom foot", 0, o, 1, o, 0.40),
+        LinkCapsule("boom foot", 0, (0.0, 0.0, 0.45), 1, o, 0.40),
         LinkCapsule("boom", 1, o, 2, o, 0.25),
         LinkCapsule("stick", 2, o, 3, o, 0.25),
         LinkCapsule("tiltrotator", 3, o, 7, o, 0.30),
@@ -105,6 +106,7 @@ LINK_CAPSULES: dict[str, tuple[LinkCapsule, ...]] = {
     "ur10e": _chain(6, 0.075),
     "brokk_170": _chain(5, 0.15),
     "excavator_gripper": _excavator(),
+    "excavator_printer": _excavator(),
 }
 """Link capsules per catalogue robot."""
 

@@ -5,12 +5,16 @@ controller on the measured joint angle; the pressure build-up in the cylinders
 adds a dead time of about 1.3 s. :class:`HydraulicJoints` models each joint as
 
     u = sat(Kp e + Ki int e)                (PI on e = q_ref - q, PWM in [-1, 1])
-    tau dv/dt = -v + v_max u(t - T_d)       (valve/flow: first-order lag, dead time)
+    tau dv/dt = -v + v_max db(u(t - T_d))   (valve/flow: first-order lag, dead time)
     dq/dt = v
 
-integrated with a fixed step, all joints at once. :func:`reference_times` gives a
-CLIK reference its timing (no joint faster than its speed limit), and
-:func:`tracking_rmse` compares where the tool went with where it was meant to go.
+integrated with a fixed step, all joints at once; ``db`` is the valve's
+deadband (spool overlap: no flow below a fraction of the opening, the rest of
+the range rescaled). :class:`ValveJoints` steps the valve, lag and dead time
+alone, for a controller of one's own (the tracking loop of paper 000).
+:func:`reference_times` gives a CLIK reference its timing (no joint faster
+than its speed limit), and :func:`tracking_rmse` compares where the tool went
+with where it was meant to go.
 
 :func:`contact_search` is the paper's pressure-threshold primitive: move the tool
 along a direction until the main-pump pressure, sampled at 2 Hz, exceeds a
@@ -74,6 +78,8 @@ class HydraulicJoints:
         delay and lag cost less than 30 degrees of phase.
     dt
         Integration step (s).
+    deadband
+        Valve fraction below which no oil flows (0 to 1; 0: an ideal valve).
     """
 
     v_max: FloatArray
@@ -82,6 +88,21 @@ class HydraulicJoints:
     kp: FloatArray | None = None
     ki: FloatArray | None = None
     dt: float = 0.01
+    deadband: float = 0.0
+
+    def __post_init__(self) -> None:
+        ok = (
+            self.dead_time >= 0
+            and self.tau >= 0
+            and self.dt > 0
+            and 0.0 <= self.deadband < 1.0
+            and np.all(np.asarray(self.v_max, dtype=float) > 0)
+        )
+        if not ok:
+            raise InputError(
+                "hydraulic joints need v_max > 0, dead_time >= 0, tau >= 0, dt > 0 and "
+                "0 <= deadband < 1"
+            )
 
     @classmethod
     def for_robot(
@@ -122,25 +143,65 @@ class HydraulicJoints:
         ki = 0.05 * kp if self.ki is None else np.asarray(self.ki, dtype=float)
         t = np.arange(0.0, tr[-1] + t_extra, self.dt)
         ref = np.column_stack([np.interp(t, tr, qr[:, j]) for j in range(dof)])
-        delay = round(self.dead_time / self.dt)
-        u_hist = np.zeros((delay + 1, dof))
-        q = qr[0].copy()
-        v = np.zeros(dof)
+        valves = ValveJoints(self, qr[0])
         integ = np.zeros(dof)
         out = np.empty((t.size, dof))
-        a = self.dt / (self.tau + self.dt)
         for k in range(t.size):
+            q = valves.q
             out[k] = q
             e = ref[k] - q
             u_raw = kp * e + ki * (integ + e * self.dt)
-            u = np.clip(u_raw, -1.0, 1.0)
             # Anti-windup: integrate only while the valve is not saturated.
             integ = np.where(np.abs(u_raw) < 1.0, integ + e * self.dt, integ)
-            u_hist[k % (delay + 1)] = u
-            u_del = u_hist[(k + 1) % (delay + 1)] if delay > 0 else u
-            v = v + a * (self.v_max * u_del - v)
-            q = q + v * self.dt
+            valves.step(u_raw)
         return t, out
+
+
+class ValveJoints:
+    """The state of valve-driven hydraulic joints, stepped one period at a time.
+
+    Parameters
+    ----------
+    joints
+        Speeds, dead time, lag, deadband and step (the PI gains are not used:
+        the caller commands the valves).
+    q0
+        ``(dof,)`` joint angles at rest at the start (radians).
+    """
+
+    def __init__(self, joints: HydraulicJoints, q0: ArrayLike) -> None:
+        self.joints = joints
+        self.q = np.array(q0, dtype=float)
+        self.v = np.zeros_like(self.q)
+        self._delay = round(joints.dead_time / joints.dt)
+        self._hist = np.zeros((self._delay + 1, self.q.size))
+        self._k = 0
+        self._a = joints.dt / (joints.tau + joints.dt)
+
+    def step(self, u: ArrayLike) -> FloatArray:
+        """Command the valves for one period and advance the joints.
+
+        Parameters
+        ----------
+        u
+            ``(dof,)`` valve commands (fraction of full opening; clipped to [-1, 1]).
+
+        Returns
+        -------
+        numpy.ndarray
+            Joint angles one period later (radians).
+        """
+        j = self.joints
+        u = np.clip(np.asarray(u, dtype=float), -1.0, 1.0)
+        if j.deadband > 0:
+            u = np.sign(u) * np.maximum(np.abs(u) - j.deadband, 0.0) / (1.0 - j.deadband)
+        n = self._delay + 1
+        self._hist[self._k % n] = u
+        self._k += 1
+        u_del = self._hist[self._k % n] if self._delay > 0 else u
+        self.v = self.v + self._a * (j.v_max * u_del - self.v)
+        self.q = self.q + self.v * j.dt
+        return self.q
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ pure-numpy intersector otherwise.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 import trimesh
@@ -77,12 +78,22 @@ class LidarModel:
         return np.radians(np.linspace(*self.vertical_fov_deg, self.n_beams))
 
     def directions(self) -> FloatArray:
-        """Unit ray directions in the sensor frame, ``(n_beams * n_columns, 3)``, beam-major."""
-        elev = self.elevations()
-        azim = np.radians(np.arange(self.n_columns) * 360.0 / self.n_columns)
-        e, a = np.meshgrid(elev, azim, indexing="ij")
-        ce = np.cos(e)
-        return np.stack([ce * np.cos(a), ce * np.sin(a), np.sin(e)], axis=-1).reshape(-1, 3)
+        """Unit ray directions in the sensor frame, ``(n_beams * n_columns, 3)``, beam-major.
+
+        Computed once per model (a read-only array shared by every scan).
+        """
+        return _directions(self)
+
+
+@cache
+def _directions(model: LidarModel) -> FloatArray:
+    elev = model.elevations()
+    azim = np.radians(np.arange(model.n_columns) * 360.0 / model.n_columns)
+    e, a = np.meshgrid(elev, azim, indexing="ij")
+    ce = np.cos(e)
+    out = np.stack([ce * np.cos(a), ce * np.sin(a), np.sin(e)], axis=-1).reshape(-1, 3)
+    out.flags.writeable = False
+    return out
 
 
 HESAI_QT64 = LidarModel()

@@ -20,6 +20,8 @@ converters):
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -405,3 +407,41 @@ def check_rotation(R: ArrayLike, tol: float = ROTATION_TOL, name: str = "rotatio
             f" (tolerance {tol:g}), det = {d:.9g} (expected +1)"
         )
     return R
+
+
+def exp_so3_one(x: float, y: float, z: float) -> FloatArray:
+    """Rotation matrix of one rotation vector ``(x, y, z)`` (rad), Rodrigues' formula.
+
+    :func:`exp_so3` for a control loop: scalar arithmetic, no input checks.
+    """
+    th2 = x * x + y * y + z * z
+    if th2 < _SMALL_ANGLE**2:
+        a = 1.0 - th2 / 6.0 + th2 * th2 / 120.0
+        b = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
+        c = 1.0 - th2 / 2.0 + th2 * th2 / 24.0
+    else:
+        th = math.sqrt(th2)
+        a, b, c = math.sin(th) / th, (1.0 - math.cos(th)) / th2, math.cos(th)
+    bx, by = b * x, b * y
+    return np.array(
+        [
+            [c + bx * x, bx * y - a * z, bx * z + a * y],
+            [bx * y + a * z, c + by * y, by * z - a * x],
+            [bx * z - a * y, by * z + a * x, c + b * z * z],
+        ]
+    )
+
+
+def log_so3_one(R: FloatArray) -> FloatArray:
+    """Rotation vector (rad) of one rotation matrix, :func:`log_so3` for a control loop.
+
+    Scalar arithmetic below 90 degrees (no input checks); :func:`log_so3` beyond.
+    """
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    c = 0.5 * (r00 + r11 + r22 - 1.0)
+    if c < 0.0:
+        return log_so3(R)
+    x, y, z = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
+    s = math.sqrt(x * x + y * y + z * z)
+    k = math.atan2(s, c) / s if s > 1e-8 else 1.0 + s * s / 6.0
+    return np.array([k * x, k * y, k * z])

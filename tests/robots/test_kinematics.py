@@ -39,6 +39,7 @@ def test_get_robot_names_and_fields() -> None:
         "abb_irb4600_60_205",
         "brokk_170",
         "excavator_gripper",
+        "excavator_printer",
     }
     for name in ROBOT_NAMES:
         r = get_robot(name)

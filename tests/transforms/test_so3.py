@@ -36,6 +36,7 @@ from fabflow.transforms import (
     skew,
     twist_from_error,
 )
+from fabflow.transforms.so3 import exp_so3_one, log_so3_one
 
 unit = st.floats(-1.0, 1.0, allow_nan=False)
 quats = st.tuples(unit, unit, unit, unit).filter(lambda q: np.linalg.norm(q) > 0.1)
@@ -230,3 +231,14 @@ def test_error_jacobians_match_finite_differences(seed: int) -> None:
         np.testing.assert_allclose(d_ab, J_ab[:, k], atol=1e-6)
         np.testing.assert_allclose(d_bc, J_bc[:, k], atol=1e-6)
         np.testing.assert_allclose(d_inv, J_inv[:, k], atol=1e-6)
+
+
+@given(v=st.tuples(angle, angle, angle), scale=st.sampled_from([1.0, 1e-3, 1e-6, 0.0]))
+@settings(max_examples=150, deadline=None)
+def test_the_control_loop_exp_and_log_agree_with_the_general_ones(
+    v: tuple[float, float, float], scale: float
+) -> None:
+    r = scale * np.asarray(v) / np.sqrt(3.0)
+    R = exp_so3_one(*r)
+    assert np.allclose(R, exp_so3(r), atol=1e-12)
+    assert np.allclose(log_so3_one(R), log_so3(R), atol=1e-9)
