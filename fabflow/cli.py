@@ -481,105 +481,12 @@ def simulate(
     ] = None,
 ) -> None:
     """Monte Carlo tolerance study: N simulated construction runs per localization method."""
-    from contextlib import nullcontext
+    from fabflow.sim.command import run_simulate
 
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
-
-    from fabflow.output import atomic_output_dir
-    from fabflow.project import load_project
-    from fabflow.sim.monte_carlo import dask_client
-    from fabflow.sim.report import (
-        SETUP_DRIFT_COLUMNS,
-        SETUP_DRIFT_TITLE,
-        check_runs_completed,
-        parse_methods,
-        setup_drift_rows,
-        simulate_project,
-    )
-
-    p = load_project(project)
-    chosen = parse_methods(methods) if methods else [p.localization.method]
-    n_runs = runs or p.simulation.runs
-    columns = ("{task.description}", BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    in_process = scheduler is None and workers == 0
-    cluster = dask_client(scheduler, n_workers=workers, timeout=timeout, dashboard=dashboard)
-    if p.stone_wall() is not None:  # found stones: no stations to localize
-        from fabflow.sim.stones import simulate_stones, stone_table_rows
-
-        with (
-            atomic_output_dir(out) as staging,
-            nullcontext(None) if in_process else cluster as client,
-            Progress(*columns, console=console) as bar,
-        ):
-            task = bar.add_task("stone wall runs", total=n_runs)
-            study_seed = p.simulation.seed if seed is None else seed
-            advance = lambda n: bar.advance(task, n)  # noqa: E731
-            summary = simulate_stones(p, staging, n_runs, study_seed, advance, client)
-        table = Table(title=f"fabflow simulate: {p.name}, {n_runs} runs")
-        for name in ("figure", "simulated", "paper 002"):
-            table.add_column(name)
-        for row in stone_table_rows(summary):
-            table.add_row(*row)
-        console.print(table)
-        console.print(f"[green]wrote[/] {Path(out).resolve()}")
-        return
-    with (
-        atomic_output_dir(out) as staging,
-        nullcontext(None) if in_process else cluster as client,
-        Progress(*columns, console=console) as bar,
-    ):
-        if client is not None and dashboard and scheduler is None:
-            console.print(f"Dask dashboard: {client.dashboard_link}")
-        tasks: dict[str, Any] = {}
-
-        def start(method: str) -> None:
-            tasks["current"] = bar.add_task(f"{method} runs", total=n_runs)
-
-        rows = simulate_project(
-            p,
-            staging,
-            n_runs,
-            p.simulation.seed if seed is None else seed,
-            chosen,
-            client=client,
-            on_method=start,
-            progress=lambda n: bar.advance(tasks["current"], n),
-            plots=plots,
-            fidelity=fidelity,  # type: ignore[arg-type]  # checked by prepare_study
-            stationings=stationing.split(",") if stationing else None,
-        )
-    table = Table(title=f"fabflow simulate: {p.name}, {n_runs} runs ({fidelity})")
-    for name in ("method", "runs ok/failed", "RMSE mm", "p95 mm", "max mm", "within tol"):
-        table.add_column(name, justify="left" if name == "method" else "right")
-    table.add_column("loc. xy RMSE mm", justify="right")
-    table.add_column("sigma ratio xy", justify="right")
-    table.add_column("visits failed / silently wrong", justify="right")
-    for r in rows:
-        table.add_row(
-            r["method"],
-            f"{r['runs_completed']}/{r['runs_failed']}",
-            f"{1e3 * r['rmse_m']:.2f}",
-            f"{1e3 * r['p95_m']:.2f}",
-            f"{1e3 * r['max_m']:.2f}",
-            f"{100 * r['within_tolerance']:.1f} %",
-            f"{1e3 * r['localization_xy_rmse_m']:.2f}",
-            f"{r['sigma_ratio_xy']:.2f}",
-            f"{r['visits_failed']} / {r['silently_wrong']}",
-        )
-    console.print(table)
-    drift = setup_drift_rows(rows)
-    if drift:
-        table = Table(title=SETUP_DRIFT_TITLE)
-        for name in SETUP_DRIFT_COLUMNS:
-            table.add_column(name, justify="left" if name[0].isalpha() else "right")
-        for row in drift:
-            table.add_row(*row)
-        console.print(table)
-    failed = sum(r["runs_failed"] for r in rows)
-    if failed:
-        console.print(f"[yellow]{failed} run(s) failed: see runs.csv and summary.json[/]")
-    console.print(f"[green]wrote[/] {Path(out).resolve()}")
-    check_runs_completed(rows, out)
+    run_simulate(
+        project, out, runs, methods, seed, scheduler, workers, timeout, dashboard, plots,
+        fidelity, stationing, console,
+    )  # fmt: skip
 
 
 @app.command()
@@ -587,12 +494,59 @@ def simulate(
 def track(
     project: ProjectArg,
     out: OutOption,
-    seed: Annotated[int | None, typer.Option(help="Seed (default: simulation.seed).")] = None,
+    seed: Annotated[
+        int | None, typer.Option(min=0, help="Seed (default: simulation.seed).")
+    ] = None,
 ) -> None:
     """Print a path on the simulated hydraulic excavator, closed and open loop (paper 000)."""
     from fabflow.tracking.command import run_track
 
     run_track(project, out, seed, console)
+
+
+@app.command()
+@user_errors
+def stream(
+    program: Annotated[Path, typer.Argument(help="A JSON command stream (fabflow program).")],
+    to: Annotated[str, typer.Option("--to", help="The gateway's HOST:PORT.")],
+    profile: Annotated[
+        str | None, typer.Option(help="hydraulic or rsi (default: the program's robot's).")
+    ] = None,
+    cycle: Annotated[float | None, typer.Option(help="Cycle (s); RSI: 0.004 or 0.012.")] = None,
+    watchdog: Annotated[float | None, typer.Option(help="Feedback watchdog (s).")] = None,
+    bound: Annotated[float | None, typer.Option(help="Tracking error bound (rad).")] = None,
+    log: Annotated[Path | None, typer.Option(help="Packet log CSV.")] = None,
+) -> None:
+    """Stream a program to a machine gateway over UDP; exit 0 only if it completed."""
+    from fabflow.link.command import run_stream
+
+    code = run_stream(program, to, profile, cycle, watchdog, bound, log, console)
+    raise typer.Exit(code)
+
+
+@app.command("machine-sim")
+@user_errors
+def machine_sim(
+    port: Annotated[int, typer.Option(min=0, max=65535, help="UDP port (0: any free).")],
+    host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
+    robot: Annotated[str, typer.Option(help="Catalogue robot.")] = "kuka_kr60_3",
+    profile: Annotated[str | None, typer.Option(help="hydraulic or rsi.")] = None,
+    cycle: Annotated[float | None, typer.Option(help="Cycle (s).")] = None,
+    watchdog: Annotated[float | None, typer.Option(help="Watchdog (s).")] = None,
+    loss: Annotated[float, typer.Option(help="Fraction of datagrams lost.")] = 0.0,
+    delay: Annotated[float, typer.Option(help="One-way delay (s).")] = 0.0,
+    jitter: Annotated[float, typer.Option(help="Extra delay up to this (s).")] = 0.0,
+    reorder: Annotated[float, typer.Option(help="Fraction of datagrams reordered.")] = 0.0,
+    seed: Annotated[int, typer.Option(help="Seed of the network faults.")] = 0,
+    log: Annotated[Path | None, typer.Option(help="Packet log CSV.")] = None,
+) -> None:
+    """A simulated machine gateway for 'fabflow stream' (hydraulic machine or RSI servo)."""
+    from fabflow.link.command import run_machine_sim
+    from fabflow.link.gateway import Impairments
+
+    faults = Impairments(loss=loss, delay=delay, jitter=jitter, reorder=reorder)
+    args = (port, host, robot, profile, cycle, watchdog, faults, seed, log, console)
+    raise typer.Exit(run_machine_sim(*args))
 
 
 if __name__ == "__main__":  # pragma: no cover

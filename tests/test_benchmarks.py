@@ -30,6 +30,7 @@ def test_every_area_has_a_benchmark() -> None:
         "simulate",
         "stones",
         "tracking",
+        "link",
     } <= names
 
 

@@ -11,7 +11,9 @@ adds a dead time of about 1.3 s. :class:`HydraulicJoints` models each joint as
 integrated with a fixed step, all joints at once; ``db`` is the valve's
 deadband (spool overlap: no flow below a fraction of the opening, the rest of
 the range rescaled). :class:`ValveJoints` steps the valve, lag and dead time
-alone, for a controller of one's own (the tracking loop of paper 000).
+alone, for a controller of one's own (the tracking loop of paper 000);
+:class:`HydraulicServo` steps them under the PI, for a live reference (the
+machine link's simulated gateway).
 :func:`reference_times` gives a CLIK reference its timing (no joint faster
 than its speed limit), and :func:`tracking_rmse` compares where the tool went
 with where it was meant to go.
@@ -139,22 +141,74 @@ class HydraulicJoints:
         if qr.ndim != 2 or tr.shape != (qr.shape[0],):
             raise InputError(f"reference shapes do not match: t {tr.shape}, q {qr.shape}")
         dof = qr.shape[1]
-        kp = np.full(dof, 1.0) if self.kp is None else np.asarray(self.kp, dtype=float)
-        ki = 0.05 * kp if self.ki is None else np.asarray(self.ki, dtype=float)
         t = np.arange(0.0, tr[-1] + t_extra, self.dt)
         ref = np.column_stack([np.interp(t, tr, qr[:, j]) for j in range(dof)])
-        valves = ValveJoints(self, qr[0])
-        integ = np.zeros(dof)
+        servo = HydraulicServo(self, qr[0])
         out = np.empty((t.size, dof))
         for k in range(t.size):
-            q = valves.q
-            out[k] = q
-            e = ref[k] - q
-            u_raw = kp * e + ki * (integ + e * self.dt)
-            # Anti-windup: integrate only while the valve is not saturated.
-            integ = np.where(np.abs(u_raw) < 1.0, integ + e * self.dt, integ)
-            valves.step(u_raw)
+            out[k] = servo.q
+            servo.step(ref[k])
         return t, out
+
+
+class HydraulicServo:
+    """Valve-driven hydraulic joints under their PI controller, stepped one period at a time.
+
+    The controller of :meth:`HydraulicJoints.simulate` (which runs on this class)
+    for a reference that arrives live, e.g. over the machine link.
+
+    Parameters
+    ----------
+    joints
+        Speeds, dead time, lag, deadband, step and PI gains (without gains: 1
+        valve fraction per radian, and ``ki = 0.05 kp``).
+    q0
+        ``(dof,)`` joint angles at rest at the start (radians).
+    """
+
+    def __init__(self, joints: HydraulicJoints, q0: ArrayLike) -> None:
+        self.joints = joints
+        self.valves = ValveJoints(joints, q0)
+        dof = self.valves.q.size
+        self._kp = np.full(dof, 1.0) if joints.kp is None else np.asarray(joints.kp, dtype=float)
+        self._ki = 0.05 * self._kp if joints.ki is None else np.asarray(joints.ki, dtype=float)
+        self._integ = np.zeros(dof)
+        self.stopped = False
+
+    @property
+    def q(self) -> FloatArray:
+        """``(dof,)`` the current joint angles (radians)."""
+        return self.valves.q
+
+    def step(self, q_ref: ArrayLike) -> FloatArray:
+        """Run the PI for one period ``joints.dt`` towards a reference and advance the joints.
+
+        Parameters
+        ----------
+        q_ref
+            ``(dof,)`` joint reference (radians); ignored once stopped.
+
+        Returns
+        -------
+        numpy.ndarray
+            Joint angles one period later (radians).
+        """
+        if self.stopped:
+            return self.valves.step(np.zeros_like(self._integ))
+        e = np.asarray(q_ref, dtype=float) - self.valves.q
+        dt = self.joints.dt
+        u_raw = self._kp * e + self._ki * (self._integ + e * dt)
+        # Anti-windup: integrate only while the valve is not saturated.
+        self._integ = np.where(np.abs(u_raw) < 1.0, self._integ + e * dt, self._integ)
+        return self.valves.step(u_raw)
+
+    def stop(self) -> None:
+        """Close the valves: a zero command from now on, the integrator cleared.
+
+        Commands already sent still act for the dead time, as on the machine.
+        """
+        self.stopped = True
+        self._integ = np.zeros_like(self._integ)
 
 
 class ValveJoints:

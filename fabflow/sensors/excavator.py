@@ -42,8 +42,9 @@ class ExcavatorErrors:
     ----------
     joint_sigma_deg
         White noise of the boom, stick and wrist angles per 100 Hz sample
-        (assumption: the resolution of a wire encoder on a cylinder, about
-        0.1 mm on a 1 m lever arm).
+        (assumption: a wire encoder's 0.1 mm resolution on a cylinder about 1 m
+        from its joint gives 0.0057 deg steps, whose uniform error has a sigma
+        of 0.0017 deg).
     joint_bias_deg
         Standard deviation of each of those joints' constant bias (assumption:
         IMU mounting, a tenth of a degree).
@@ -74,7 +75,16 @@ class ExcavatorErrors:
     link_sigma: float = 0.005
 
 
-NO_ERRORS = ExcavatorErrors(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, (30.0, 120.0), 0.0, 0.0)
+NO_ERRORS = ExcavatorErrors(
+    joint_sigma_deg=0.0,
+    joint_bias_deg=0.0,
+    gyro_sigma=0.0,
+    gyro_bias_sigma=0.0,
+    gnss_sigma_xy=0.0,
+    gnss_sigma_z=0.0,
+    heading_sigma_deg=0.0,
+    link_sigma=0.0,
+)
 """A perfect machine: exact joints, base and geometry (the turn encoder still quantizes)."""
 
 
@@ -125,20 +135,14 @@ class ExcavatorSensors:
         self._gnss_amp = np.sqrt(2.0 / 3.0) * np.broadcast_to(sig, (3, 3)).T
         self._gnss_omega = 2 * np.pi / rng.uniform(*errors.gnss_period_s, (3, 3))
         self._gnss_phase = rng.uniform(0.0, 2 * np.pi, (3, 3))
-        self._t = 0.0
-        self.gnss = self._gnss_at(0.0)
         self._turn = TurnJointKF(gyro_sigma=max(np.sqrt(2.0) * errors.gyro_sigma, 1e-6))
         self._turn_state: tuple[FloatArray, FloatArray] | None = None
         self._last_turn: float | None = None
 
-    def _gnss_at(self, t: float) -> FloatArray:
-        return np.sum(self._gnss_amp * np.sin(self._gnss_omega * t + self._gnss_phase), axis=1)
-
-    def base_error(self) -> tuple[FloatArray, float]:
-        """Advance the GNSS error by one sample: ``(position error (3,) m, heading error rad)``."""
-        self._t += self.dt
-        self.gnss = self._gnss_at(self._t)
-        return self.gnss, self.heading
+    def base_error(self, t: float) -> tuple[FloatArray, float]:
+        """The base's error at time ``t`` (s): ``(position error (3,) m, heading error rad)``."""
+        gnss = np.sum(self._gnss_amp * np.sin(self._gnss_omega * t + self._gnss_phase), axis=1)
+        return gnss, self.heading
 
     def joints(self, t: float, q_true: FloatArray) -> FloatArray:
         """What the machine reads of its joints at time ``t`` (radians).
@@ -158,6 +162,9 @@ class ExcavatorSensors:
         enc = float(quantize(q_true[0], ENCODER_RESOLUTION))
         if self._turn_state is None:
             self._turn_state = self._turn.start(enc, gyro)
-        self._turn_state = self._turn.step(*self._turn_state, self.dt, enc, gyro)
+            dt = 0.0  # the first sample: nothing to predict over, as TurnJointKF.run
+        else:
+            dt = self.dt
+        self._turn_state = self._turn.step(*self._turn_state, dt, enc, gyro)
         q[0] = self._turn_state[0][0]
         return q

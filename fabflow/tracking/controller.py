@@ -60,8 +60,8 @@ class TrackingGains:
     ki
         Integral gain (1/s): removes the kinematic chain's slowly varying bias.
     max_correction
-        Bound of the integral's position part (metres; anti-windup) and of the
-        whole correction.
+        Bound of the integral's position part and of the whole position
+        correction (metres): a wrong estimate cannot drag the print head further.
     """
 
     kp: float
@@ -107,6 +107,11 @@ def feed_forward(
     T_world_base, T_flange_tool
         Where the machine believes its base is, and its tool.
 
+    Returns
+    -------
+    FeedForward
+        The joint path, its speeds and the pseudo-inverse along it.
+
     Raises
     ------
     InputError
@@ -127,6 +132,12 @@ def feed_forward(
     branches = np.flatnonzero(ok)
     branch = branches[np.argmin(np.linalg.norm(q_all[0, branches] - ref, axis=1))]
     q = np.unwrap(q_all[:, branch], axis=0)
+    if not robot.within_limits(q).all():  # a joint wound past its limit along the path
+        k = int(np.argmin(robot.within_limits(q)))
+        raise InputError(
+            f"the print path drives a joint past its limit at t = {reference.t[k]:.2f} s "
+            f"(nozzle at {np.round(reference.p[k], 3).tolist()} m)"
+        )
     qd = np.gradient(q, reference.t, axis=0)
     clik = Clik(robot, "pose")
     J = robot.jacobian(q)
@@ -148,7 +159,7 @@ class TrackingController:
     ff
         The reference in joint space.
     reference
-        The nozzle path (world frame) and its orientation ``R_ref``.
+        The nozzle path (world frame).
     R_ref
         The nozzle's orientation in the world.
     R_world_base
@@ -212,6 +223,9 @@ class TrackingController:
             if n > g.max_correction:
                 self.integral *= g.max_correction / n
             corr = g.kp * e + g.ki * self.integral
+            m = np.linalg.norm(corr[:3])
+            if m > g.max_correction:
+                corr[:3] *= g.max_correction / m
             corr_base = np.concatenate([self.R_base_world @ corr[:3], self.R_base_world @ corr[3:]])
             q_cmd = q_cmd + self.ff.pinv[kk] @ corr_base
         ahead = k + self.advance

@@ -23,7 +23,7 @@ from fabflow.errors import LocalizationError
 from fabflow.positioning.icp import icp
 from fabflow.positioning.scan_map import ScanMap
 from fabflow.sensors.lidar import HESAI_QT64, LidarModel, simulate_scan
-from fabflow.transforms.se3 import inv_T, make_T
+from fabflow.transforms.se3 import compose_covariance, inv_T, make_T
 from fabflow.transforms.so3 import exp_so3
 
 FloatArray = NDArray[np.float64]
@@ -102,6 +102,12 @@ def lidar_fix(
         The range noise.
     model
         The LiDAR.
+
+    Returns
+    -------
+    IcpFix
+        The fix; ``ok`` is ``False`` (and the pose the guess) when the scan found
+        too little of the map.
     """
     scan = simulate_scan(scene, T_world_tool_true @ T_TOOL_LIDAR, rng, model)
     pts = scan.points
@@ -121,12 +127,11 @@ def lidar_fix(
         )
     except LocalizationError:  # too few correspondences: no fix from this scan
         return IcpFix(t, T_world_tool_guess, np.eye(6), False)
-    T_tool = r.T @ inv_T(T_TOOL_LIDAR)
-    a = T_tool[:3, 3] - r.T[:3, 3]
-    G = np.eye(6)
-    G[:3, 3:] = -np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    C = G @ r.covariance @ G.T
+    T_lidar_tool = inv_T(T_TOOL_LIDAR)
+    T_tool = r.T @ T_lidar_tool
+    C_lidar = r.covariance
     if site_map.map_covariance is not None:
-        C = C + G @ site_map.map_covariance @ G.T
+        C_lidar = C_lidar + site_map.map_covariance
+    C = compose_covariance(r.T, C_lidar, T_lidar_tool, None)
     ok = bool(r.fitness > 0.3 and np.all(np.isfinite(C)) and np.all(np.isfinite(T_tool)))
     return IcpFix(t, T_tool, C, ok)

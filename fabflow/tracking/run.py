@@ -130,7 +130,15 @@ def track_print(project: Project, mode: Mode, seed: int | None = None) -> Tracki
         )
     in_plan = {e for wp in plan.work_packages for e in wp.elements}
     paths = [e for e in elements if e.id in in_plan and e.type == "print_path"]
-    speed = float(paths[0].attributes.get("speed", 0.1)) if paths else 0.1
+    speeds = {float(e.attributes.get("speed", 0.1)) for e in paths}
+    if len(speeds) != 1:
+        raise InputError(
+            "'fabflow track' follows one path at one speed; the print paths ask for "
+            f"{sorted(speeds)} m/s",
+            project.path,
+            "elements",
+        )
+    speed = speeds.pop()
     ref = print_reference(paths, speed, RATE_HZ, settings.max_duration_s)
     robot = get_robot(project.robot.model)
     T_ft = project.robot.tool.T_flange_tool.matrix()
@@ -152,8 +160,7 @@ def track_print(project: Project, mode: Mode, seed: int | None = None) -> Tracki
         dt=dt,
         deadband=settings.deadband,
     )
-    gnss, heading = sensors.base_error()
-    T_wb_believed = perturb(T_wb, np.r_[gnss, 0.0, 0.0, heading])
+    T_wb_believed = believed_base(T_wb, *sensors.base_error(0.0))
     ff = feed_forward(robot, ref, R_DOWN, T_wb_believed, T_ft)
     gains = TrackingGains(kp=settings.kp, ki=settings.ki) if mode == "closed" else None
     control = TrackingController(ff, ref, R_DOWN, T_wb_believed[:3, :3], joints, gains)
@@ -162,6 +169,12 @@ def track_print(project: Project, mode: Mode, seed: int | None = None) -> Tracki
         mode, ref, control, machine, round(settings.settle_s * RATE_HZ),
         settings.icp_latency_s, lidar_rng,
     )  # fmt: skip
+
+
+def believed_base(T_wb: FloatArray, gnss: FloatArray, heading: float) -> FloatArray:
+    """Where the machine believes its base is: the true base off by the GNSS error (metres,
+    world frame) and turned by the heading error (radians, about the world's z axis)."""
+    return perturb(T_wb, np.r_[gnss, 0.0, 0.0, heading])
 
 
 def fusion_params(errors: ExcavatorErrors, robot: RobotModel) -> FusionParams:
@@ -219,13 +232,13 @@ def _loop(
     last_icp = np.full(3, np.nan)
     icp_error: list[FloatArray] = []
     # the heading error is constant: the believed base turns once, its position wanders
-    T_wb_est = perturb(T_wb, np.r_[0.0, 0.0, 0.0, 0.0, 0.0, sensors.heading])
+    T_wb_est = believed_base(T_wb, np.zeros(3), sensors.heading)
     wall0 = time.perf_counter()
     for k in range(n):
         t = k * dt
         q = valves.q
         T_true = T_wb @ arm.frames_single(q)[-1] @ T_ft
-        gnss, _ = sensors.base_error()
+        gnss, _ = sensors.base_error(t)
         T_wb_est[:3, 3] = T_wb[:3, 3] + gnss
         q_meas = sensors.joints(t, q)
         T_kin = T_wb_est @ robot.frames_single(q_meas)[-1] @ T_ft

@@ -50,6 +50,8 @@ def run(
 
 
 def test_batch_wrapper_matches_the_online_filter_and_the_former_batch_filter() -> None:
+    # the wrapper feeds the filter as this loop does (a guard against the two drifting
+    # apart); what can fail on a change of the filter's maths are the recorded values below
     s = streams(duration=3.0)
     fused = fuse_icp_kinematics(s.t, s.T_kin, s.t_icp, s.T_icp)
     f = IcpKinematicsFilter(s.T_icp[0], FusionParams(gate_alpha=None), t0=s.t[0])

@@ -18,6 +18,7 @@ def test_a_command_acts_after_the_dead_time_and_settles_at_its_flow() -> None:
     valves = ValveJoints(j, [0.0, 0.0])
     q = [valves.step([0.5, -2.0]).copy() for _ in range(300)]
     assert np.all(np.asarray(q[:10]) == 0.0)  # 10 steps of dead time
+    assert np.all(q[10] != 0.0)  # and not one more
     v = (q[-1] - q[-2]) / j.dt
     assert v == pytest.approx([0.25, -0.3])  # 0.5 of the flow; -2 saturates at -1
 
