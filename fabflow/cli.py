@@ -515,7 +515,9 @@ def stream(
     cycle: Annotated[float | None, typer.Option(help="Cycle (s); RSI: 0.004 or 0.012.")] = None,
     watchdog: Annotated[float | None, typer.Option(help="Feedback watchdog (s).")] = None,
     bound: Annotated[float | None, typer.Option(help="Tracking error bound (rad).")] = None,
-    log: Annotated[Path | None, typer.Option(help="Packet log CSV.")] = None,
+    log: Annotated[
+        Path | None, typer.Option(help="Packet log CSV (default: PROGRAM.stream.csv beside it).")
+    ] = None,
 ) -> None:
     """Stream a program to a machine gateway over UDP; exit 0 only if it completed."""
     from fabflow.link.command import run_stream

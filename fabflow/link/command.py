@@ -46,9 +46,13 @@ def run_stream(
     log: Path | None,
     console: Console,
 ) -> int:
-    """Stream a program; returns the exit code (0 completed, else the machine was stopped)."""
+    """Stream a program; returns the exit code (0 completed, else the machine was stopped).
+
+    The packet log goes to ``log``, by default beside the program (``NAME.stream.csv``).
+    """
     address = parse_address(to)
     setpoints = read_setpoints(program)
+    log = log if log is not None else program.with_suffix(".stream.csv")
     profile = profile_for(setpoints.robot, profile_name).with_options(cycle_s, watchdog_s, bound)
     console.print(
         f"streaming {program.name} ({setpoints.robot}, {len(setpoints.t)} setpoints, "
@@ -66,8 +70,7 @@ def run_stream(
         f"sent {r.sent}, received {r.received}, malformed {r.malformed}, lost {r.lost}; "
         f"{timing}; largest tracking error {r.max_error:.4f} rad; {r.duration_s:.1f} s"
     )
-    if log is not None:
-        console.print(f"packet log: {log.resolve()}")
+    console.print(f"packet log: {log.resolve()}")
     if r.completed:
         console.print("[green]completed[/]: the machine reached the last setpoint")
         return 0

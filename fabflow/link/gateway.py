@@ -17,12 +17,16 @@ starting at rest at the robot's HOME:
 A ``feedback`` carries the machine's joints, ``ack`` = the ``seq`` of the last
 setpoint applied (setpoints older than it are not applied) and ``echo_t`` =
 that setpoint's ``t`` (docs/link.md); its ``seq`` is the gateway's own counter
-(RSI: the ``IPOC``).
+(RSI: the ``IPOC``). The ``ack`` is kept per sender: a setpoint is applied only
+if its ``seq`` is above the last one applied from the same address, and a new
+sender starts afresh at -1.
 
 Either way a watchdog stops the machine once a registered streamer has been
 silent for the profile's ``watchdog_s``, and a ``stop`` message stops it; a
 stopped machine stays stopped (its feedback says so, with the reason) until the
-gateway ends. Datagrams that are not valid messages are counted and dropped.
+gateway ends; a stopped RSI gateway stops sending states once the streamer has
+been silent for ``watchdog_s`` since the stop (and sends again if it talks).
+Datagrams that are not valid messages are counted and dropped.
 :class:`Impairments` adds network faults (loss, delay, jitter, reordering) to
 every datagram in both directions, drawn from a seeded generator.
 """
@@ -66,6 +70,12 @@ RECV_BUFFER = max(65536, 2 * MAX_DATAGRAM)
 
 MAX_DRAIN = 256
 """Most datagrams read off the socket in one pass, so a flood cannot stall the clock."""
+
+MAX_PENDING = 10_000
+"""Most datagrams held by the simulated network at once; beyond, one is lost."""
+
+MAX_SENDERS = 64
+"""Most senders whose last applied setpoint is remembered (:attr:`_Gateway.acks`)."""
 
 Direction = Literal["in", "out"]
 Address = tuple[str, int]
@@ -126,9 +136,10 @@ class GatewayStats:
         the profile's format or version, oversized, a ``feedback``, or with
         another number of joints than the robot's), dropped.
     lost_in
-        Of those, the ones dropped by the simulated network (:class:`Impairments`).
+        Of those, the ones dropped by the simulated network (:class:`Impairments`,
+        or more than :data:`MAX_PENDING` datagrams held).
     lost_out
-        Answers dropped by the simulated network, or whose sending failed.
+        Answers dropped by the simulated network, or whose encoding or sending failed.
     sent
         Answers sent.
     missed_cycles
@@ -238,6 +249,7 @@ class _Gateway:
         self.out_seq = 0
         self.ack = -1
         self.ack_t = 0.0
+        self.acks: dict[Address, tuple[int, float]] = {}
         self.reason = ""
         self.answered = True
         self.next_state = math.inf
@@ -281,10 +293,14 @@ class _Gateway:
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:
-                # E.g. an ICMP "port unreachable" reported on the next read: no datagram.
-                continue
+                # E.g. an ICMP "port unreachable" reported on the next read: no datagram,
+                # and a persistent error must not spin; the next select() tells.
+                return
             self.stats.received += 1
-            if self.rng.random() < self.impair.loss:
+            if len(data) > MAX_DATAGRAM:  # refused before it takes room in the queue
+                self.stats.malformed += 1
+                self._log(now, "in", None, data, "malformed")
+            elif self.rng.random() < self.impair.loss:
                 self.stats.lost_in += 1
                 self._log(now, "in", _try_decode(data, self.profile), data, "lost")
             else:
@@ -293,6 +309,14 @@ class _Gateway:
     def _push(
         self, now: float, direction: Direction, data: bytes, addr: Address, msg: Message | None
     ) -> None:
+        if len(self.pending) >= MAX_PENDING:
+            if direction == "in":
+                self.stats.lost_in += 1
+                msg = _try_decode(data, self.profile)
+            else:
+                self.stats.lost_out += 1
+            self._log(now, direction, msg, data, "lost")
+            return
         d = self.impair.delay
         if self.impair.jitter > 0:
             d += self.rng.uniform(0.0, self.impair.jitter)
@@ -317,7 +341,12 @@ class _Gateway:
                 self._log(now, "out", msg, data, "ok")
 
     def _send(self, msg: Message, addr: Address, now: float) -> None:
-        data = encode(msg, self.profile.name)
+        try:
+            data = encode(msg, self.profile.name)
+        except ProtocolError:  # e.g. non-finite joints: counted, never a crash
+            self.stats.lost_out += 1
+            self._log(now, "out", msg, b"", "lost")
+            return
         if self.rng.random() < self.impair.loss:
             self.stats.lost_out += 1
             self._log(now, "out", msg, data, "lost")
@@ -339,6 +368,9 @@ class _Gateway:
 
     # --------------------------------------------------------------- machine
     def _handle(self, data: bytes, addr: Address, now: float) -> None:
+        # A stalled loop may release a datagram after the watchdog's deadline: the
+        # silence before it stops the machine before the datagram can count.
+        self._watchdog(now)
         try:
             msg = decode(data, self.profile.name)
             if msg.kind == "feedback":
@@ -350,13 +382,13 @@ class _Gateway:
             self._log(now, "in", None, data, "malformed")
             return
         self._log(now, "in", msg, data, "ok")
-        new_sender = addr != self.addr
-        self.addr = addr
+        if addr != self.addr:
+            self._switch_sender(addr)
         self.last_valid = now
         if msg.kind == "stop":
             self._stop(now, msg.reason or "stop")
         if self.profile.name == "hydraulic":
-            if msg.kind == "setpoint" and (msg.seq > self.ack or new_sender):
+            if msg.kind == "setpoint" and msg.seq > self.ack:
                 self._apply(msg)
             self._send(self._feedback(self.out_seq, now), addr, now)
             self.out_seq += 1
@@ -366,8 +398,17 @@ class _Gateway:
         if self.out_seq > 0 and msg.ack == self.out_seq:
             self.answered = True
         answers = self.out_seq > 0 and msg.ack in (self.out_seq, self.out_seq - 1)
-        if msg.kind == "setpoint" and answers and (msg.seq > self.ack or new_sender):
+        if msg.kind == "setpoint" and answers and msg.seq > self.ack:
             self._apply(msg)
+
+    def _switch_sender(self, addr: Address) -> None:
+        """Answer ``addr`` from now on, with its own last applied setpoint (-1 if none)."""
+        if self.addr is not None:
+            self.acks[self.addr] = (self.ack, self.ack_t)
+            while len(self.acks) > MAX_SENDERS:
+                del self.acks[next(iter(self.acks))]
+        self.ack, self.ack_t = self.acks.pop(addr, (-1, 0.0))
+        self.addr = addr
 
     def _apply(self, msg: Message) -> None:
         if self.stopped:
@@ -410,7 +451,10 @@ class _Gateway:
         self.ideal.cycle()
         self.out_seq += 1
         self.answered = False
-        self._send(self._feedback(self.out_seq, now), self.addr, now)
+        # Once stopped, states only while the streamer talks (or just after the stop).
+        since = max(self.last_valid, self.stats.stops[0][0]) if self.stopped else now
+        if now - since <= self.profile.watchdog_s:
+            self._send(self._feedback(self.out_seq, now), self.addr, now)
         self.next_state += self.profile.cycle_s
         if self.next_state <= now:
             self.next_state = now + self.profile.cycle_s

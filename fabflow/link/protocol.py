@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from fabflow.errors import FabflowError
+from fabflow.output import json_text
 
 VERSION = 1
 """The message format's version; a message of another version is refused."""
@@ -117,7 +118,7 @@ def encode(message: Message, profile: Profile) -> bytes:
             body["ack"] = int(message.ack)
         if message.reason:
             body["reason"] = message.reason[:200]
-        data = json.dumps(body, separators=(",", ":")).encode("utf-8")
+        data = json_text(body, indent=None).rstrip("\n").encode("utf-8")
     if len(data) > MAX_DATAGRAM:
         raise ProtocolError(f"message of {len(data)} bytes, more than {MAX_DATAGRAM}")
     return data

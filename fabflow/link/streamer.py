@@ -25,6 +25,7 @@ from __future__ import annotations
 import csv
 import socket
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
@@ -32,6 +33,7 @@ from typing import IO
 import numpy as np
 from numpy.typing import NDArray
 
+from fabflow.errors import InputError
 from fabflow.link.profiles import LinkProfile
 from fabflow.link.protocol import MAX_DATAGRAM, Message, ProtocolError, decode, encode
 from fabflow.link.setpoints import Setpoints
@@ -42,6 +44,9 @@ STOP_REPEATS = 3
 """A stop is sent this many times, one cycle apart (one lost datagram must not lose it)."""
 
 LOG_COLUMNS = ("t", "direction", "kind", "seq", "ack", "bytes", "status")
+
+MAX_RTT_SAMPLES = 100_000
+"""Round trips kept for the report (the latest; a long stream's memory stays bounded)."""
 
 
 @dataclass
@@ -61,7 +66,8 @@ class StreamReport:
         gateway's state counter (RSI): losses on the link either way.
     rtt_s
         Round-trip times of the acknowledged setpoints (s; hydraulic: send to
-        feedback; RSI: state to the answer's acknowledgement in the next state).
+        feedback; RSI: answer to the state acknowledging it), one per newly
+        acknowledged setpoint, the last :data:`MAX_RTT_SAMPLES` of them.
     max_error
         Largest joint difference seen between an acknowledged setpoint and the
         feedback (radians).
@@ -75,7 +81,7 @@ class StreamReport:
     received: int = 0
     malformed: int = 0
     lost: int = 0
-    rtt_s: list[float] = field(default_factory=list)
+    rtt_s: deque[float] = field(default_factory=lambda: deque(maxlen=MAX_RTT_SAMPLES))
     max_error: float = 0.0
     duration_s: float = 0.0
 
@@ -128,10 +134,18 @@ def stream(
         ``completed`` is ``True`` only if the machine reached the last setpoint.
     """
     report = StreamReport()
+    try:
+        f = log_path.open("w", newline="", encoding="utf-8") if log_path is not None else None
+    except OSError as e:
+        raise InputError(f"cannot write the packet log: {e.strerror or e}", log_path) from None
     t_start = time.monotonic()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.connect(address)
-        f = log_path.open("w", newline="", encoding="utf-8") if log_path is not None else None
+        try:
+            sock.connect(address)
+        except OSError as e:
+            if f is not None:
+                f.close()
+            raise InputError(f"cannot reach {address[0]}:{address[1]}: {e.strerror or e}") from None
         try:
             log = _Log(f, setpoints.q.shape[1], t_start)
             run = _Run(sock, setpoints, profile, report, log, connect_timeout_s)
@@ -141,6 +155,9 @@ def stream(
                 run.stop("interrupted (Ctrl-C)")
             except OSError as e:  # the gateway's port closed (ICMP unreachable)
                 run.stop(f"link error: {e.strerror or e}")
+            except BaseException:  # never leave the machine on its last setpoint
+                run.stop("internal error in the streamer")
+                raise
         finally:
             if f is not None:
                 f.close()
@@ -169,6 +186,8 @@ class _Run:
         self.seq = 0
         self.sent_q: dict[int, tuple[float, FloatArray]] = {}
         self.last_feedback: float | None = None
+        self.newest_ack = -1
+        self.newest_ack_sent: float | None = None
         self.last_state = -1
         self.t_program0: float | None = None
         self.q_final = setpoints.q[-1]
@@ -195,12 +214,12 @@ class _Run:
         for i in range(STOP_REPEATS):
             try:
                 m = Message("stop", self.seq, self._now(), reason=reason, ack=self.last_state)
+                self.seq += 1
                 self._send(m)
-            except OSError:
-                break
-            self.seq += 1
-            if i + 1 < STOP_REPEATS:
-                time.sleep(self.p.cycle_s)
+                if i + 1 < STOP_REPEATS:
+                    time.sleep(self.p.cycle_s)
+            except (OSError, KeyboardInterrupt):  # a pending ICMP error, a second Ctrl-C
+                continue
 
     def _now(self) -> float:
         return time.monotonic() - self.log.t0
@@ -257,7 +276,8 @@ class _Run:
             return False
         if m.ack in self.sent_q:
             t_sent, q_sent = self.sent_q[m.ack]
-            if self.p.name == "hydraulic":
+            if m.ack > self.newest_ack:
+                self.newest_ack, self.newest_ack_sent = m.ack, t_sent
                 self.report.rtt_s.append(self._now() - t_sent)
             err = float(np.max(np.abs(q - q_sent)))
             self.report.max_error = max(self.report.max_error, err)
@@ -287,6 +307,12 @@ class _Run:
         if now - self.last_feedback > self.p.watchdog_s:
             self.stop(f"watchdog: no valid feedback for {now - self.last_feedback:.3f} s")
             return False
+        if self.newest_ack_sent is not None:
+            # feedback keeps coming, but about setpoints sent too long ago: a link that lags
+            lag = self._now() - self.newest_ack_sent
+            if lag > self.p.watchdog_s + self.p.cycle_s:
+                self.stop(f"watchdog: the feedback is about setpoints {lag:.3f} s old")
+                return False
         return True
 
     # ------------------------------------------------------------ loops
@@ -334,8 +360,6 @@ class _Run:
                     self.t_program0 = time.monotonic()
                 if self.last_state >= 0 and m.seq > self.last_state + 1:
                     self.report.lost += m.seq - self.last_state - 1
-                if m.ack in self.sent_q:
-                    self.report.rtt_s.append(self._now() - self.sent_q[m.ack][0])
                 self.last_state = max(self.last_state, m.seq)
                 if not self._check(m):
                     return

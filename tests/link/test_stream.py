@@ -5,7 +5,9 @@ from __future__ import annotations
 import csv
 import json
 import os
+import select
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -18,6 +20,7 @@ from helpers import ROOT
 
 from fabflow.link.gateway import Impairments, serve_gateway
 from fabflow.link.profiles import profile_for
+from fabflow.link.protocol import Message, decode, encode
 from fabflow.link.setpoints import read_setpoints
 from fabflow.link.streamer import stream
 from fabflow.robots.catalog import get_robot
@@ -44,7 +47,9 @@ def write_program(path: Path, robot: str, offsets: list[float], dwell: float = 0
 class Gateway:
     """The simulated gateway in a thread for the length of a test."""
 
-    def __init__(self, robot: str, profile, impair: Impairments | None = None) -> None:
+    def __init__(
+        self, robot: str, profile, impair: Impairments | None = None, log: Path | None = None
+    ) -> None:
         self.stop_event = threading.Event()
         self.port: int | None = None
         ready = threading.Event()
@@ -63,6 +68,7 @@ class Gateway:
                     seed=1,
                     on_ready=on_ready,
                     stop_event=self.stop_event,
+                    log=log,
                 )
             ),
             daemon=True,
@@ -89,6 +95,8 @@ def test_the_machine_reaches_every_setpoint_of_a_short_program(tmp_path, robot, 
     program = read_setpoints(write_program(tmp_path / "p.json", robot, [0.05, -0.05], dwell))
     profile = profile_for(robot)
     assert profile.name == name
+    # the gateway thread and the streamer share one interpreter on a loaded machine
+    profile = profile.with_options(watchdog_s=1.0)
     gw = Gateway(robot, profile)
     try:
         report = stream(program, ("127.0.0.1", gw.port), profile, tmp_path / "log.csv")
@@ -96,6 +104,9 @@ def test_the_machine_reaches_every_setpoint_of_a_short_program(tmp_path, robot, 
         stats = gw.close()
     assert report.completed, report.reason
     assert report.malformed == 0 and stats.malformed == 0
+    rows = [(r["direction"], r["kind"]) for r in csv.DictReader((tmp_path / "log.csv").open())]
+    first_stop = rows.index(("out", "stop"))
+    assert ("out", "setpoint") not in rows[first_stop:]  # nothing but stops after the stop
     _, q = _feedback(tmp_path / "log.csv")
     tol = 0.02 if name == "hydraulic" else 0.002
     for target in np.unique(np.round(program.q, 9), axis=0):
@@ -129,40 +140,85 @@ def _cli(*args: str) -> subprocess.Popen:
     )
 
 
+def _wait_for(predicate, seconds: float = 30.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+def _has_feedback(log: Path) -> bool:
+    return log.exists() and any(",in,feedback," in line for line in log.read_text().splitlines())
+
+
 def test_killing_the_streamer_makes_the_gateway_stop_the_machine(tmp_path) -> None:
     robot = "kuka_kr60_3"
-    path = write_program(tmp_path / "p.json", robot, [0.2], 5.0)
+    path = write_program(tmp_path / "p.json", robot, [0.2], 20.0)
     profile = profile_for(robot, "rsi").with_options(cycle_s=0.012, watchdog_s=0.2)
-    gw = Gateway(robot, profile)
+    gw = Gateway(robot, profile, log=tmp_path / "gateway.csv")
     try:
-        proc = _cli("stream", str(path), "--to", f"127.0.0.1:{gw.port}", "--cycle", "0.012")
-        time.sleep(3.0)
+        proc = _cli(
+            "stream", str(path), "--to", f"127.0.0.1:{gw.port}", "--cycle", "0.012",
+            "--watchdog", "1",
+        )  # fmt: skip
+        _wait_for(lambda: _has_feedback(tmp_path / "p.stream.csv"))
+        time.sleep(0.5)
         assert proc.poll() is None, proc.communicate()
         proc.send_signal(signal.SIGKILL)
-        killed = time.monotonic()
         proc.wait(5.0)
-        time.sleep(1.0)
+        time.sleep(1.5)  # many watchdog times
     finally:
         stats = gw.close()
-        closed = time.monotonic()
-    assert stats.stops and stats.stops[0][1] == "watchdog"
-    # on the gateway's clock: the machine stopped after the kill, within the watchdog
-    # (and a cycle, and the time the last datagram before the kill took to arrive)
-    kill = stats.t_end - (closed - killed)
-    assert kill - 0.05 < stats.stops[0][0] < kill + 0.2 + 0.012 + 0.05
+    assert stats.stops[0][1] == "watchdog"
+    # on the gateway's clock: the stop came one watchdog after the last datagram it got
+    with (tmp_path / "gateway.csv").open() as f:
+        t_in = [float(r["t"]) for r in csv.DictReader(f) if r["direction"] == "in"]
+    silence = stats.stops[0][0] - max(t for t in t_in if t <= stats.stops[0][0])
+    assert 0.2 <= silence < 0.2 + 0.15
+
+
+def test_a_silent_gateway_trips_the_streamers_watchdog(tmp_path) -> None:
+    """A gateway that answers a few setpoints and then goes silent (it hangs)."""
+    program = read_setpoints(write_program(tmp_path / "p.json", "brokk_170", [0.05], 3.0))
+    profile = profile_for("brokk_170").with_options(watchdog_s=0.3)
+    home = get_robot("brokk_170").q_home
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as gateway:
+        gateway.bind(("127.0.0.1", 0))
+        gateway.settimeout(5.0)
+
+        def answer_five() -> None:
+            for k in range(5):
+                data, addr = gateway.recvfrom(4096)
+                m = decode(data, "hydraulic")
+                fb = Message("feedback", k, 0.0, tuple(home), ack=m.seq, echo_t=m.t)
+                gateway.sendto(encode(fb, "hydraulic"), addr)
+
+        helper = threading.Thread(target=answer_five, daemon=True)
+        helper.start()
+        t0 = time.monotonic()
+        report = stream(program, gateway.getsockname(), profile, tmp_path / "log.csv")
+        helper.join(5.0)
+    assert not report.completed
+    assert report.reason.startswith("watchdog")
+    assert report.received == 5
+    assert time.monotonic() - t0 < 3.0  # it did not wait for the program to run out
 
 
 def test_killing_the_gateway_makes_the_streamer_stop_and_exit_non_zero(tmp_path) -> None:
     robot = "kuka_kr60_3"
-    path = write_program(tmp_path / "p.json", robot, [0.2], 5.0)
+    path = write_program(tmp_path / "p.json", robot, [0.2], 20.0)
     sim = _cli("machine-sim", "--port", "0", "--robot", robot, "--cycle", "0.012")
     try:
+        assert select.select([sim.stdout], [], [], 30.0)[0], "machine-sim did not start"
         line = sim.stdout.readline()
         port = int(line.split("127.0.0.1:")[1].split()[0])
-        proc = _cli("stream", str(path), "--to", f"127.0.0.1:{port}", "--cycle", "0.012")
-        time.sleep(2.0)
+        proc = _cli(
+            "stream", str(path), "--to", f"127.0.0.1:{port}", "--cycle", "0.012",
+            "--watchdog", "1",
+        )  # fmt: skip
+        _wait_for(lambda: _has_feedback(tmp_path / "p.stream.csv"))
         sim.send_signal(signal.SIGKILL)
-        out, err = proc.communicate(timeout=10)
+        out, err = proc.communicate(timeout=30)
     finally:
         sim.kill()
         sim.wait(5)
