@@ -102,12 +102,20 @@ def validate(project: ProjectArg) -> None:
 
 
 @app.command()
-def schema() -> None:
-    """Print the JSON Schema of the project file."""
+def schema(
+    elements: Annotated[
+        bool,
+        typer.Option(
+            "--elements", help="The schema of an elements file (elements: - file:) instead."
+        ),
+    ] = False,
+) -> None:
+    """Print the JSON Schema of the project file (or of an elements file)."""
+    from fabflow.design.element_records import elements_file_schema
     from fabflow.output import json_text
     from fabflow.project import project_json_schema
 
-    sys.stdout.write(json_text(project_json_schema()))
+    sys.stdout.write(json_text(elements_file_schema() if elements else project_json_schema()))
 
 
 def print_summary(rows: list[tuple[str, str, str]], title: str) -> None:
@@ -179,7 +187,9 @@ def program(
     fmt: Annotated[
         str | None,
         typer.Option(
-            "--format", "-f", help="krl, rapid, urscript or json (default: the project's format)."
+            "--format",
+            "-f",
+            help="krl, rapid, urscript, json or gcode (default: the project's format).",
         ),
     ] = None,
 ) -> None:
@@ -189,8 +199,8 @@ def program(
 
     p = load_project(project)
     if fmt is not None:
-        writer_for(fmt, p.robot.model)
-        p = p.model_copy(update={"program": p.program.model_copy(update={"format": fmt})})
+        writer_for(fmt, p.robot.name)
+        p = p.with_program_format(fmt)
     run_stages(p, out, "program", until="program")
 
 
@@ -452,13 +462,20 @@ def simulate(
         str | None,
         typer.Option(help="Address of a running Dask scheduler (default: a local cluster)."),
     ] = None,
+    scheduler_file: Annotated[
+        Path | None,
+        typer.Option(
+            help="Connect through the file 'dask scheduler --scheduler-file' wrote "
+            "(instead of --scheduler); its workers need the same fabflow version."
+        ),
+    ] = None,
     workers: Annotated[
         int,
         typer.Option(min=0, help="Worker processes of the local cluster; 0 runs in-process."),
     ] = 2,
     timeout: Annotated[
         float,
-        typer.Option(help="Seconds to wait for --scheduler to answer and for its first worker."),
+        typer.Option(help="Seconds to wait for the scheduler to answer and for its first worker."),
     ] = 30.0,
     dashboard: Annotated[
         bool, typer.Option(help="Serve the local cluster's Dask dashboard on 127.0.0.1.")
@@ -485,8 +502,36 @@ def simulate(
 
     run_simulate(
         project, out, runs, methods, seed, scheduler, workers, timeout, dashboard, plots,
-        fidelity, stationing, console,
+        fidelity, stationing, console, scheduler_file=scheduler_file,
     )  # fmt: skip
+
+
+@app.command("export")
+@user_errors
+def export_command(
+    build_dir: Annotated[Path, typer.Argument(help="A fabflow build output folder.")],
+    to: Annotated[
+        Path,
+        typer.Option(
+            "--to",
+            "-o",
+            help="The file to write: .3dm (Rhino) or .json (COMPAS JSON); replaced atomically.",
+        ),
+    ],
+    asbuilt: Annotated[
+        Path | None,
+        typer.Option(
+            help="A fabflow simulate output folder (or its asbuilt_run0.csv): "
+            "export the simulated as-built poses of run 0 too."
+        ),
+    ] = None,
+) -> None:
+    """Export a build's elements, stations and site layout to Rhino (.3dm) or COMPAS (.json)."""
+    from fabflow.build.export import export_build
+
+    result = export_build(build_dir, to, asbuilt)
+    console.print(f"[green]wrote[/] {escape(str(result.path.resolve()))}", highlight=False)
+    console.print(escape(result.line()), highlight=False)
 
 
 @app.command()

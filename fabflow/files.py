@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import stat
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -362,3 +363,22 @@ def _numbers_one_by_one(
                 f"column {column!r}: {show(value)} {what}", path, f"line {lines[k]}"
             ) from None
     return out
+
+
+def strict_json(text: str) -> object:
+    """``json.loads`` that refuses ``NaN``, ``Infinity`` and ``-Infinity``.
+
+    Raises
+    ------
+    ValueError
+        For text that is not JSON, holds one of those constants, or nests deeper
+        than Python's recursion limit.
+    """
+    try:
+        return json.loads(text, parse_constant=_no_constant)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply") from None
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a number")

@@ -454,6 +454,67 @@ def atomic_output_dir(out: str | Path) -> Iterator[Path]:
         signals.restore()
 
 
+@contextlib.contextmanager
+def atomic_file(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary file beside ``path`` that replaces ``path`` when the block completes.
+
+    For a single output file (an export): write the whole file to the yielded
+    path (it exists, empty, with the usual permissions); it is renamed onto
+    ``path`` in one step only when the block finishes without error. A block
+    that fails, or a run stopped by SIGTERM or SIGINT, removes the temporary
+    file and leaves ``path`` as it was. A symbolic link given as ``path`` is
+    kept: the file it points to is replaced.
+
+    Parameters
+    ----------
+    path
+        The file to write. Its folder is created if needed.
+
+    Yields
+    ------
+    Path
+        ``.NAME.tmp-PID-XXXX`` beside the target, on the same file system.
+
+    Raises
+    ------
+    InputError
+        When ``path`` is a folder, or its folder cannot be created or written.
+    """
+    shown = Path(path)
+    target = Path(os.path.realpath(shown)) if shown.is_symlink() else shown
+    if target.is_dir():
+        raise InputError("output path is a folder; expected a file name", shown)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(
+            f"cannot create the output file's folder: {exc.strerror or exc}", shown
+        ) from None
+    tmp = target.parent / f".{target.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}"
+    signals = _Signals()
+    signals.install()
+    try:
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        except OSError as exc:
+            reason = exc.strerror or exc
+            raise InputError(f"cannot write the output file: {reason}", shown) from None
+        try:
+            yield tmp
+            with signals.held():
+                try:
+                    os.replace(tmp, target)
+                except OSError as exc:
+                    raise InputError(
+                        f"cannot move the output file into place: {exc.strerror or exc}", shown
+                    ) from None
+        finally:
+            with signals.held(), contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+    finally:
+        signals.restore()
+
+
 def _json_default(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         return obj.tolist()

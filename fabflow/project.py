@@ -24,16 +24,25 @@ from pydantic import (
 
 from fabflow.design.generate import element_count_bound
 from fabflow.design.specs import ELEMENT_KINDS, ElementSource, StoneWallSpec
-from fabflow.errors import InputError
+from fabflow.errors import InputError, UnsupportedError
 from fabflow.localization_setup import IcpSetup, IntegrityPolicy, TotalStationSetup, UwbSetup
 from fabflow.robots.catalog import (
     CONTROLLERS,
+    CUSTOM_MODEL,
+    GCODE_FLAVORS,
+    PRINT_FORMATS,
     PROGRAM_FORMATS,
     ROBOT_NAMES,
     controller_mismatch,
     format_mismatch,
     formats_of,
     robot_setup_problems,
+)
+from fabflow.robots.custom import (
+    CustomRobot,
+    custom_formats,
+    register_custom_robot,
+    robot_section_problem,
 )
 from fabflow.schema import (
     Count,
@@ -57,7 +66,7 @@ LOCALIZATION_METHODS: tuple[str, ...] = ("uwb", "total_station", "icp")
 """The localization methods, one setup section each below; :mod:`fabflow.localize.methods`
 maps each to its ``localize_station``."""
 
-RobotName = Literal[ROBOT_NAMES]  # type: ignore[valid-type]
+RobotName = Literal[(*ROBOT_NAMES, CUSTOM_MODEL)]  # type: ignore[valid-type]
 ControllerName = Literal[tuple(CONTROLLERS)]  # type: ignore[valid-type]
 ExternalAxis = Literal["E1", "E2", "E3", "E4", "E5", "E6"]
 ProgramFormat = Literal[PROGRAM_FORMATS]  # type: ignore[valid-type]
@@ -172,15 +181,35 @@ class Robot(StrictModel):
     """The robot arm, its tool and the platform it stands on."""
 
     model: RobotName = "kuka_kr60_3"
+    custom: CustomRobot | None = None
+    """The robot itself when ``model`` is ``custom``: OPW parameters, a DH table or a
+    URDF file, with limits, speeds, HOME and payload (:mod:`fabflow.robots.custom`)."""
     tool: Tool = Tool()
     platform: Platform = Platform()
     home_deg: tuple[Real, ...] | None = None
     """The HOME joint configuration every program starts and ends at (degrees, the
     controller's joint values); default: the catalogue robot's home."""
 
+    @property
+    def name(self) -> str:
+        """The name robot functions take (``get_robot``, writers): the catalogue ``model``,
+        or ``custom:NAME@HASH`` of the robot in ``custom``, registered here if not yet."""
+        if self.custom is None:
+            return self.model
+        return register_custom_robot(self.custom)
+
+    def __setstate__(self, state: dict[Any, Any]) -> None:
+        # A project unpickled in another process (a Dask worker) registers its robot there.
+        super().__setstate__(state)
+        if self.custom is not None:
+            register_custom_robot(self.custom)
+
     @model_validator(mode="after")
     def _home_and_load_fit_the_arm(self) -> Robot:
-        problems = robot_setup_problems(self.model, self.home_deg, self.tool.mass)
+        why = robot_section_problem(self.model, self.custom)  # registers a defined robot
+        if why is not None:
+            raise located(("robot", *why[0]), why[1])
+        problems = robot_setup_problems(self.name, self.home_deg, self.tool.mass)
         if problems:
             field_path, why = problems[0]
             raise located(("robot", *field_path), why)
@@ -244,12 +273,26 @@ class Planning(StrictModel):
     """Where the platform enters the site; the tour starts near it (default: extent_min)."""
 
 
+class GcodeSettings(StrictModel):
+    """How ``program.format: gcode`` writes print paths (docs/programs.md, G-code)."""
+
+    flavor: Literal[GCODE_FLAVORS] = "marlin"  # type: ignore[valid-type]
+    """``marlin``: RepRap/Marlin G-code, E the filament length (mm, ``M82`` absolute);
+    ``robot``: for a robot's G-code interpreter driving an extruder, E the deposited
+    volume (mm^3). Both write positions in the robot base frame at the station."""
+    filament_diameter: PositiveFloat = 0.00175
+    """Diameter of the filament, or of the material column the extruder feeds, whose
+    length E counts in the ``marlin`` flavour (metres; RepRap's 1.75 mm by default)."""
+
+
 class ProgramSettings(StrictModel):
     """Robot program output settings."""
 
     format: ProgramFormat = "krl"
     """Default: the robot's own language (``krl``, ``rapid``, ``urscript``; ``json``
-    for a machine without one)."""
+    for a machine without one). ``gcode`` writes print paths only, for any robot."""
+    gcode: GcodeSettings = GcodeSettings()
+    """The G-code flavour and filament (``format: gcode``)."""
     speed: PositiveFloat = 0.25
     """Cartesian speed for linear moves (m/s)."""
     approach: PositiveFloat = 0.10
@@ -349,16 +392,19 @@ class Project(StrictModel):
         robot = data.get("robot") if isinstance(data, dict) else None
         model = robot.get("model", "kuka_kr60_3") if isinstance(robot, dict) else None
         program = data.get("program", {}) if isinstance(data, dict) else None
-        if model in ROBOT_NAMES and isinstance(program, dict) and "format" not in program:
-            data = {**data, "program": {**program, "format": formats_of(model)[0]}}
+        formats = formats_of(model) if model in ROBOT_NAMES else custom_formats(robot)
+        if formats and isinstance(program, dict) and "format" not in program:
+            data = {**data, "program": {**program, "format": formats[0]}}
         return data
 
     @model_validator(mode="after")
     def _format_fits_robot(self) -> Project:
-        why = format_mismatch(self.program.format, self.robot.model)
+        why = format_mismatch(self.program.format, self.robot.name)
+        if why is None:
+            why = self._print_format_problem(self.program.format)
         if why is not None:
             raise located(("program", "format"), why)
-        why = controller_mismatch(self.program.controller, self.robot.model)
+        why = controller_mismatch(self.program.controller, self.robot.name)
         if why is not None:
             raise located(("program", "controller"), why)
         return self
@@ -373,6 +419,38 @@ class Project(StrictModel):
                 "project's only 'elements' entry",
             )
         return self
+
+    def _print_format_problem(self, fmt: str) -> str | None:
+        """Why ``fmt``, a format for print paths only, cannot carry the elements; ``None``
+        when it can (or is not such a format)."""
+        if fmt not in PRINT_FORMATS:
+            return None
+        for i, source in enumerate(self.elements):
+            kind = next((k for k in ELEMENT_KINDS if getattr(source, k) is not None), None)
+            if kind is not None and kind != "print_path":
+                fits = " or ".join(f"'{f}'" for f in formats_of(self.robot.name))
+                return (
+                    f"'{fmt}' programs carry print paths only, but elements[{i}] is a "
+                    f"'{kind}' source; use format {fits}"
+                )
+        return None
+
+    def with_program_format(self, fmt: str) -> Project:
+        """This project writing its programs in ``fmt`` (``fabflow program --format``).
+
+        Raises
+        ------
+        UnsupportedError
+            When ``fmt`` is not a program format, does not run on the robot, or
+            cannot carry the project's elements (G-code: print paths only).
+        """
+        if fmt not in PROGRAM_FORMATS:
+            known = ", ".join(PROGRAM_FORMATS)
+            raise UnsupportedError(f"unknown program format '{fmt}'; known: {known}")
+        why = format_mismatch(fmt, self.robot.name) or self._print_format_problem(fmt)
+        if why is not None:
+            raise UnsupportedError(why, self.path)
+        return self.model_copy(update={"program": self.program.model_copy(update={"format": fmt})})
 
     def stone_wall(self) -> StoneWallSpec | None:
         """The project's stone wall (its only element source), or ``None``."""

@@ -19,7 +19,7 @@ from helpers import ROOT
 from fabflow.localize.methods import LOCALIZERS
 from fabflow.programs.writers import WRITERS
 from fabflow.project import LocalizationMethod, ProgramFormat, RobotName
-from fabflow.robots.catalog import PROGRAM_FORMATS, ROBOT_NAMES, VENDORS, vendor_of
+from fabflow.robots.catalog import CUSTOM_MODEL, PROGRAM_FORMATS, ROBOT_NAMES, VENDORS, vendor_of
 
 PACKAGE = ROOT / "fabflow"
 MAX_MODULE_LINES = 600
@@ -68,7 +68,7 @@ def test_modules_stay_small() -> None:
 
 
 def test_one_list_of_robots_formats_and_methods() -> None:
-    assert typing.get_args(RobotName) == ROBOT_NAMES
+    assert typing.get_args(RobotName) == (*ROBOT_NAMES, CUSTOM_MODEL)
     assert typing.get_args(ProgramFormat) == PROGRAM_FORMATS == tuple(WRITERS)
     assert set(typing.get_args(LocalizationMethod)) == set(LOCALIZERS)
     assert all(vendor_of(name) in VENDORS for name in ROBOT_NAMES)

@@ -68,7 +68,7 @@ def test_version(cli) -> None:
     assert result.stdout.startswith("fabflow ")
 
 
-@pytest.mark.parametrize("name", ["cabin", "print_path", "excavator_print"])
+@pytest.mark.parametrize("name", ["cabin", "print_path", "excavator_print", "timber_wall"])
 def test_build_example_projects(cli, tmp_path, name) -> None:
     out = tmp_path / name
     result = cli("build", str(PROJECTS / name), "-o", str(out))

@@ -330,3 +330,24 @@ def test_a_cleanup_that_fails_is_a_note_not_a_failure(
     write_output(tmp_path / "out", "a.txt", "a")
     assert "could not clean up after interrupted runs: Permission denied" in capsys.readouterr().err
     assert listing(tmp_path / "out") == [MARKER, "a.txt"]
+
+
+def test_atomic_file_replaces_only_with_a_complete_file(tmp_path: Path) -> None:
+    target = tmp_path / "sub" / "plan.3dm"
+    with output.atomic_file(target) as tmp:
+        assert tmp.parent == target.parent and tmp.exists() and not target.exists()
+        tmp.write_text("first")
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert target.read_text() == "first" and target.stat().st_mode & 0o777 == 0o666 & ~umask
+    with pytest.raises(RuntimeError), output.atomic_file(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("writer failed")
+    assert target.read_text() == "first" and os.listdir(target.parent) == ["plan.3dm"]
+    link = tmp_path / "link.3dm"
+    link.symlink_to(target)
+    with output.atomic_file(link) as tmp:
+        tmp.write_text("through the link")
+    assert link.is_symlink() and target.read_text() == "through the link"
+    with pytest.raises(InputError, match="is a folder"), output.atomic_file(tmp_path):
+        pass

@@ -348,7 +348,7 @@ def assert_finite_outputs(out: Path) -> None:
     for path in out.rglob("*"):
         if path.suffix == ".json":
             json.loads(path.read_text(), parse_constant=_reject_constant)
-        elif path.suffix in (".src", ".dat", ".mod", ".script", ".urscript"):
+        elif path.suffix in (".src", ".dat", ".mod", ".script", ".urscript", ".gcode"):
             text = path.read_text()
             assert not NON_FINITE.search(text), (path.name, NON_FINITE.search(text))
 

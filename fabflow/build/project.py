@@ -15,7 +15,7 @@ def stage_project(ctx: BuildContext) -> None:
         {"fabflow_version": __version__, "project": p.model_dump(mode="json")},
     )
     ctx.add("project", "name", p.name)
-    ctx.add("project", "robot", p.robot.model)
+    ctx.add("project", "robot", p.robot.name)
     if p.stone_wall() is None:
         ctx.add("project", "localization", p.localization.method)
     else:

@@ -57,7 +57,7 @@ def stage_stones(ctx: BuildContext) -> None:
 def stage_stone_programs(ctx: BuildContext) -> None:
     """One program per stone under ``programs/``; sets ``ctx.programs``."""
     project, run = ctx.project, ctx.need_stones()
-    writer = writer_for(project.program.format, project.robot.model)
+    writer = writer_for(project.program.format, project.robot.name)
     folder = ctx.out / "programs"
     folder.mkdir()
     programs = []

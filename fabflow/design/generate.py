@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from fabflow.design.cabin import cabin_block_bound, cabin_elements
+from fabflow.design.element_files import file_elements
 from fabflow.design.elements import Element
 from fabflow.design.print_path import print_path_elements
 from fabflow.design.specs import ElementSource, StoneWallSpec, TaskPoint
@@ -23,7 +24,8 @@ def element_count_bound(source: ElementSource) -> float:
 
     A cabin: :func:`~fabflow.design.cabin.cabin_block_bound`; print paths from a
     drawing: ``n_layers``; from a mesh: ``n_layers`` when given (its height is
-    checked when it is read); task points: their number.
+    checked when it is read); task points: their number; a file: 0 (its elements
+    are counted when it is read).
     """
     if source.cabin is not None:
         return cabin_block_bound(source.cabin)
@@ -33,6 +35,8 @@ def element_count_bound(source: ElementSource) -> float:
         return float(spec.n_layers) if given else 0.0
     if source.stone_wall is not None:
         return float(len(source.stone_wall.slots))
+    if source.file is not None:
+        return 0.0
     return float(len(source.task_points or ()))
 
 
@@ -73,11 +77,14 @@ def task_point_elements(points: list[TaskPoint], source_index: int = 0) -> list[
     ]
 
 
-def with_block_supports(elements: list[Element]) -> list[Element]:
+def with_block_supports(
+    elements: list[Element], keep: frozenset[str] = frozenset()
+) -> list[Element]:
     """Fill in ``supports`` of every block from the geometry of all blocks.
 
     A block rests on the blocks whose top faces touch its bottom face
-    (:func:`fabflow.design.supports.compute_supports`). Other elements are returned
+    (:func:`fabflow.design.supports.compute_supports`). Blocks whose id is in
+    ``keep`` (their supports given in a file) and other elements are returned
     unchanged.
     """
     idx = [i for i, e in enumerate(elements) if e.type == "block"]
@@ -89,7 +96,8 @@ def with_block_supports(elements: list[Element]) -> list[Element]:
     ids = np.array([elements[i].id for i in idx], dtype=object)
     out = list(elements)
     for k, i in enumerate(idx):
-        out[i] = dataclasses.replace(elements[i], supports=tuple(ids[sup[k]].tolist()))
+        if elements[i].id not in keep:
+            out[i] = dataclasses.replace(elements[i], supports=tuple(ids[sup[k]].tolist()))
     return out
 
 
@@ -122,6 +130,7 @@ def generate_elements(
         source's drawing or mesh is bad or asks for more work than ``limits``.
     """
     elements: list[Element] = []
+    keep: set[str] = set()
     n_blocks = n_paths = 0
     for i, source in enumerate(sources):
         if source.cabin is not None:
@@ -134,6 +143,11 @@ def generate_elements(
             n_paths += len(new)
         elif source.stone_wall is not None:
             new = stone_slot_elements(source.stone_wall, source_index=i)
+        elif source.file is not None:
+            max_elements = (limits or Limits()).max_elements - len(elements)
+            new, given = file_elements(source.file, i, max(max_elements, 0))
+            if given:
+                keep.update(e.id for e in new)
         else:
             assert source.task_points is not None
             new = task_point_elements(source.task_points, source_index=i)
@@ -142,15 +156,28 @@ def generate_elements(
     dup = [k for k, v in counts.items() if v > 1]
     if dup:
         where = next(
-            f"elements[{i}].task_points[{j}].id"
-            for i, s in enumerate(sources)
-            for j, p in enumerate(s.task_points or [])
-            if p.id in dup
+            (
+                f"elements[{i}].task_points[{j}].id"
+                for i, s in enumerate(sources)
+                for j, p in enumerate(s.task_points or [])
+                if p.id in dup
+            ),
+            None,
         )
+        if where is None:
+            i = next(
+                (
+                    e.attributes["source_index"]
+                    for e in elements
+                    if e.id == dup[0] and "source_index" in e.attributes
+                ),
+                None,
+            )
+            where = None if i is None else f"elements[{i}].file"
         raise InputError(
-            f"element id {dup[0]!r} is used twice (task point ids must be unique and "
-            "differ from generated ids such as B0000 and P000)",
+            f"element id {dup[0]!r} is used twice (ids of task points and of file elements "
+            "must be unique and differ from generated ids such as B0000 and P000)",
             source_file,
             where,
         )
-    return with_block_supports(elements)
+    return with_block_supports(elements, frozenset(keep))

@@ -2,8 +2,9 @@
 
 One entry of ``elements`` is a parametric cabin (:class:`CabinSpec`), print paths
 from a drawing or a mesh (:class:`PrintPathSpec`) or explicit task points
-(:class:`TaskPoint`) or a dry-stone wall course filled with found stones
-(:class:`StoneWallSpec`). Lengths are metres, ``*_deg`` fields degrees. The design
+(:class:`TaskPoint`), a dry-stone wall course filled with found stones
+(:class:`StoneWallSpec`) or elements made elsewhere, read from a file
+(:class:`ElementFileSpec`). Lengths are metres, ``*_deg`` fields degrees. The design
 functions (:mod:`fabflow.design.cabin`, :mod:`fabflow.design.print_path`,
 :mod:`fabflow.design.generate`) turn them into elements in the world frame.
 """
@@ -291,7 +292,43 @@ class StoneWallSpec(StrictModel):
         return self
 
 
-ELEMENT_KINDS = ("cabin", "print_path", "task_points", "stone_wall")
+class ElementFileSpec(StrictModel):
+    """Elements made elsewhere (Grasshopper, COMPAS, a script), read from a file.
+
+    ``path`` is an ``elements.json`` (``fabflow schema --elements`` prints its
+    schema), a COMPAS JSON file of Boxes, Meshes and Frames, or a Rhino .3dm
+    file of boxes, breps, meshes and points; see docs/grasshopper.md. Written
+    as ``file: walls.json`` when the defaults suit.
+    """
+
+    path: ModelPath
+    format: Literal["auto", "fabflow", "compas", "3dm"] = "auto"
+    """``auto``: .3dm by its suffix; a .json file holding ``T_world_element``
+    records is fabflow's, one holding ``dtype`` objects COMPAS's."""
+    type: Literal["block", "task_point"] = "block"
+    """Type of an object the file does not type (by user text or layer)."""
+    supports: Literal["auto", "file", "computed"] = "auto"
+    """What each block rests on: ``file`` as the file says, ``computed`` from the
+    geometry of all blocks (as for a cabin), ``auto`` the file's when it names
+    any, else computed."""
+    part: Annotated[str, Field(min_length=1, max_length=64)] | None = None
+    """Part of the elements that do not name one."""
+    robot_built: Switch = True
+    """Whether the robot builds the elements that do not say."""
+    layers: list[Annotated[str, Field(min_length=1)]] = []
+    """.3dm only: read these layers (full paths, ``Walls::North``) and the layers
+    below them; empty: all."""
+    units: Literal["auto", "m", "mm", "cm", "in", "ft"] = "auto"
+    """.3dm only: the file's coordinates; ``auto`` its model units. JSON files are
+    in metres."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _path_alone(cls, data: object) -> object:
+        return {"path": data} if isinstance(data, str) else data
+
+
+ELEMENT_KINDS = ("cabin", "print_path", "task_points", "stone_wall", "file")
 """The keys of one ``elements`` entry."""
 
 
@@ -302,13 +339,15 @@ class ElementSource(StrictModel):
     print_path: PrintPathSpec | None = None
     task_points: list[TaskPoint] | None = None
     stone_wall: StoneWallSpec | None = None
+    file: ElementFileSpec | None = None
 
     @model_validator(mode="after")
     def _exactly_one(self) -> ElementSource:
         given = [k for k in ELEMENT_KINDS if getattr(self, k) is not None]
         if len(given) != 1:
             raise ValueError(
-                "each entry needs exactly one of 'cabin', 'print_path', 'task_points', "
-                "'stone_wall'" + (f" (got {', '.join(given)})" if given else "")
+                "each entry needs exactly one of "
+                + ", ".join(f"'{k}'" for k in ELEMENT_KINDS)
+                + (f" (got {', '.join(given)})" if given else "")
             )
         return self

@@ -20,13 +20,13 @@ both sides count and drop.
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from dataclasses import dataclass
 from typing import Literal
 
 from fabflow.errors import FabflowError
+from fabflow.files import strict_json
 from fabflow.output import json_text
 
 VERSION = 1
@@ -172,15 +172,6 @@ def decode(data: bytes, profile: Profile) -> Message:
     if kind == "setpoint" and not msg.q:
         raise ProtocolError("a setpoint needs joint values")
     return msg
-
-
-def strict_json(text: str) -> object:
-    """``json.loads`` that refuses ``NaN``, ``Infinity`` and ``-Infinity`` (a ``ValueError``)."""
-    return json.loads(text, parse_constant=_no_constant)
-
-
-def _no_constant(name: str) -> float:
-    raise ValueError(f"{name} is not a number")
 
 
 def _int(v: object) -> int:

@@ -19,9 +19,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fabflow.errors import InputError
-from fabflow.files import read_text
-from fabflow.link.protocol import MAX_JOINTS, strict_json
-from fabflow.robots.catalog import ROBOT_NAMES, get_robot
+from fabflow.files import read_text, strict_json
+from fabflow.link.protocol import MAX_JOINTS
+from fabflow.robots.catalog import CUSTOM_PREFIX, ROBOT_NAMES, get_robot, is_registered
 
 FloatArray = NDArray[np.float64]
 
@@ -85,7 +85,15 @@ def read_setpoints(path: str | Path) -> Setpoints:
     if doc.get("version") != 1:
         raise InputError(f"command stream version {doc.get('version')!r}; this reads 1", path)
     robot = doc.get("robot")
-    if robot not in ROBOT_NAMES:
+    if isinstance(robot, str) and robot.startswith(CUSTOM_PREFIX) and not is_registered(robot):
+        raise InputError(
+            f"the program is for {robot!r}, a robot defined in a project file, which a JSON "
+            "program does not carry; streaming takes the catalogue robots: "
+            + ", ".join(ROBOT_NAMES),
+            path,
+            "robot",
+        )
+    if robot not in ROBOT_NAMES and not (isinstance(robot, str) and is_registered(robot)):
         raise InputError(f"unknown robot {robot!r}; known: {', '.join(ROBOT_NAMES)}", path, "robot")
     model = get_robot(str(robot))
     commands = doc.get("commands")

@@ -101,6 +101,24 @@ def _cached_file_map(path: str, voxel_size: float) -> ScanMap:
     return load_map(path, voxel_size)
 
 
+def file_map(project: Project) -> ScanMap | None:
+    """The map file the project names (``localization.icp.map``), read and prepared once
+    per process; ``None`` when the map is simulated.
+
+    A Monte Carlo study reads it where it is prepared and hands it to every run
+    (:func:`localize_station`'s ``scan_map``), so that no worker opens the file.
+
+    Raises
+    ------
+    InputError
+        An unreadable or malformed map file (naming it and the line).
+    """
+    setup = project.localization.icp or IcpSetup()
+    if setup.map is None:
+        return None
+    return _cached_file_map(str(setup.map), setup.map_voxel_size)
+
+
 @dataclass(frozen=True)
 class StationScan:
     """What the platform's LiDAR delivers at a station, and what it is matched to.
@@ -133,6 +151,7 @@ def localize_station(
     station_id: str | None = None,
     built: Sequence[Element] = (),
     lift: float = 0.0,
+    scan_map: ScanMap | None = None,
 ) -> BasePose:
     """Simulate LiDAR scan-to-map localization of a parked platform.
 
@@ -162,6 +181,8 @@ def localize_station(
     lift
         Lift height of the station (metres): the LiDAR sits on the platform and
         does not move with the lift.
+    scan_map
+        The project's map, already read (:func:`file_map`); read here when ``None``.
 
     Returns
     -------
@@ -175,7 +196,7 @@ def localize_station(
     LocalizationError
         When no pose can be computed (too few scan points or correspondences).
     """
-    data = simulate_station(project, T_world_base, rng, built, lift)
+    data = simulate_station(project, T_world_base, rng, built, lift, scan_map)
     return estimate_station(project, data, station_id)
 
 
@@ -185,8 +206,10 @@ def simulate_station(
     rng: np.random.Generator,
     built: Sequence[Element] = (),
     lift: float = 0.0,
+    scan_map: ScanMap | None = None,
 ) -> StationScan:
-    """The scan of a simulated station and its map (see :func:`localize_station`)."""
+    """The scan of a simulated station and its map (see :func:`localize_station`;
+    ``scan_map``: the project's map already read, read here when ``None``)."""
     setup = project.localization.icp or IcpSetup()
     T_platform_base = platform.T_platform_base_at(
         project.robot.platform.T_platform_base.matrix(), lift
@@ -209,7 +232,8 @@ def simulate_station(
     )
     T_init = perturb(T_world_platform, err) @ T_platform_lidar
 
-    scan_map = _project_map(setup, project)
+    if scan_map is None:
+        scan_map = _project_map(setup, project)
     if setup.map_as_built:
         scan_map = with_as_built(scan_map, built, rng, setup.as_built_sigma)
     return StationScan(

@@ -64,3 +64,30 @@ def localizer_arguments(
         zone = ranging_zone(project, station, built)
         return {} if zone is None else {"zone": zone}
     return {}
+
+
+def file_inputs(project: Project, method: str) -> dict[str, Any]:
+    """Keyword arguments of ``localize_station`` that carry the files a method reads, read once.
+
+    ICP's map file (``localization.icp.map``) becomes ``scan_map``
+    (:func:`fabflow.localize.icp.file_map`); the total station's measured
+    ``observations`` and ``robot_points`` become ``measured``
+    (:func:`fabflow.localize.total_station.measured_readings`). A Monte Carlo study
+    reads them where it is prepared and sends the data with the study, so that its
+    workers open no project file. Empty when the method reads no file, and without
+    sensor noise (the exact localizer reads nothing).
+
+    Raises
+    ------
+    InputError
+        An unreadable or malformed file (naming it and the line).
+    """
+    if not project.simulation.sensor_noise:
+        return {}
+    if method == "icp":
+        scan_map = icp.file_map(project)
+        return {} if scan_map is None else {"scan_map": scan_map}
+    if method == "total_station":
+        measured = total_station.measured_readings(project)
+        return {} if measured is None else {"measured": measured}
+    return {}

@@ -206,7 +206,7 @@ def station_points(
     T_world_base = np.asarray(T_world_base, dtype=float)
     T_flange_tool = np.ascontiguousarray(project.robot.tool.T_flange_tool.matrix(), dtype=float)
     reach, ws, pool_grid = _robot_workspace(
-        project.robot.model, T_flange_tool.tobytes(), float(setup.z_min), platform_front(project)
+        project.robot.name, T_flange_tool.tobytes(), float(setup.z_min), platform_front(project)
     )
     if boxes_world is None:
         T_box, extents = element_boxes(built)

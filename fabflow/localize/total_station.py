@@ -27,6 +27,7 @@ from fabflow.localize.setups import instrument_covariance, plan_setups, trunnion
 from fabflow.localize.stationing import InstrumentPose, InstrumentTrack
 from fabflow.positioning.integrity import ALPHA
 from fabflow.positioning.polar import (
+    Observations,
     polar_covariance,
     polar_to_cartesian,
     to_world,
@@ -38,7 +39,7 @@ from fabflow.positioning.total_station import (
     add_instrument_uncertainty,
     localize_observations,
 )
-from fabflow.positioning.ts_io import read_observations, read_robot_points
+from fabflow.positioning.ts_io import RobotPoints, read_observations, read_robot_points
 from fabflow.project import Project, TotalStationSetup
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.prism import prism_points_from_joints
@@ -46,6 +47,9 @@ from fabflow.schema import PoseSpec
 from fabflow.sensors.total_station import simulate_polar
 from fabflow.tasks.plan import Plan, Station, WorkPackage
 from fabflow.transforms.se3 import apply_T, inv_T, make_T
+
+MeasuredReadings = tuple[Observations, RobotPoints]
+"""The content of a project's measured ``observations`` and ``robot_points`` files."""
 
 
 @dataclass(frozen=True)
@@ -90,11 +94,13 @@ def localize_station(
     station_id: str | None = None,
     built: Sequence[Element] = (),
     instrument: InstrumentPose | None = None,
+    measured: MeasuredReadings | None = None,
 ) -> BasePose:
     """Simulate a total station localization of the robot base at one station.
 
     When the project's setup names measured ``observations`` and
-    ``robot_points`` files, those are used instead (:func:`localize_files`)
+    ``robot_points`` files, those are used instead (:func:`localize_files`;
+    ``measured``: their content already read, :func:`measured_readings`)
     and ``T_world_base``, ``rng`` and ``built`` are not.
 
     Otherwise :func:`simulate_readings` then :func:`estimate_from_readings`: the
@@ -139,9 +145,28 @@ def localize_station(
             project=project,
             robot_sigma=project.simulation.robot_repeatability,
             station=station_id,
+            readings=measured,
         )
     readings = simulate_readings(project, T_world_base, rng, built, station_id, instrument)
     return estimate_from_readings(project, readings, station_id)
+
+
+def measured_readings(project: Project) -> MeasuredReadings | None:
+    """The project's measured ``observations`` and ``robot_points`` files, read; ``None``
+    when it names none (the readings are simulated).
+
+    A Monte Carlo study reads them where it is prepared and hands them to every run
+    (:func:`localize_station`'s ``measured``), so that no worker opens the files.
+
+    Raises
+    ------
+    InputError
+        A problem of either file (naming the file and the line).
+    """
+    setup = total_station_setup(project)
+    if setup.observations is None or setup.robot_points is None:
+        return None
+    return read_observations(setup.observations), read_robot_points(setup.robot_points)
 
 
 def single_station_instrument(
@@ -283,6 +308,7 @@ def localize_files(
     station: str | None = None,
     robot: str | None = None,
     tcp_xyz: Sequence[float] | None = None,
+    readings: MeasuredReadings | None = None,
 ) -> BasePose:
     """Localize from an observation file and a robot point file (CLI ``localize total-station``).
 
@@ -293,7 +319,8 @@ def localize_files(
     degrees (R = Rz(A) Ry(B) Rx(C)). A robot point file of joint values is
     turned into prism positions by forward kinematics of ``robot`` (else the
     project's robot) with the prism at the project's TCP, or at ``tcp_xyz``
-    (metres, flange frame).
+    (metres, flange frame). ``readings``: the two files' content already read
+    (:func:`measured_readings`); the paths then only name them in the result.
 
     Raises
     ------
@@ -344,13 +371,14 @@ def localize_files(
         )
     hi = setup.instrument_height if instrument_height is None else instrument_height
     T_world_instrument = trunnion_pose(pose.matrix(), hi)
-    obs = read_observations(observations_path)
-    rp = read_robot_points(robot_points_path)
+    if readings is None:
+        readings = read_observations(observations_path), read_robot_points(robot_points_path)
+    obs, rp = readings
     if rp.xyz is not None:
         pts = rp.xyz
     else:
         assert rp.joints is not None
-        model = robot or (project.robot.model if project is not None else None)
+        model = robot or (project.robot.name if project is not None else None)
         if model is None:
             raise InputError(
                 "the robot point file holds joint values; name the robot (--robot or --project)",

@@ -49,8 +49,8 @@ class RobotArm:
     def joint_origins(self, q: np.ndarray) -> np.ndarray:
         """Drawing points in the base frame, shape ``(..., 2 * dof + 3, 3)`` (metres)."""
         F = np.asarray(self.model.frames(q), dtype=float)
-        d = self.model.dh[:, 2]
         dof = self.model.dof
+        d = self.model.dh[:, 2] if self.model.dh is not None else np.zeros(dof)
         origins = F[..., : dof + 1, :3, 3]
         mids = origins[..., :dof, :] + d[:, None] * F[..., :dof, :3, 2]
         pts = np.empty((*F.shape[:-3], 2 * dof + 3, 3))

@@ -53,7 +53,7 @@ def project_program_source(
             station=wp.station.id,
         )
         program = work_package_program(wp, by_id, project, base_pose)
-        files = writer_for(project.program.format, project.robot.model).write(program)
+        files = writer_for(project.program.format, project.robot.name).write(program)
         if len(files) == 1:
             name, text = next(iter(files.items()))
             return name, text.encode()

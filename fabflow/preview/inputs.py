@@ -95,7 +95,7 @@ def model_for_project(
         name=project.name,
         platform=project.robot.platform,
         T_flange_tool=T_flange_tool,
-        arm=RobotArm(get_robot(project.robot.model), T_flange_tool),
+        arm=RobotArm(get_robot(project.robot.name), T_flange_tool),
         deviation=deviation,
         tolerance=project.tolerances.position,
         localization=results,

@@ -15,7 +15,9 @@ import numpy as np
 
 from fabflow.programs.feasibility import TOOL_ROTATION_SPEED, move_lengths, solve_moves
 from fabflow.programs.ir import (
+    Bead,
     Comment,
+    GcodeOptions,
     Instruction,
     Lift,
     Load,
@@ -85,6 +87,7 @@ def compile_program(
     header: dict[str, object],
     lift: float | None = None,
     payloads: dict[str, Load] | None = None,
+    beads: dict[str, Bead] | None = None,
 ) -> Program:
     """Turn motion steps into a checked, timed :class:`Program` from HOME back to HOME.
 
@@ -105,8 +108,10 @@ def compile_program(
     payloads
         Element id to its load (centre of gravity in the tool frame), switched
         in when the gripper closes on it and out when it opens.
+    beads
+        Print path element id to its bead cross-section (what G-code extrudes).
     """
-    robot = get_robot(project.robot.model)
+    robot = get_robot(project.robot.name)
     T_base_world = np.linalg.inv(T_world_base)
     T_flange_tool = project.robot.tool.T_flange_tool.matrix()
     q_home = home_configuration(project)
@@ -241,5 +246,7 @@ def compile_program(
         load=Load(project.robot.tool.mass, np.asarray(project.robot.tool.cog, dtype=float)),
         lift=None if lift is None else Lift(lift, project.robot.platform.lift_axis),
         module_motions=project.program.module_motions
-        or controller_profile(project.robot.model, project.program.controller).module_motions,
+        or controller_profile(project.robot.name, project.program.controller).module_motions,
+        beads=dict(beads or {}),
+        gcode=GcodeOptions(project.program.gcode.flavor, project.program.gcode.filament_diameter),
     )

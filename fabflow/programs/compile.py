@@ -15,10 +15,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from fabflow.design.elements import Element, structure_timeline
+from fabflow.design.specs import PrintPathSpec
 from fabflow.errors import LocalizationError
 from fabflow.positioning.result import BasePose
 from fabflow.programs.assemble import compile_program
-from fabflow.programs.ir import Load, Program
+from fabflow.programs.ir import Bead, Load, Program
 from fabflow.programs.motions import work_package_motion
 from fabflow.programs.replan import checked_program, replanned_program, with_contacts
 from fabflow.programs.writers import writer_for
@@ -46,6 +47,24 @@ def element_payloads(elements: Sequence[Element]) -> dict[str, Load]:
         cog = np.linalg.solve(T_world_tool, np.append(e.T_world_element[:3, 3], 1.0))[:3]
         loads[e.id] = Load(float(e.attributes["mass"]), cog)
     return loads
+
+
+def element_beads(elements: Sequence[Element]) -> dict[str, Bead]:
+    """The bead cross-section of every print path element, by id (metres).
+
+    From the element's ``bead_width`` and ``layer_height`` attributes; one without
+    them gets :class:`~fabflow.design.specs.PrintPathSpec`'s defaults.
+    """
+    fields = PrintPathSpec.model_fields
+    width, height = fields["bead_width"].default, fields["layer_height"].default
+    return {
+        e.id: Bead(
+            float(e.attributes.get("bead_width", width)),
+            float(e.attributes.get("layer_height", height)),
+        )
+        for e in elements
+        if e.type == "print_path"
+    }
 
 
 def _load_note(project: Project) -> str:
@@ -95,7 +114,11 @@ def work_package_program(
             f"once what it rests on stands and the tool has left (the first, {first.id}, "
             f"after {elements[after].id}); the collision check assumes so"
         )
-    options = {"lift": wp.station.lift, "payloads": element_payloads(elements)}
+    options = {
+        "lift": wp.station.lift,
+        "payloads": element_payloads(elements),
+        "beads": element_beads(elements),
+    }
     if not project.program.check_collisions:
         steps = work_package_motion(elements, project, T_world_base)
         return compile_program(name, steps, project, T_world_base, header, **options)
@@ -130,7 +153,8 @@ def write_programs(
         Localized base pose per visit (``WorkPackage.index``); a work package
         without one gets no program (a visit whose localization failed).
     fmt
-        ``krl``, ``rapid``, ``urscript`` or ``json`` (default: the project's format).
+        ``krl``, ``rapid``, ``urscript``, ``json`` or ``gcode`` (default: the project's
+        format).
 
     Returns
     -------
@@ -144,7 +168,7 @@ def write_programs(
         no program is written from it.
     """
     fmt = fmt or project.program.format
-    writer = writer_for(fmt, project.robot.model)
+    writer = writer_for(fmt, project.robot.name)
     by_id = {e.id: e for e in elements}
     programs: list[Program] = []
     files: dict[str, str] = {}

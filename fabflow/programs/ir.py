@@ -151,6 +151,32 @@ class Lift:
     axis: str | None = None
 
 
+@dataclass(frozen=True)
+class Bead:
+    """The cross-section of the bead a print path lays: ``width`` x ``height`` (metres)."""
+
+    width: float
+    height: float
+
+
+@dataclass(frozen=True)
+class GcodeOptions:
+    """How the G-code writer writes a print program (``program.gcode`` of the project).
+
+    Attributes
+    ----------
+    flavor
+        ``"marlin"`` (RepRap/Marlin: E is filament length) or ``"robot"`` (a robot's
+        G-code interpreter: E is the deposited volume).
+    filament_diameter
+        Diameter of the filament, or of the material column the extruder feeds,
+        whose length E counts in the ``marlin`` flavour (metres).
+    """
+
+    flavor: str = "marlin"
+    filament_diameter: float = 0.00175
+
+
 @dataclass(frozen=True, eq=False)
 class Program:
     """One robot program: the work package of one station visit.
@@ -188,6 +214,12 @@ class Program:
     confirm
         Messages the operator must confirm before the first motion, after the
         lift's (the program stops for each): moves that still collide.
+    beads
+        The bead cross-section of every print path element of the program, by
+        element id (from its ``bead_width`` and ``layer_height``): what a format
+        that meters material (G-code) extrudes along its moves.
+    gcode
+        The G-code flavour and filament (:class:`GcodeOptions`).
     """
 
     name: str
@@ -203,6 +235,8 @@ class Program:
     lift: Lift | None = None
     module_motions: int | None = None
     confirm: tuple[str, ...] = ()
+    beads: dict[str, Bead] = field(default_factory=dict)
+    gcode: GcodeOptions = field(default_factory=GcodeOptions)
 
     @property
     def moves(self) -> list[Move]:

@@ -115,7 +115,7 @@ def replanned_program(
     header
         Header comments of the program.
     options
-        To :func:`fabflow.programs.assemble.compile_program` (lift, payloads).
+        To :func:`fabflow.programs.assemble.compile_program` (lift, payloads, beads).
 
     Returns
     -------

@@ -18,7 +18,9 @@ The catalogue (:data:`ROBOT_NAMES`): ``kuka_kr60_3`` (KUKA KR 60-3),
 UR10e), ``brokk_170`` (5-axis demolition machine in the style of the BROKK 170,
 APPROXIMATE), ``excavator_gripper`` (walking-excavator-like arm in the style
 of HEAP with a two-jaw rotating gripper, APPROXIMATE) and ``excavator_printer``
-(the same arm with a print head, APPROXIMATE).
+(the same arm with a print head, APPROXIMATE). A robot defined in a project file
+(``robot.model: custom``: OPW parameters, a DH table or a URDF chain,
+:mod:`fabflow.robots.custom`) is found by ``get_robot(project.robot.name)``.
 """
 
 from fabflow.robots.catalog import ROBOT_NAMES, get_robot

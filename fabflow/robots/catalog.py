@@ -22,6 +22,12 @@ Joint values are the ones the robot's own controller shows (radians here):
   estimated, not manufacturer data.
 * ``excavator_printer`` - the same arm (HEAP is the Menzi Muck M545 of paper
   000 too) carrying a print head, a LiDAR and a prism on its tilt-rotator.
+
+Besides the catalogue, a project file may define its own robot
+(``robot.model: custom``, :mod:`fabflow.robots.custom`): validating the project
+builds its model and registers it here (:func:`register_robot`) under a name
+that carries a hash of its definition, ``custom:NAME@HASH``; every function of
+this module then takes that name like a catalogue one, in this process.
 """
 
 from __future__ import annotations
@@ -97,6 +103,7 @@ def _kuka_kr60_3() -> RobotModel:
         q_nominal=np.array([0, -90, 90, 0, 45, 0], dtype=float) * _DEG,
         q_home=np.array([0, -90, 90, 0, 0, 0], dtype=float) * _DEG,
         payload=60.0,
+        opw=KR60_3_OPW,
     )
 
 
@@ -124,6 +131,7 @@ def _abb_irb4600_60_205() -> RobotModel:
         q_nominal=np.array([0, 0, 0, 0, 45, 0], dtype=float) * _DEG,
         q_home=np.array([0, 0, 0, 0, 30, 0], dtype=float) * _DEG,
         payload=60.0,
+        opw=IRB4600_60_205_OPW,
     )
 
 
@@ -345,9 +353,10 @@ def robot_setup_problems(
     Parameters
     ----------
     name
-        Catalogue robot.
+        Catalogue (or registered) robot.
     home_deg
-        The HOME joint values in degrees, or ``None`` (the catalogue's).
+        The HOME joint values in degrees (millimetres for a sliding joint), or
+        ``None`` (the robot's own).
     tool_mass
         The tool's mass (kg).
 
@@ -361,7 +370,7 @@ def robot_setup_problems(
     if home_deg is not None and len(home_deg) != arm.dof:
         problems.append((("home_deg",), f"{name} has {arm.dof} axes, got {len(home_deg)}"))
     elif home_deg is not None:
-        lo, hi = np.degrees(arm.joint_limits).T
+        lo, hi = arm.to_deg(arm.joint_limits.T)
         outside = [
             f"axis {i + 1}: {v:g} not in [{lo[i]:g}, {hi[i]:g}]"
             for i, v in enumerate(home_deg)
@@ -378,11 +387,19 @@ def robot_setup_problems(
 NEUTRAL_FORMATS: tuple[str, ...] = ("json",)
 """Program formats any machine takes: a command stream its own gateway follows."""
 
+PRINT_FORMATS: tuple[str, ...] = ("gcode",)
+"""Neutral program formats for print paths only (G-code): any machine, no blocks or task points."""
+
+GCODE_FLAVORS: tuple[str, ...] = ("marlin", "robot")
+"""The dialects of the ``gcode`` format: RepRap/Marlin, or a robot's G-code interpreter."""
+
 PROGRAM_FORMATS: tuple[str, ...] = (
     *(v.language for v in VENDORS.values() if v.language is not None),
     *NEUTRAL_FORMATS,
+    *PRINT_FORMATS,
 )
-"""Every program format fabflow writes: the vendors' languages, then the neutral ones."""
+"""Every program format fabflow writes: the vendors' languages, the neutral ones, then
+those for print paths only."""
 
 _CATALOGUE = {
     "kuka_kr60_3": (_kuka_kr60_3, "kuka"),
@@ -394,12 +411,50 @@ _CATALOGUE = {
 }
 
 ROBOT_NAMES: tuple[str, ...] = tuple(_CATALOGUE)
-"""Names accepted by :func:`get_robot`."""
+"""Names of the catalogue robots, accepted by :func:`get_robot`."""
+
+CUSTOM_MODEL = "custom"
+"""``robot.model`` of a robot the project file defines itself (``robot.custom``)."""
+
+CUSTOM_PREFIX = "custom:"
+"""Registered robots are named ``custom:NAME@HASH``."""
+
+_REGISTERED: dict[str, tuple[RobotModel, str]] = {}
+"""Robots defined in project files, registered in this process: name to (model, vendor)."""
+
+
+def register_robot(model: RobotModel, vendor: str) -> str:
+    """Make a robot defined outside the catalogue known to :func:`get_robot` and the rest.
+
+    Parameters
+    ----------
+    model
+        The machine model; its ``name`` must start with :data:`CUSTOM_PREFIX` and
+        should carry a hash of its definition (one name, one geometry).
+    vendor
+        Its maker's :data:`VENDORS` key (program language, controller profiles).
+
+    Returns
+    -------
+    str
+        ``model.name``. Registering the same name again keeps the first model.
+    """
+    if not model.name.startswith(CUSTOM_PREFIX) or vendor not in VENDORS:
+        raise ValueError(f"cannot register {model.name!r} of vendor {vendor!r}")
+    _REGISTERED.setdefault(model.name, (model, vendor))
+    return model.name
+
+
+def is_registered(name: str) -> bool:
+    """Whether ``name`` is a robot registered in this process (not a catalogue one)."""
+    return name in _REGISTERED
 
 
 def vendor_of(name: str) -> str:
-    """The :data:`VENDORS` key of a catalogue robot (``"kuka"`` for ``"kuka_kr60_3"``)."""
+    """The :data:`VENDORS` key of a robot (``"kuka"`` for ``"kuka_kr60_3"``)."""
     _check_name(name)
+    if name in _REGISTERED:
+        return _REGISTERED[name][1]
     return _CATALOGUE[name][1]
 
 
@@ -409,12 +464,17 @@ def format_vendor(fmt: str) -> str | None:
 
 
 def formats_of(name: str) -> tuple[str, ...]:
-    """The program formats a catalogue robot runs: its vendor's language, then the neutral ones.
+    """The program formats a robot runs: its vendor's language, then the neutral ones.
 
     ``("rapid", "json")`` for ``"abb_irb4600_60_205"``; a machine without a
     language of its own runs the neutral formats only.
     """
-    language = VENDORS[vendor_of(name)].language
+    return vendor_formats(vendor_of(name))
+
+
+def vendor_formats(vendor: str) -> tuple[str, ...]:
+    """The program formats the machines of a :data:`VENDORS` key run (see :func:`formats_of`)."""
+    language = VENDORS[vendor].language
     return (*((language,) if language is not None else ()), *NEUTRAL_FORMATS)
 
 
@@ -437,19 +497,23 @@ def format_mismatch(fmt: str, name: str) -> str | None:
 
 
 def _check_name(name: str) -> None:
-    if not isinstance(name, str) or name not in _CATALOGUE:
+    if isinstance(name, str) and (name in _CATALOGUE or name in _REGISTERED):
+        return
+    if isinstance(name, str) and name.startswith(CUSTOM_PREFIX):
         raise UnsupportedError(
-            f"unknown robot model {name!r}; known models: {', '.join(ROBOT_NAMES)}"
+            f"{name!r} is a robot defined in a project file (robot.custom), unknown "
+            "here: load that project first; known models: " + ", ".join(ROBOT_NAMES)
         )
+    raise UnsupportedError(f"unknown robot model {name!r}; known models: {', '.join(ROBOT_NAMES)}")
 
 
 def get_robot(name: str) -> RobotModel:
-    """The machine model for a catalogue name (one shared instance per name).
+    """The machine model for a name (one shared instance per name).
 
     Parameters
     ----------
     name
-        One of :data:`ROBOT_NAMES`.
+        One of :data:`ROBOT_NAMES`, or a robot registered with :func:`register_robot`.
 
     Raises
     ------
@@ -457,6 +521,8 @@ def get_robot(name: str) -> RobotModel:
         For an unknown name (the message lists the known ones).
     """
     _check_name(name)
+    if name in _REGISTERED:
+        return _REGISTERED[name][0]
     return _build(name)
 
 

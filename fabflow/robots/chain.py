@@ -7,6 +7,11 @@ transforms ``Rz(theta) Tz(d) Tx(a) Rx(alpha)``. A fixed ``T_n_flange`` makes the
 last frame the vendor's flange frame. The base frame sits at the foot of axis 1
 (z up along axis 1, x forward).
 
+A model read from a URDF file carries a general :class:`~fabflow.robots.joint_chain.JointChain`
+instead of the DH table (joints about their z axes between fixed links, joint 1
+at a fixed pose in the base; prismatic joints allowed, in metres), with
+``theta_i = sign_i * q_i``. Everything below works on either.
+
 Everything is batch-capable: ``q`` of shape ``(dof,)`` or ``(N, dof)``.
 """
 
@@ -15,12 +20,18 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from fabflow.errors import InputError, UnsupportedError
+from fabflow.robots.joint_chain import JointChain
 from fabflow.robots.numeric_ik import solve_seeds
+from fabflow.robots.opw import OPWParameters
+
+if TYPE_CHECKING:
+    from fabflow.robots.geometry import LinkCapsule
 
 FloatArray = NDArray[np.float64]
 
@@ -33,14 +44,16 @@ TWO_PI = 2.0 * np.pi
 
 @dataclass(frozen=True, eq=False)
 class RobotModel:
-    """A serial manipulator described by a DH table.
+    """A serial manipulator described by a DH table (or a general joint chain).
 
     Attributes
     ----------
     name
-        Catalogue name (``"kuka_kr60_3"``, ...).
+        Catalogue name (``"kuka_kr60_3"``, ...), or the registered name of a
+        robot defined in a project file (``"custom:NAME@HASH"``).
     dh
-        ``(dof, 4)`` rows ``[a, alpha, d, theta_offset]`` (metres, radians), standard DH.
+        ``(dof, 4)`` rows ``[a, alpha, d, theta_offset]`` (metres, radians), standard DH;
+        ``None`` for a model given by ``chain``.
     joint_sign
         ``(dof,)`` +1 or -1: sign between the controller joint value and the DH angle.
     joint_limits
@@ -70,10 +83,19 @@ class RobotModel:
     payload
         Rated payload at the flange (kg): the heaviest tool plus held element
         the arm is made for.
+    chain
+        The general joint chain of a model without a DH table (a URDF arm), else ``None``.
+    opw
+        The arm's ortho-parallel geometry when it has one (:mod:`fabflow.robots.opw`):
+        KUKA status bits and ABB ``confdata`` are computed from it.
+    capsules
+        The links as capsules for collision checks, when the model brings its own
+        (robots defined in a project file); ``None`` takes
+        :data:`fabflow.robots.geometry.LINK_CAPSULES`.
     """
 
     name: str
-    dh: FloatArray
+    dh: FloatArray | None
     joint_sign: FloatArray
     joint_limits: FloatArray
     velocity_limits: FloatArray
@@ -86,12 +108,39 @@ class RobotModel:
     q_nominal: FloatArray | None = None
     q_home: FloatArray | None = None
     payload: float = 0.0
+    chain: JointChain | None = None
+    opw: OPWParameters | None = None
+    capsules: tuple[LinkCapsule, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if (self.dh is None) == (self.chain is None):
+            raise ValueError("a RobotModel needs exactly one of 'dh' and 'chain'")
 
     # ------------------------------------------------------------------ basics
     @property
     def dof(self) -> int:
         """Number of joints."""
+        if self.dh is None:
+            return self.chain.dof  # type: ignore[union-attr]
         return int(self.dh.shape[0])
+
+    @cached_property
+    def prismatic(self) -> NDArray[np.bool_]:
+        """``(dof,)`` True for a joint that slides (its values in metres, not radians)."""
+        if self.chain is None:
+            return np.zeros(self.dof, dtype=bool)
+        return self.chain.prismatic
+
+    def from_deg(self, values: ArrayLike) -> FloatArray:
+        """Joint values of a ``*_deg`` field (degrees; millimetres for a sliding joint)
+        in radians (metres)."""
+        v = np.asarray(values, dtype=float)
+        return np.where(self.prismatic, v * 1e-3, np.radians(v))
+
+    def to_deg(self, q: ArrayLike) -> FloatArray:
+        """Joint values (radians; metres) as a ``*_deg`` field writes them (degrees; mm)."""
+        v = np.asarray(q, dtype=float)
+        return np.where(self.prismatic, v * 1e3, np.degrees(v))
 
     def _as_batch(self, q: ArrayLike) -> tuple[FloatArray, bool]:
         qa = np.asarray(q, dtype=float)
@@ -119,6 +168,8 @@ class RobotModel:
     # ------------------------------------------------------------- kinematics
     def _link_transforms(self, qb: FloatArray) -> FloatArray:
         """DH link transforms, shape ``(N, dof, 4, 4)``."""
+        if self.dh is None:
+            return self.chain.link_transforms(qb * self.joint_sign)  # type: ignore[union-attr]
         a, alpha, d, offset = self.dh.T
         theta = qb * self.joint_sign + offset
         ct, st = np.cos(theta), np.sin(theta)
@@ -151,13 +202,17 @@ class RobotModel:
         -------
         numpy.ndarray
             ``(N, dof + 2, 4, 4)`` (or without the leading N): frame 0 (the base),
-            DH frames 1..dof, then the flange.
+            DH frames 1..dof, then the flange. Frame ``i`` (``i < dof``) has its z
+            axis on joint ``i + 1`` and its origin on that axis. For a model with
+            a general ``chain`` frame 0 is the frame of joint 1 (its pose in the
+            base frame fixed), frames 1..dof-1 those of the next joints and frame
+            ``dof`` the tip link.
         """
         qb, single = self._as_batch(q)
         A = self._link_transforms(qb)
         n = qb.shape[0]
         out = np.empty((n, self.dof + 2, 4, 4))
-        out[:, 0] = np.eye(4)
+        out[:, 0] = np.eye(4) if self.chain is None else self.chain.T_base_0
         for i in range(self.dof):
             out[:, i + 1] = out[:, i] @ A[:, i]
         out[:, -1] = out[:, self.dof] @ self.T_n_flange
@@ -165,6 +220,8 @@ class RobotModel:
 
     def frames_single(self, q: FloatArray) -> FloatArray:
         """:meth:`frames` of one ``(dof,)`` configuration without input checks (control loops)."""
+        if self.dh is None:
+            return self.frames(q)
         a, offset = self.dh[:, 0], self.dh[:, 3]
         theta = q * self.joint_sign + offset
         ct, st = np.cos(theta), np.sin(theta)
@@ -219,7 +276,7 @@ class RobotModel:
         """
         qb, single = self._as_batch(q)
         A = self._link_transforms(qb)
-        T = A[:, 0]
+        T = A[:, 0] if self.chain is None else self.chain.T_base_0 @ A[:, 0]
         for i in range(1, self.dof):
             T = T @ A[:, i]
         T = T @ self.T_n_flange
@@ -249,6 +306,9 @@ class RobotModel:
         s = self.joint_sign[None, :, None]
         Jv = np.cross(z, pe - p) * s
         Jw = z * s
+        if self.chain is not None and self.prismatic.any():
+            Jv = np.where(self.prismatic[None, :, None], z * s, Jv)
+            Jw = np.where(self.prismatic[None, :, None], 0.0, Jw)
         J = np.concatenate([Jv, Jw], axis=2).transpose(0, 2, 1)
         return J[0] if single else J
 

@@ -129,6 +129,10 @@ class Clik:
             raise UnsupportedError(
                 f"unknown CLIK task {task!r}; use 'pose', 'position' or 'position_pitch'"
             )
+        if robot.prismatic.any():
+            raise UnsupportedError(
+                f"CLIK turns revolute joints only; {robot.name} has a sliding one"
+            )
         if task == "position_pitch" and not is_pitch_chain(robot):
             raise UnsupportedError(
                 f"task 'position_pitch' needs a pitch-chain machine, not {robot.name}"

@@ -116,7 +116,10 @@ vacuum gripper or an extruder nozzle body; the capsule's end cap reaches the TCP
 
 
 def link_capsules(robot: RobotModel) -> tuple[LinkCapsule, ...]:
-    """The link capsules of a robot (consecutive frame origins at 0.1 m for an unknown one)."""
+    """The link capsules of a robot: its own (``RobotModel.capsules``), the catalogue's,
+    or capsules of 0.1 m between consecutive frame origins."""
+    if robot.capsules is not None:
+        return robot.capsules
     return LINK_CAPSULES.get(robot.name, _chain(robot.dof, 0.1))
 
 

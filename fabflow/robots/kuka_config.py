@@ -20,34 +20,58 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from fabflow.errors import UnsupportedError
 from fabflow.robots.catalog import KR60_3_OPW, get_robot
+from fabflow.robots.chain import RobotModel
 
 KR60_3_PHI = float(np.arctan2(-KR60_3_OPW.a2, KR60_3_OPW.c3))
 """A3 angle (radians) at which the KR 60-3 wrist root point is in line with A2 and A3."""
 
 
-def kuka_status_turn(q: ArrayLike) -> tuple[int, int] | tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Status and Turn of KR 60-3 joint values.
+def kuka_status_turn(
+    q: ArrayLike, robot: RobotModel | None = None
+) -> tuple[int, int] | tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Status and Turn of KUKA joint values.
 
     Parameters
     ----------
     q
         A1..A6 in radians, shape ``(6,)`` or ``(N, 6)``.
+    robot
+        The arm (default the KR 60-3): a six-axis arm with an ortho-parallel
+        geometry (``RobotModel.opw``), whose forearm offset sets the A3 angle of
+        bit 1 and whose wrist centre (``c4`` behind the last joint frame) bit 0.
 
     Returns
     -------
     tuple
         ``(S, T)`` as Python ints for one configuration, or two ``(N,)`` integer
         arrays for a batch.
+
+    Raises
+    ------
+    UnsupportedError
+        For an arm without an ortho-parallel geometry (KRL's status bits are not
+        defined for it).
     """
-    robot = get_robot("kuka_kr60_3")
+    robot = get_robot("kuka_kr60_3") if robot is None else robot
+    p = robot.opw
+    if p is None or robot.dof != 6:
+        raise UnsupportedError(
+            f"KUKA status and turn need a six-axis arm with an ortho-parallel geometry "
+            f"(OPW); {robot.name} has none: define it with 'opw' (or an OPW DH table), "
+            "or write JSON programs"
+        )
+    phi = float(np.arctan2(-p.a2, p.c3))
     qb, single = robot._as_batch(q)
-    T_base_flange = robot.fk(qb)
-    wrist = T_base_flange[:, :3, 3] - KR60_3_OPW.c4 * T_base_flange[:, :3, 2]
-    # A1 turns the arm about -z, so the A1 frame's x axis is (cos A1, -sin A1, 0).
-    x_a1 = wrist[:, 0] * np.cos(qb[:, 0]) - wrist[:, 1] * np.sin(qb[:, 0])
+    T_base_last = robot.frames(qb)[:, robot.dof]
+    wrist = T_base_last[:, :3, 3] - p.c4 * T_base_last[:, :3, 2]
+    # The A1 frame's x axis is (cos t1, sin t1, 0) with t1 the OPW angle of axis 1
+    # (the KR 60-3's A1 turns the arm about -z: t1 = -A1).
+    t1 = p.signs[0] * qb[:, 0] - p.offsets[0]
+    x_a1 = wrist[:, 0] * np.cos(t1) + wrist[:, 1] * np.sin(t1)
     bit0 = (x_a1 < 0).astype(np.int64)
-    bit1 = (qb[:, 2] >= KR60_3_PHI).astype(np.int64)
+    bit1 = (p.signs[2] * qb[:, 2] - p.offsets[2] >= phi).astype(np.int64)
     bit2 = (qb[:, 4] <= 0).astype(np.int64)
     S = bit0 | (bit1 << 1) | (bit2 << 2)
     turn = (qb < 0).astype(np.int64) << np.arange(6)

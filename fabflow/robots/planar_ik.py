@@ -24,7 +24,8 @@ FloatArray = NDArray[np.float64]
 def is_pitch_chain(robot: RobotModel) -> bool:
     """Whether the model has the slew + parallel pitch joints structure (5 joints)."""
     return (
-        robot.dof == 5
+        robot.dh is not None
+        and robot.dof == 5
         and bool(np.all(robot.dh[1:, 1] == 0.0))
         and bool(np.all(robot.dh[1:, 2] == 0.0))
         and bool(np.all(robot.dh[:, 3] == 0.0))

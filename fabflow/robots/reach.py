@@ -139,7 +139,8 @@ def _cache_key(
 ) -> str:
     h = hashlib.sha256()
     h.update(f"v{_MAP_VERSION}|{robot.name}|{tool_axis}|{step:.6f}|{n_yaw}".encode())
-    for arr in (robot.dh, robot.joint_sign, robot.joint_limits, robot.T_n_flange):
+    geometry = (robot.dh,) if robot.chain is None else (robot.chain.T_base_0, robot.chain.links)
+    for arr in (*geometry, robot.joint_sign, robot.joint_limits, robot.T_n_flange):
         h.update((np.round(np.asarray(arr, dtype=float), 12) + 0.0).tobytes())
     h.update((np.round(T_flange_tool, 9) + 0.0).tobytes())  # + 0.0 turns -0.0 into 0.0
     return h.hexdigest()[:32]
@@ -214,6 +215,8 @@ def reach_map(
         if m is not None:
             _MEMORY[key] = m
             return m
+    if robot.analytic_ik is None and not is_pitch_chain(robot):
+        raise UnsupportedError(f"reach_map has no inverse kinematics for {robot.name}")
     m = _compute(robot, T_ft, tool_axis, R_tool, step, n_yaw)
     _MEMORY[key] = m
     if path is not None:
@@ -229,6 +232,8 @@ def _yaw_invariant(robot: RobotModel, T_flange_tool: FloatArray) -> bool:
     axis (TCP offset along flange z, tool z parallel to flange z). Then any yaw
     reaches the same points, and one yaw sample is enough.
     """
+    if robot.dh is None:
+        return False
     a, alpha = robot.dh[-1, 0], robot.dh[-1, 1]
     Tn = robot.T_n_flange
     lo, hi = robot.joint_limits[-1]

@@ -169,10 +169,10 @@ def arm_dimensions(robot: RobotModel) -> dict[str, float]:
         When the arm has no offset shoulder and spherical wrist in the DH sense.
     """
     dh = robot.dh
-    if robot.dof != 6 or not np.allclose(dh[:, 1], SPHERICAL_WRIST_ALPHAS, atol=1e-9):
+    if dh is None or robot.dof != 6 or not np.allclose(dh[:, 1], SPHERICAL_WRIST_ALPHAS, atol=1e-9):
         raise UnsupportedError(
-            f"no geometric reach model for robot '{robot.name}': it needs a six-axis arm "
-            "with an offset shoulder and a spherical wrist"
+            f"no reach model for robot '{robot.name}': it needs closed-form IK (an OPW arm) "
+            "or a DH table of a six-axis arm with an offset shoulder and a spherical wrist"
         )
     return {
         "d1": float(dh[0, 2]),

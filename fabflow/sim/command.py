@@ -12,7 +12,7 @@ from rich.table import Table
 
 from fabflow.output import atomic_output_dir
 from fabflow.project import load_project
-from fabflow.sim.monte_carlo import dask_client
+from fabflow.sim.cluster import dask_client
 from fabflow.sim.report import (
     SETUP_DRIFT_COLUMNS,
     SETUP_DRIFT_TITLE,
@@ -38,14 +38,22 @@ def run_simulate(
     fidelity: str,
     stationing: str | None,
     console: Console,
+    scheduler_file: Path | None = None,
 ) -> None:
-    """Run a Monte Carlo study of a project and print its table (the ``simulate`` options)."""
+    """Run a Monte Carlo study of a project and print its table (the ``simulate`` options).
+
+    ``scheduler_file``: the file of a running Dask scheduler (``--scheduler-file``),
+    instead of its address ``scheduler``.
+    """
     p = load_project(project)
     chosen = parse_methods(methods) if methods else [p.localization.method]
     n_runs = runs or p.simulation.runs
     columns = ("{task.description}", BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    in_process = scheduler is None and workers == 0
-    cluster = dask_client(scheduler, n_workers=workers, timeout=timeout, dashboard=dashboard)
+    local = scheduler is None and scheduler_file is None
+    in_process = local and workers == 0
+    cluster = dask_client(
+        scheduler, workers, timeout, dashboard=dashboard, scheduler_file=scheduler_file
+    )
     if p.stone_wall() is not None:  # found stones: no stations to localize
         with (
             atomic_output_dir(out) as staging,
@@ -69,7 +77,7 @@ def run_simulate(
         nullcontext(None) if in_process else cluster as client,
         Progress(*columns, console=console) as bar,
     ):
-        if client is not None and dashboard and scheduler is None:
+        if client is not None and dashboard and local:
             console.print(f"Dask dashboard: {client.dashboard_link}")
         tasks: dict[str, Any] = {}
 

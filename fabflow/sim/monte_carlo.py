@@ -1,28 +1,31 @@
 """Monte Carlo tolerance studies: many seeded simulated runs, serially or on Dask.
 
 Runs are grouped into chunks (one Dask task each, so scheduling overhead stays
-small next to the runs); the prepared :class:`~fabflow.sim.run.Study` is sent to
-every worker once. A run that raises is recorded as a :class:`RunFailure` with its
-seed and error and listed in ``summary.json``; it is never silently dropped.
+small next to the runs); the prepared :class:`~fabflow.sim.run.Study`, with the
+data of the files it reads, is sent to every worker once, and every task checks
+that its worker runs this machine's versions (:mod:`fabflow.sim.cluster`). A
+run that raises is recorded as a :class:`RunFailure` with its seed and error and
+listed in ``summary.json``; it is never silently dropped.
 Results do not depend on how runs are chunked or where they execute: run ``i``
 always draws from ``SeedSequence(seed, spawn_key=(i,))``.
 """
 
 from __future__ import annotations
 
-import logging
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import special
 
-from fabflow.errors import InputError
+from fabflow.errors import UnsupportedError
 from fabflow.positioning.result import BasePose
+from fabflow.sim.cluster import dask_client as dask_client  # where it was, for callers
+from fabflow.sim.cluster import environment, run_checked
+from fabflow.sim.cluster import scheduler_address as scheduler_address
 from fabflow.sim.run import STATUSES, UNOBSERVED_SIGMA, RunResult, Study, simulate_run
 
 if TYPE_CHECKING:
@@ -196,14 +199,20 @@ def run_study(
     from distributed import as_completed
 
     [study_future] = client.scatter([study], broadcast=True, hash=False)
+    here = environment()
     futures = {
-        client.submit(simulate_chunk, study_future, chunk, seed, True, pure=False): chunk
+        client.submit(
+            run_checked, here, simulate_chunk, study_future, chunk, seed, True, pure=False
+        ): chunk
         for chunk in chunks
     }
     for future in as_completed(futures):
         chunk = futures[future]
         if future.status == "error":
             exc = future.exception()
+            if isinstance(exc, UnsupportedError):  # a worker with other versions
+                client.cancel(list(futures))
+                raise exc
             error = f"task failed: {type(exc).__name__}: {exc}"
             items += [RunFailure(run=r, seed=seed, error=error) for r in chunk]
         else:
@@ -211,108 +220,6 @@ def run_study(
         if progress is not None:
             progress(len(chunk))
     return collect(study, seed, n_runs, items, time.perf_counter() - t0)
-
-
-def scheduler_address(text: str) -> str:
-    """A Dask scheduler address as ``tcp://HOST:PORT`` (``HOST:PORT`` means TCP).
-
-    Raises
-    ------
-    InputError
-        Another protocol (TLS needs certificates, ``inproc`` only works inside
-        one process), no host or port, or a port out of range.
-    """
-    from distributed.comm.addressing import parse_host_port
-
-    scheme, _, location = text.strip().rpartition("://")
-    expected = "expected tcp://HOST:PORT, e.g. tcp://127.0.0.1:8786"
-    if scheme not in ("", "tcp"):
-        raise InputError(
-            f"unsupported Dask scheduler address {text!r}: {expected}", location="--scheduler"
-        )
-    try:
-        host, port = parse_host_port(location)
-    except ValueError:
-        host, port = "", 0
-    if not host or any(c.isspace() for c in host) or not 0 < int(port) < 65536:
-        raise InputError(
-            f"not a Dask scheduler address: {text!r}: {expected}", location="--scheduler"
-        )
-    return f"tcp://{location}"
-
-
-@contextmanager
-def dask_client(
-    scheduler: str | None = None,
-    n_workers: int = 2,
-    timeout: float = 30.0,
-    dashboard: bool = False,
-) -> Iterator[Client]:
-    """A Dask client: connected to ``scheduler``, or on a new local cluster.
-
-    Parameters
-    ----------
-    scheduler
-        Address of a running scheduler (``tcp://host:8786``); its workers need fabflow
-        installed. ``None`` starts a :class:`~distributed.LocalCluster` of ``n_workers``
-        single-threaded worker processes, closed on exit.
-    n_workers
-        Worker processes of the local cluster.
-    timeout
-        Seconds to wait for ``scheduler`` to answer, and then for its first worker.
-    dashboard
-        Serve the local cluster's dashboard (on 127.0.0.1, a free port; its address
-        is ``client.dashboard_link``). Off by default. The local cluster listens on
-        127.0.0.1 only, whether the dashboard is on or off.
-
-    Raises
-    ------
-    InputError
-        When the address is malformed, the scheduler cannot be reached, or it has
-        no worker within ``timeout``.
-    """
-    from distributed import Client, LocalCluster
-
-    if not (math.isfinite(timeout) and timeout > 0):
-        raise InputError(
-            f"must be a positive number of seconds, got {timeout}", location="--timeout"
-        )
-    if scheduler is not None:
-        address = scheduler_address(scheduler)
-        try:
-            client = Client(address, timeout=timeout)
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise InputError(
-                f"cannot connect to the Dask scheduler at {scheduler!r}: {exc}",
-                location="--scheduler",
-            ) from None
-        with client:
-            try:
-                client.wait_for_workers(1, timeout=timeout)
-            except (TimeoutError, OSError):
-                raise InputError(
-                    f"the Dask scheduler at {scheduler!r} has no worker after {timeout:g} s: "
-                    f"start workers (dask worker {address}) or wait longer (--timeout)",
-                    location="--scheduler",
-                ) from None
-            yield client
-        return
-    http = (
-        "127.0.0.1:0"  # the scheduler's HTTP server (health, metrics) runs even without a dashboard
-    )
-    with (
-        LocalCluster(
-            n_workers=n_workers,
-            threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
-            dashboard_address=http if dashboard else None,
-            scheduler_kwargs=None if dashboard else {"dashboard_address": http},
-            silence_logs=logging.ERROR,
-        ) as cluster,
-        Client(cluster) as client,
-    ):
-        yield client
 
 
 # ----------------------------------------------------------------------- statistics

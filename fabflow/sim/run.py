@@ -34,7 +34,7 @@ from fabflow.design.elements import Element, structure_timeline
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
 from fabflow.localize.layout import site_layout
-from fabflow.localize.methods import localizer_arguments
+from fabflow.localize.methods import file_inputs, localizer_arguments
 from fabflow.localize.plan import LocalizeStation, check_visit, parked_pose, station_localizer
 from fabflow.localize.setups import InstrumentSetup
 from fabflow.localize.stationing import InstrumentTrack
@@ -94,6 +94,11 @@ class Study:
     label
         The study's name in reports and output folders: the method, or for a total
         station with a chosen ``stationing``, ``total_station-<stationing>``.
+    file_data
+        Keyword arguments of the localizer holding the content of the files the
+        method reads (ICP's map, the total station's measured readings), read once
+        where the study is prepared (:func:`fabflow.localize.methods.file_inputs`):
+        the study ships data, not paths, so a worker needs no project file.
     """
 
     project: Project
@@ -107,6 +112,7 @@ class Study:
     visit_covariance: np.ndarray | None = None
     setups: tuple[InstrumentSetup, ...] | None = None
     label: str = ""
+    file_data: dict[str, Any] = field(default_factory=dict)
 
     @property
     def name(self) -> str:
@@ -234,6 +240,7 @@ def prepare_study(
         built_before=tuple(built_before),
         setups=layout.setups,
         label=label,
+        file_data=file_inputs(project, method),
     )
     if fidelity == "sensors":
         return study
@@ -353,11 +360,13 @@ def _localizer_extra(
     track: InstrumentTrack | None,
     previous: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
 ) -> dict[str, Any]:
-    """Keyword arguments of the localizer at visit ``v``: the method's, and the
-    instrument set-up standing then (registered when it is put up)."""
+    """Keyword arguments of the localizer at visit ``v``: the method's, the data of its
+    files (:attr:`Study.file_data`), and the instrument set-up standing then
+    (registered when it is put up)."""
     extra: dict[str, Any] = localizer_arguments(
         study.project, study.method, study.stations[v], study.built_before[v]
     )
+    extra.update(study.file_data)
     if track is not None:
         extra["instrument"] = track.pose_at(v, rng, study.built_before[v], previous)
     return extra

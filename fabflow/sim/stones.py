@@ -35,6 +35,7 @@ import numpy as np
 
 from fabflow.output import write_json
 from fabflow.project import Project
+from fabflow.sim.cluster import environment, run_checked
 from fabflow.stones.run import StoneRun, run_stone_wall
 
 if TYPE_CHECKING:
@@ -122,7 +123,9 @@ def simulate_stones(
         Called with 1 after each run.
     client
         A Dask client to run on (one task per run; the results do not depend on
-        where a run ran); ``None`` runs them here, one after the other.
+        where a run ran, and a worker with other versions than this machine's is
+        refused: :func:`fabflow.sim.cluster.run_checked`); ``None`` runs them here,
+        one after the other.
 
     Returns
     -------
@@ -138,7 +141,11 @@ def simulate_stones(
     else:
         from distributed import as_completed
 
-        futures = [client.submit(one_run, project, seed, k, pure=False) for k in range(n_runs)]
+        here = environment()
+        futures = [
+            client.submit(run_checked, here, one_run, project, seed, k, pure=False)
+            for k in range(n_runs)
+        ]
         for future in as_completed(futures):
             rows.append(future.result())
             if progress is not None:

@@ -197,7 +197,7 @@ def reach_check(
     project: Project, T_world_base: FloatArray
 ) -> Callable[[FloatArray], NDArray[np.bool_]]:
     """A function telling which gripper poses (world, ``(K, 4, 4)``) the arm reaches."""
-    robot = get_robot(project.robot.model)
+    robot = get_robot(project.robot.name)
     T_base_world = inv_T(T_world_base)
     T_tool_flange = inv_T(project.robot.tool.T_flange_tool.matrix())
 
@@ -337,7 +337,7 @@ def _plan_pick(
     targets = target_poses(obj, slot.pose.matrix(), slot.size)
     free = clear_of(map_points, targets[0, :3, 3], gripper)
     mass = stone_mass(obj)
-    payload = get_robot(project.robot.model).payload
+    payload = get_robot(project.robot.name).payload
     if mass + project.robot.tool.mass > payload:
         why = (
             f"it weighs about {mass:.0f} kg: with the tool more than the "

@@ -96,7 +96,7 @@ def awkward_levels(
     element = np.asarray(element, dtype=np.intp)
     reach = np.asarray(reach, dtype=np.int64)
     masks = np.zeros((2, len(station)), dtype=np.int64)
-    robot = get_robot(project.robot.model)
+    robot = get_robot(project.robot.name)
     is_block = np.array([work[e].type == "block" for e in element], dtype=bool)
     if robot.dof != 6 or not is_block.any():
         return masks[0], masks[1]

@@ -126,7 +126,7 @@ def plan_project(
     _platform_check(project)
     if reach is None:
         T_flange_tool = project.robot.tool.T_flange_tool.matrix()
-        reach = reach_model(project.robot.model, T_flange_tool).shrunk(planning.reach_margin)
+        reach = reach_model(project.robot.name, T_flange_tool).shrunk(planning.reach_margin)
 
     elements, pieces = split_wide_paths(elements, SPLIT_FRACTION * reach.r_max)
     piece_ids = {p for ids in pieces.values() for p in ids}
@@ -154,7 +154,7 @@ def plan_project(
         reach.r_max,
         planning.candidate_spacing,
         planning.headings_deg,
-        shoulder_radius(get_robot(project.robot.model)) + project.program.clearance,
+        shoulder_radius(get_robot(project.robot.name)) + project.program.clearance,
     )
     t_cand = time.perf_counter()
     A, coverage_notes = reach_matrix(

@@ -129,15 +129,16 @@ def T_base_pick_tool(project: Project) -> np.ndarray:
 
 
 def home_configuration(project: Project) -> np.ndarray:
-    """The HOME joint configuration (radians): ``robot.home_deg`` or the catalogue's."""
+    """The HOME joint configuration (radians): ``robot.home_deg`` or the robot's own."""
+    robot = get_robot(project.robot.name)
     if project.robot.home_deg is not None:
-        return np.radians(np.asarray(project.robot.home_deg, dtype=float))
-    return np.asarray(get_robot(project.robot.model).q_home, dtype=float)
+        return robot.from_deg(project.robot.home_deg)
+    return np.asarray(robot.q_home, dtype=float)
 
 
 def T_base_home_tool(project: Project) -> np.ndarray:
     """Tool pose at HOME, in the robot base frame (metres)."""
-    robot = get_robot(project.robot.model)
+    robot = get_robot(project.robot.name)
     return robot.fk(home_configuration(project)) @ project.robot.tool.T_flange_tool.matrix()
 
 

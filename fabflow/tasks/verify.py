@@ -41,7 +41,7 @@ def unreachable_targets(plan: Plan, project: Project) -> list[str]:
     list of str
         The failing element ids (empty when all pass).
     """
-    robot = get_robot(project.robot.model)
+    robot = get_robot(project.robot.name)
     T_tool_flange = np.linalg.inv(project.robot.tool.T_flange_tool.matrix())
     failed: list[str] = []
     for wp, T_base_tool in zip(plan.work_packages, base_targets(plan, project), strict=True):
@@ -84,7 +84,7 @@ def ik_lift_masks(
         (P,) int64 bit masks (bit l: reachable at ``lifts[l]``), or ``None`` when
         the robot has no closed-form IK.
     """
-    robot = get_robot(project.robot.model)
+    robot = get_robot(project.robot.name)
     if robot.analytic_ik is None:
         return None
     T_platform_base = project.robot.platform.T_platform_base.matrix()

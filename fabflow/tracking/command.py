@@ -37,7 +37,7 @@ def run_track(project_path: Path, out: Path, seed: int | None, console: Console)
         meta = {
             "project": p.name,
             "seed": seed,
-            "robot": p.robot.model,
+            "robot": p.robot.name,
             "icp_latency_s": p.tracking.icp_latency_s,
             "settle_s": p.tracking.settle_s,
             "samples": len(closed.t),

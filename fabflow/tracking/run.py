@@ -108,7 +108,7 @@ def track_print(project: Project, mode: Mode, seed: int | None = None) -> Tracki
         Without print paths, for a plan of more than one station, or a path out of reach.
     """
     settings = project.tracking
-    if vendor_of(project.robot.model) != "heap":
+    if vendor_of(project.robot.name) != "heap":
         raise InputError(
             "'fabflow track' simulates a hydraulic excavator; use robot.model "
             f"'excavator_printer' (not {project.robot.model!r})",
@@ -140,7 +140,7 @@ def track_print(project: Project, mode: Mode, seed: int | None = None) -> Tracki
         )
     speed = speeds.pop()
     ref = print_reference(paths, speed, RATE_HZ, settings.max_duration_s)
-    robot = get_robot(project.robot.model)
+    robot = get_robot(project.robot.name)
     T_ft = project.robot.tool.T_flange_tool.matrix()
     T_wb = plan.work_packages[0].station.T_world_base(
         project.robot.platform.T_platform_base.matrix()

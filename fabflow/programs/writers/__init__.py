@@ -8,11 +8,12 @@ the writer for a project's format and robot, or names why it cannot.
 from __future__ import annotations
 
 from fabflow.errors import UnsupportedError
-from fabflow.programs.writers import json_stream, krl, rapid, urscript
+from fabflow.programs.writers import gcode, json_stream, krl, rapid, urscript
 from fabflow.programs.writers.base import Writer
 
 WRITERS: dict[str, Writer] = {
-    w.format: w for w in (krl.WRITER, rapid.WRITER, urscript.WRITER, json_stream.WRITER)
+    w.format: w
+    for w in (krl.WRITER, rapid.WRITER, urscript.WRITER, json_stream.WRITER, gcode.WRITER)
 }
 """Format name to writer, in the order of :data:`~fabflow.robots.catalog.PROGRAM_FORMATS`."""
 

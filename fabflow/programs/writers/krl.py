@@ -48,6 +48,7 @@ from fabflow.programs.writers.base import (
     lift_message,
     split_modules,
 )
+from fabflow.robots.catalog import get_robot
 from fabflow.robots.kuka_config import kuka_status_turn
 from fabflow.transforms.vendors import to_kuka_xyzabc
 
@@ -102,7 +103,8 @@ def _module_text(
     cartesian = [m for m in moves if not m.joint]
     if cartesian:
         values = to_kuka_xyzabc(np.stack([m.T_world_tool for m in cartesian]))
-        status, turn = kuka_status_turn(np.stack([m.q for m in cartesian]))
+        arm = get_robot(program.robot)
+        status, turn = kuka_status_turn(np.stack([m.q for m in cartesian]), arm)
     last_move = moves[-1] if moves else None
     current_speed: float | None = None
     current_axis_speed: float | None = None

@@ -43,15 +43,12 @@ from fabflow.programs.writers.base import (
     lift_message,
     split_modules,
 )
-from fabflow.robots.catalog import IRB4600_60_205_OPW, get_robot
+from fabflow.robots.catalog import get_robot
 from fabflow.robots.opw import OPWParameters
 from fabflow.transforms.vendors import to_abb_pose
 
 MAX_NAME = 32
 """RAPID identifiers have at most 32 characters."""
-
-ARM_GEOMETRY = {"abb_irb4600_60_205": IRB4600_60_205_OPW}
-"""Geometry of the ABB arms, for the ``confdata`` flags."""
 
 SPEEDS_MM_S = (
     5,
@@ -173,12 +170,16 @@ def _body(
     (``declare_home``): a second declaration in another module is a name clash.
     """
     robot = get_robot(program.robot)
-    arm = ARM_GEOMETRY[program.robot]
+    arm = robot.opw
+    assert arm is not None  # write_rapid refuses an arm without one
     decl: list[str] = []
     lines: list[str] = []
     moves = [i for i in body if isinstance(i, Move)]
     last_move = moves[-1] if moves else None
-    flanges = robot.fk(np.stack([m.q for m in moves])) if moves else np.zeros((0, 4, 4))
+    # confdata's wrist centre lies c4 behind the arm's own flange (the last joint frame)
+    flanges = (
+        robot.frames(np.stack([m.q for m in moves]))[:, robot.dof] if moves else np.zeros((0, 4, 4))
+    )
     n = first_point
     for k, ins in enumerate(moves):
         if ins.joint:
@@ -249,9 +250,9 @@ def write_rapid(program: Program, max_moves: int | None = None) -> dict[str, str
     dict[str, str]
         ``{"NAME.mod": text, "NAME_M01.mod": text, ...}``.
     """
-    if program.robot not in ARM_GEOMETRY:
+    if get_robot(program.robot).opw is None:
         raise UnsupportedError(
-            f"RAPID programs need an ABB arm's geometry; '{program.robot}' has none"
+            f"RAPID programs need an ABB arm's geometry (OPW); '{program.robot}' has none"
         )
     name = _sanitize(program.name, MAX_NAME)
     tool = _sanitize(f"t_{program.tool_name}", MAX_NAME)

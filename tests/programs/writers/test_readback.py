@@ -64,9 +64,8 @@ def check_read_back(read: ReadProgram, program: Program, vendor: str) -> None:
         if vendor == "kuka" and move.kind == "ptp":
             assert motion.status_turn == kuka_status_turn(move.q)
         if vendor == "abb":
-            from fabflow.programs.writers.rapid import ARM_GEOMETRY
-
-            assert motion.status_turn == confdata(move.q, flange, ARM_GEOMETRY[program.robot])
+            assert robot.opw is not None
+            assert motion.status_turn == confdata(move.q, flange, robot.opw)
     # the tool load
     assert read.load_mass == pytest.approx(program.load.mass, abs=1e-3)
     np.testing.assert_allclose(read.load_cog, program.load.cog, atol=1e-6)

@@ -195,7 +195,7 @@ def test_vendor_format_must_fit_robot() -> None:
     with pytest.raises(UnsupportedError, match=r"use format 'json'$"):
         writer_for("rapid", "brokk_170")
     with pytest.raises(UnsupportedError, match="unknown program format"):
-        writer_for("gcode", "kuka_kr60_3")
+        writer_for("nc", "kuka_kr60_3")
     writer_for("json", "brokk_170")
 
 
