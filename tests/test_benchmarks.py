@@ -23,6 +23,7 @@ def test_every_area_has_a_benchmark() -> None:
         "kinematics",
         "plan",
         "total_station",
+        "registration",
         "icp",
         "uwb",
         "programs",
@@ -31,6 +32,7 @@ def test_every_area_has_a_benchmark() -> None:
         "stones",
         "tracking",
         "link",
+        "startup",
     } <= names
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import math
 from pathlib import Path
@@ -15,6 +16,7 @@ from fabflow.build.runner import run_build
 from fabflow.errors import InfeasibleError
 from fabflow.output import MARKER, atomic_output_dir
 from fabflow.project import load_project
+from fabflow.version import __version__
 
 BAD = ROOT / "tests" / "data" / "bad_projects"
 
@@ -65,7 +67,13 @@ def test_schema_prints_json(cli) -> None:
 def test_version(cli) -> None:
     result = cli("--version")
     assert result.returncode == 0
-    assert result.stdout.startswith("fabflow ")
+    assert result.stdout.strip() == f"fabflow {__version__}"
+
+
+def test_version_is_the_installed_distribution_version() -> None:
+    # the literal in fabflow/version.py is what the package metadata reads; an
+    # install made before the literal changed shows up here
+    assert __version__ == importlib.metadata.version("fabflow")
 
 
 @pytest.mark.parametrize("name", ["cabin", "print_path", "excavator_print", "timber_wall"])

@@ -173,6 +173,12 @@ class TestResult:
         return float(s[:, 0].max()), float(s[:, 1].max())
 
 
+@functools.lru_cache(maxsize=1024)
+def chi2_quantile(dof: int, alpha: float) -> float:
+    """Critical value of a chi-square(dof) test at level ``alpha`` (cached per dof and level)."""
+    return float(special.chdtri(dof, alpha))
+
+
 @functools.lru_cache(maxsize=256)
 def noncentrality(alpha0: float, power: float = POWER, dof: int = 1) -> float:
     """Non-centrality ``lambda_0`` at which a chi-square(dof) test at ``alpha0`` has ``power``.
@@ -180,7 +186,7 @@ def noncentrality(alpha0: float, power: float = POWER, dof: int = 1) -> float:
     For one degree of freedom this is ``(z_{1-alpha0/2} + z_{power})^2``, Baarda's
     ``lambda_0`` (17.07 for ``alpha0 = 0.001``, ``power = 0.8``).
     """
-    crit = float(special.chdtri(dof, alpha0))
+    crit = chi2_quantile(dof, alpha0)
 
     def gap(lam: float) -> float:
         return float(special.chndtr(crit, dof, lam)) - (1.0 - power)
@@ -239,7 +245,7 @@ def adjustment_test(
     Qiv = Q.solve(v)
     r = m - int(np.linalg.matrix_rank(A)) + extra_redundancy
     statistic = float(v @ Qiv) + extra_statistic
-    threshold = float(special.chdtri(r, alpha)) if r > 0 else math.inf
+    threshold = chi2_quantile(r, alpha) if r > 0 else math.inf
     p_value = float(special.chdtrc(r, statistic)) if r > 0 else 1.0
     G = np.eye(3, u) if position_map is None else np.asarray(position_map, dtype=float)
     h = len(hypotheses)
@@ -271,7 +277,7 @@ def adjustment_test(
             bias[i] = Sinv @ b
             w[i] = math.sqrt(max(float(b @ Sinv @ b), 0.0))
             dof = int(seen.sum())
-            thr[i] = math.sqrt(float(special.chdtri(dof, alpha0)))
+            thr[i] = math.sqrt(chi2_quantile(dof, alpha0))
             if _redundancy_numbers(own, S).min() < MIN_REDUNDANCY:
                 continue  # a direction of this bias is invisible: MDB and shift infinite
             lam = noncentrality(alpha0, POWER, dof)
@@ -322,7 +328,7 @@ def _one_column_tests(
     Ss = np.where(seen, S, 1.0)
     w = np.where(seen, np.abs(b) / np.sqrt(Ss), np.nan)
     bias = [np.array([x]) for x in np.where(seen, b / Ss, np.nan)]
-    thr = np.where(seen, math.sqrt(float(special.chdtri(1, alpha0))), np.inf)
+    thr = np.where(seen, math.sqrt(chi2_quantile(1, alpha0)), np.inf)
     visible = seen & (S / np.maximum(own, 1e-300) >= MIN_REDUNDANCY)
     lam = noncentrality(alpha0, POWER, 1)
     mdb = np.where(visible, np.sqrt(lam / Ss), np.inf)

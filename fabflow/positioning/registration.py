@@ -11,11 +11,15 @@ problem over ``(O, X, Y)`` with SLSQP instead. The result carries the 6x6
 covariance (fabflow convention, see :mod:`fabflow.positioning.result`),
 residuals, RMSE and a leave-one-out test for a single bad prism reading
 (:class:`OutlierTest`). The solvers themselves are in
-:mod:`fabflow.positioning.rigid_fit`.
+:mod:`fabflow.positioning.rigid_fit`, the tests as array kernels (all points
+at once, nothing refitted) in :mod:`fabflow.positioning.registration_tests`;
+:func:`fabflow.positioning.registration_batch.register_points_batch` solves
+many problems of the same size at once.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Literal
@@ -23,30 +27,36 @@ from typing import Any, Literal
 import numpy as np
 from scipy import special
 
-from fabflow.errors import InputError, LocalizationError
+from fabflow.errors import InputError
 from fabflow.positioning.integrity import (
     ALPHA,
-    Covariance,
-    Hypothesis,
     Integrity,
     TestResult,
-    adjustment_test,
     identify,
     record,
     unchecked,
 )
 from fabflow.positioning.prism_match import match_prisms
+from fabflow.positioning.registration_tests import (
+    Fits,
+    LooTestArrays,
+    PointTestArrays,
+    as_test_result,
+    leave_each_out,
+    loo_f_test_arrays,
+    point_test_arrays,
+)
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.rigid_fit import (
+    NormalEquations,
     as_points,
+    check_geometries,
     check_geometry,
-    kabsch,
-    normal_matrices,
-    optimize_registration,
-    point_jacobians,
-    refine_registration,
+    degenerate,
+    normal_equations,
+    principal_spreads,
 )
-from fabflow.transforms.se3 import make_T
+from fabflow.positioning.small_linalg import inv_spd6
 
 
 @dataclass(frozen=True, eq=False)
@@ -178,63 +188,6 @@ class Registration:
         )
 
 
-def _loo_test(
-    P: np.ndarray,
-    M: np.ndarray,
-    W: np.ndarray,
-    R: np.ndarray,
-    t: np.ndarray,
-    known_sigma: bool,
-    alpha: float,
-) -> OutlierTest | None:
-    """Leave-one-out prediction test over all points at once (see :class:`OutlierTest`)."""
-    n = P.shape[0]
-    if n < 4:
-        return None
-    idx = np.nonzero(~np.eye(n, dtype=bool))[1].reshape(n, n - 1)
-    # each leave-one-out fit starts from the full fit: a few Gauss-Newton steps
-    # reach its own optimum (the weighted Kabsch one when W is isotropic)
-    Rs, ts, _ = refine_registration(
-        np.broadcast_to(R, (n, 3, 3)), np.broadcast_to(t, (n, 3)), P[idx], M[idx], W[idx], 3
-    )
-    d = M - (np.einsum("nij,nj->ni", Rs, P) + ts)
-    J = point_jacobians(R, P)
-    N = normal_matrices(J, W)
-    cov_without = np.linalg.inv(N.sum(axis=0) - N)
-    C = np.linalg.inv(W) + np.einsum("nij,njk,nlk->nil", J, cov_without, J)
-    stat = np.einsum("ni,ni->n", d, np.linalg.solve(C, d[..., None])[..., 0])
-    level = alpha / n
-    if known_sigma:
-        threshold = float(special.chdtri(3, level))
-        k = int(np.argmax(stat))
-        p_value = float(special.chdtrc(3, stat[k]))
-    else:
-        dof = 3 * (n - 1) - 6
-        e = np.einsum("nij,nkj->nki", Rs, P[idx]) + ts[:, None, :] - M[idx]
-        ssr = np.einsum("nkij,nki,nkj->n", W[idx], e, e)
-        stat = stat / (3.0 * np.maximum(ssr / dof, 1e-24))
-        threshold = float(special.fdtri(3, dof, 1.0 - level))
-        k = int(np.argmax(stat))
-        p_value = float(special.fdtrc(3, dof, stat[k]))
-    return OutlierTest(
-        index=k,
-        flagged=bool(stat[k] > threshold),
-        statistics=stat,
-        threshold=threshold,
-        p_value=p_value,
-        loo_residuals=d,
-        known_sigma=known_sigma,
-    )
-
-
-def _spans_plane(points: np.ndarray) -> bool:
-    try:
-        check_geometry(points)
-    except LocalizationError:
-        return False
-    return True
-
-
 def _scatter(values: np.ndarray, idx: np.ndarray, n: int, fill: float) -> np.ndarray:
     out = np.full((n, *values.shape[1:]), fill)
     out[idx] = values
@@ -310,8 +263,7 @@ def register_points(
     labels = list(point_labels) if point_labels is not None else [f"prism {i}" for i in range(n)]
     if len(labels) != n:
         raise InputError(f"point_labels must name the {n} points, got {len(labels)}")
-    check_geometry(P, "points_base")
-    check_geometry(M, "points_world")
+    check_geometries((P, M), ("points_base", "points_world"))
     if method not in ("closed_form", "optimize"):
         raise InputError(f"unknown method {method!r}; expected 'closed_form' or 'optimize'")
     known_sigma = point_cov is not None or sigma is not None
@@ -320,9 +272,11 @@ def register_points(
         if C.shape != (n, 3, 3) or not np.all(np.isfinite(C)):
             raise InputError(f"point_cov must be a finite ({n}, 3, 3) array, got {C.shape}")
         C = C + base_sigma**2 * np.eye(3)
-        if np.any(np.linalg.eigvalsh(C)[:, 0] <= 0):
+        c_min = np.linalg.eigvalsh(C)[:, 0]
+        if np.any(c_min <= 0):
             raise InputError("point_cov must be positive definite for every point")
         w = 3.0 / np.trace(C, axis1=1, axis2=2)
+        w_max = 1.0 / c_min  # largest eigenvalue of each information matrix
     else:
         w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
         if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
@@ -330,60 +284,68 @@ def register_points(
         s2 = (1.0 if sigma is None else sigma**2) + base_sigma**2
         # zero-weight points get a placeholder: they never enter the fit
         C = (s2 / np.where(w > 0, w, 1.0))[:, None, None] * np.eye(3)
+        w_max = w / s2
     keep = w > 0
     if not keep.all():
         check_geometry(P[keep], "points_base with positive weight")
     identification: dict[str, Any] = {}
     if known_sigma and identify_prisms:
         order, identification = match_prisms(P, M, C, labels, alpha)
-        M, C, w = M[order], C[order], w[order]
+        M, C, w, w_max = M[order], C[order], w[order], w_max[order]
         keep = w > 0
-    W = np.zeros_like(C)
-    W[keep] = np.linalg.inv(C[keep])
+    if point_cov is None:
+        W = w_max[:, None, None] * np.eye(3)
+    elif keep.all():
+        W = np.linalg.inv(C)
+    else:
+        W = np.zeros_like(C)
+        W[keep] = np.linalg.inv(C[keep])
+    fits = Fits(P, M, w, W, w_max, method, refine=point_cov is not None)
 
-    def solve(sel: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-        if method == "optimize":
-            return optimize_registration(P[sel], M[sel], w[sel])
-        R, t, iters = (*kabsch(P[sel], M[sel], w[sel]), 0)
-        if point_cov is not None:
-            return refine_registration(R, t, P[sel], M[sel], W[sel])
-        return R, t, iters
-
-    R, t, iters = solve(keep)
     excluded: list[dict[str, Any]] = []
     integrity: Integrity
+    final: tuple[NormalEquations, np.ndarray] | None = None
     if known_sigma:
-        tests = point_tests(P, M, C, R, t, keep, labels, alpha)
-        outlier = _outlier_report(tests, keep)
+        R, t, iters = fits.one(keep)
+        everything = keep.all()
+        tests, arrays, eq = _point_tests(
+            P,
+            M,
+            W if everything else W[keep],
+            R,
+            t,
+            keep,
+            labels,
+            alpha,
+            w_max if everything else w_max[keep],
+        )
+        final = (eq, arrays.Ninv)
+        outlier = outlier_report(tests, keep, arrays.bias)
         ambiguous: list[str] = []
         while reject_outlier and identify(tests) is not None:
             # every point the w-tests could blame is tried: left out, fitted again, tested
-            trials = []
-            for i in np.flatnonzero(keep):
-                trial = keep.copy()
-                trial[i] = False
-                if not _spans_plane(P[trial]):
-                    continue
-                fit = solve(trial)
-                trials.append((i, trial, fit, point_tests(P, M, C, *fit[:2], trial, labels, alpha)))
-            passing = [x for x in trials if x[3].passed]
+            trials = leave_each_out(fits, keep, labels, alpha)
+            passing = [x for x in trials if x.passed]
             if len(passing) > 1:
                 # several single points explain the misfit: the faulty one is not identified
-                ambiguous = [labels[x[0]] for x in passing]
+                ambiguous = [labels[x.index] for x in passing]
                 break
             if passing:
-                i, keep, (R, t, iters), after = passing[0]
+                chosen = passing[0]
             elif trials and keep.sum() > 4:
                 # no single point explains it: leave out the one the w-test blames, go on
                 k = identify(tests)
                 assert k is not None
                 i = int(np.flatnonzero(keep)[k])
-                blamed = next((x for x in trials if x[0] == i), None)
+                blamed = next((x for x in trials if x.index == i), None)
                 if blamed is None:
                     break  # the rest would not span a plane: the pose stays failed
-                i, keep, (R, t, iters), after = blamed
+                chosen = blamed
             else:
                 break
+            i, keep, R, t, iters = chosen.index, chosen.keep, chosen.R, chosen.t, chosen.iters
+            after, eq, Ninv = chosen.result()
+            final = (eq, Ninv)
             k = tests.labels.index(labels[i])
             excluded.append(
                 {
@@ -402,15 +364,29 @@ def register_points(
                 + ": the faulty reading cannot be identified"
             )
     else:
-        outlier = _loo_outliers(P, M, W, R, t, keep, alpha)
+        sel = np.flatnonzero(keep)
+        omega = w[sel] / s2
+        loo: LooTestArrays | None = None
+        if method == "closed_form" and len(sel) >= 4:
+            # the leave-one-out stack holds the fit of all the points too
+            loo = loo_f_test_arrays(P[sel], M[sel], omega, alpha)
+            R, t, iters = loo.R, loo.t, 0
+        else:
+            R, t, iters = fits.one(keep)
+            if len(sel) >= 4:
+                loo = loo_f_test_arrays(P[sel], M[sel], omega, alpha, R, t)
+        outlier = None if loo is None else _loo_outlier_test(loo, sel, n)
+        if loo is not None:
+            final = (loo.eq, loo.Ninv)
         if outlier is not None and outlier.flagged and reject_outlier:
             trial = keep.copy()
             trial[outlier.index] = False
-            if _spans_plane(P[trial]):
+            if not degenerate(principal_spreads(P[trial])):
                 keep = trial
-                R, t, iters = solve(keep)
+                R, t, iters = fits.one(keep)
+                final = None
                 excluded.append({"observation": labels[outlier.index], "w": None})
-        integrity = _relative_integrity(outlier, excluded, labels, alpha)
+        integrity = relative_integrity(outlier, excluded, labels, alpha)
     if identification:
         integrity = integrity.with_checks(prism_identification=identification)
         if identification.get("reassigned"):
@@ -419,27 +395,31 @@ def register_points(
                 reason="; ".join(x for x in (identification["reassigned"], integrity.reason) if x),
             )
 
-    J = point_jacobians(R, P[keep])
-    info = normal_matrices(J, W[keep]).sum(axis=0)
-    cov = np.linalg.inv(info)
+    if final is None:
+        eq = normal_equations(R, t, P[keep], M[keep], W[keep])
+        final = (eq, inv_spd6(eq.N))
+    eq, cov = final
     residuals = M - (P @ R.T + t)
-    r_in = residuals[keep]
-    dof = 3 * int(keep.sum()) - 6
-    chi2 = float(np.einsum("ni,nij,nj->", r_in, W[keep], r_in))
+    r_in = residuals if keep.all() else residuals[keep]
+    dof = 3 * len(r_in) - 6
+    chi2 = float(np.einsum("ni,ni->", eq.v, eq.Wv))
     vf = chi2 / dof if dof > 0 else float("nan")
     if not known_sigma:
         # relative weights only: scale the covariance by the estimated variance
         cov = cov * (vf if dof > 0 else 0.0)
+    T_world_base = np.eye(4)
+    T_world_base[:3, :3] = R
+    T_world_base[:3, 3] = t
     return Registration(
-        T_world_base=make_T(R, t),
+        T_world_base=T_world_base,
         covariance=0.5 * (cov + cov.T),
         residuals=residuals,
-        rmse=float(np.sqrt(np.mean(np.einsum("ni,ni->n", r_in, r_in)))),
+        rmse=math.sqrt(float(np.einsum("ni,ni->", r_in, r_in)) / len(r_in)),
         method=method,
         variance_factor=vf,
         outlier_test=outlier,
         rejected=tuple(int(i) for i in np.flatnonzero(~keep)),
-        iterations=iters,
+        iterations=int(iters),
         integrity=integrity,
     )
 
@@ -461,68 +441,96 @@ def point_tests(
     (a bias of its three coordinates: chi-square(3), the leave-one-out test) and
     a scale error between the instrument and the robot geometry (a wrong
     distance unit or a robot model of the wrong size), which cannot be left out.
+    The numbers of :func:`~fabflow.positioning.integrity.adjustment_test`, from
+    :func:`~fabflow.positioning.registration_tests.point_test_arrays`.
     """
     sel = np.flatnonzero(keep)
-    n = len(sel)
-    A = point_jacobians(R, P[sel]).reshape(3 * n, 6)
-    v = (M[sel] - (P[sel] @ R.T + t)).reshape(-1)
-    hyps = [Hypothesis(labels[i], np.kron(np.eye(n)[:, [k]], np.eye(3))) for k, i in enumerate(sel)]
-    hyps.append(
-        Hypothesis(
-            "scale (instrument vs robot)", (P[sel] @ R.T).reshape(-1), excludable=False, unit=""
-        )
-    )
-    return adjustment_test(A, Covariance(blocks=C[sel]), v, hyps, alpha)
+    return _point_tests(P, M, np.linalg.inv(C[sel]), R, t, keep, labels, alpha)[0]
 
 
-def _outlier_report(tests: TestResult, keep: np.ndarray) -> OutlierTest | None:
-    """The per-point part of the tests in the form of :class:`OutlierTest`."""
-    n_points = len(tests.w) - 1
-    if n_points < 4:
-        return None
-    sel = np.flatnonzero(keep)
-    stat = tests.w[:n_points] ** 2
-    k = int(np.nanargmax(stat))
-    threshold = float(tests.thresholds[k] ** 2)
-    n = len(keep)
-    return OutlierTest(
-        index=int(sel[k]),
-        flagged=bool(stat[k] > threshold),
-        statistics=_scatter(stat, sel, n, np.nan),
-        threshold=threshold,
-        p_value=float(special.chdtrc(3, stat[k])),
-        loo_residuals=_scatter(np.stack(tests.bias[:n_points]), sel, n, np.nan),
-        known_sigma=True,
-    )
-
-
-def _loo_outliers(
+def _point_tests(
     P: np.ndarray,
     M: np.ndarray,
     W: np.ndarray,
     R: np.ndarray,
     t: np.ndarray,
     keep: np.ndarray,
+    labels: Sequence[str],
     alpha: float,
+    w_max: np.ndarray | None = None,
+) -> tuple[TestResult, PointTestArrays, NormalEquations]:
+    """:func:`point_tests` from the information matrices ``W`` of the kept points (and
+    their largest eigenvalues, when known), also returning the arrays and the fit's
+    normal equations."""
+    if keep.all():
+        Pk, Mk, names = P, M, list(labels)
+    else:
+        sel = np.flatnonzero(keep)
+        Pk, Mk, names = P[sel], M[sel], [labels[i] for i in sel]
+    eq = normal_equations(R, t, Pk, Mk, W)
+    arrays = point_test_arrays(eq, W, alpha, w_max)
+    return as_test_result(arrays, names), arrays, eq
+
+
+def outlier_report(
+    tests: TestResult, keep: np.ndarray, bias: np.ndarray | None = None
 ) -> OutlierTest | None:
-    """The leave-one-out F-test when the noise level is estimated from the residuals."""
-    sel = np.flatnonzero(keep)
-    test = _loo_test(P[keep], M[keep], W[keep], R, t, False, alpha)
-    if test is None:
+    """The per-point part of the tests in the form of :class:`OutlierTest`.
+
+    ``bias``: the ``(k, 3)`` bias estimates of the kept points when at hand (else
+    those of ``tests``).
+    """
+    n_points = len(tests.w) - 1
+    if n_points < 4:
         return None
+    stat = tests.w[:n_points] ** 2
+    k = int(np.nanargmax(stat) if np.isnan(stat).any() else np.argmax(stat))
+    threshold = float(tests.thresholds[k] ** 2)
+    loo = np.stack(tests.bias[:n_points]) if bias is None else bias
     n = len(keep)
+    if n_points == n:
+        index, statistics, loo_residuals = k, stat, loo.copy()
+    else:
+        sel = np.flatnonzero(keep)
+        index = int(sel[k])
+        statistics = _scatter(stat, sel, n, np.nan)
+        loo_residuals = _scatter(loo, sel, n, np.nan)
     return OutlierTest(
-        index=int(sel[test.index]),
-        flagged=test.flagged,
-        statistics=_scatter(test.statistics, sel, n, np.nan),
-        threshold=test.threshold,
-        p_value=test.p_value,
-        loo_residuals=_scatter(test.loo_residuals, sel, n, np.nan),
+        index=index,
+        flagged=bool(stat[k] > threshold),
+        statistics=statistics,
+        threshold=threshold,
+        p_value=_chi2_3_sf(float(stat[k])),
+        loo_residuals=loo_residuals,
+        known_sigma=True,
+    )
+
+
+def _chi2_3_sf(x: float) -> float:
+    """Survival function of chi-square with 3 degrees of freedom (closed form)."""
+    return math.erfc(math.sqrt(0.5 * x)) + math.sqrt(2.0 * x / math.pi) * math.exp(-0.5 * x)
+
+
+def _loo_outlier_test(loo: LooTestArrays, sel: np.ndarray, n: int) -> OutlierTest:
+    """The leave-one-out F-test (noise level from the residuals) as an :class:`OutlierTest`."""
+    stat = loo.statistics
+    k = int(np.argmax(stat))
+    dof = 3 * (len(sel) - 1) - 6
+    everything = len(sel) == n
+    return OutlierTest(
+        index=k if everything else int(sel[k]),
+        flagged=bool(stat[k] > loo.threshold),
+        statistics=stat if everything else _scatter(stat, sel, n, np.nan),
+        threshold=loo.threshold,
+        p_value=float(special.fdtrc(3, dof, stat[k])),
+        loo_residuals=loo.loo_residuals
+        if everything
+        else _scatter(loo.loo_residuals, sel, n, np.nan),
         known_sigma=False,
     )
 
 
-def _relative_integrity(
+def relative_integrity(
     test: OutlierTest | None,
     excluded: list[dict[str, Any]],
     labels: Sequence[str],

@@ -9,12 +9,18 @@ checks they share (:func:`as_points`, :func:`check_geometry`). Metres throughout
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy import optimize
 
 from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.small_linalg import (
+    best_rotation,
+    eigvalsh3,
+    exp_rotvec,
+    solve_spd6,
+)
 from fabflow.transforms.so3 import exp_so3
 
 COLLINEAR_RATIO = 1e-3
@@ -38,6 +44,23 @@ def as_points(a: Any, name: str, n: int | None = None) -> np.ndarray:
     return p
 
 
+def principal_spreads(points: np.ndarray) -> np.ndarray:
+    """RMS spreads ``(..., 3)`` of point sets ``(..., n, 3)`` along principal axes, largest first.
+
+    The square roots of the eigenvalues of the sets' scatter matrices over
+    ``n`` (metres; the singular values of the centred points over ``sqrt(n)``).
+    """
+    n = points.shape[-2]
+    centred = points - points.mean(axis=-2, keepdims=True)
+    scatter = np.swapaxes(centred, -1, -2) @ centred
+    return np.sqrt(np.maximum(eigvalsh3(scatter)[..., ::-1], 0.0) / n)
+
+
+def degenerate(spreads: np.ndarray) -> np.ndarray:
+    """Whether point sets with these :func:`principal_spreads` cannot fix a rigid pose."""
+    return (spreads[..., 1] < MIN_SPREAD) | (spreads[..., 1] < COLLINEAR_RATIO * spreads[..., 0])
+
+
 def check_geometry(points: np.ndarray, name: str = "points") -> None:
     """Refuse point sets that cannot fix a rigid pose: fewer than 3, or (nearly) collinear.
 
@@ -47,26 +70,28 @@ def check_geometry(points: np.ndarray, name: str = "points") -> None:
         When the second principal spread of ``points`` ((n, 3), metres) is below
         :data:`MIN_SPREAD` or below :data:`COLLINEAR_RATIO` times the first.
     """
-    n = points.shape[0]
+    check_geometries((points,), (name,))
+
+
+def check_geometries(point_sets: tuple[np.ndarray, ...], names: tuple[str, ...]) -> None:
+    """:func:`check_geometry` of several ``(n, 3)`` sets of the same size in one call.
+
+    The first set that fails (in the order given) raises.
+    """
+    n = point_sets[0].shape[0]
     if n < 3:
-        raise LocalizationError(f"{name}: need at least 3 points to fix a pose, got {n}")
-    centred = points - points.mean(axis=0)
-    s = np.linalg.svd(centred, compute_uv=False) / np.sqrt(n)
-    if s[1] < MIN_SPREAD or s[1] < COLLINEAR_RATIO * s[0]:
+        raise LocalizationError(f"{names[0]}: need at least 3 points to fix a pose, got {n}")
+    stacked = point_sets[0] if len(point_sets) == 1 else np.stack(point_sets)
+    spreads = principal_spreads(stacked).reshape(len(point_sets), 3)
+    bad = degenerate(spreads)
+    if bad.any():
+        k = int(np.argmax(bad))
+        s = spreads[k]
         raise LocalizationError(
-            f"{name}: the {n} points are (nearly) collinear or coincident "
+            f"{names[k]}: the {n} points are (nearly) collinear or coincident "
             f"(principal spreads {s[0]:.4g} m, {s[1]:.3g} m); the rotation about their "
             "line is undetermined. Use points that span a plane."
         )
-
-
-def _det3(A: np.ndarray) -> np.ndarray:
-    """Determinants of ``(..., 3, 3)`` matrices (cheaper than ``np.linalg.det`` on tiny ones)."""
-    return (
-        A[..., 0, 0] * (A[..., 1, 1] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 1])
-        - A[..., 0, 1] * (A[..., 1, 0] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 0])
-        + A[..., 0, 2] * (A[..., 1, 0] * A[..., 2, 1] - A[..., 1, 1] * A[..., 2, 0])
-    )
 
 
 def kabsch(
@@ -74,7 +99,8 @@ def kabsch(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Weighted least-squares rigid fit ``points_world ~ R @ points_base + t`` (no checks).
 
-    Reflection-safe Kabsch/Umeyama without scale, batch-capable.
+    Reflection-safe Kabsch/Umeyama without scale, batch-capable (the rotation
+    from :func:`fabflow.positioning.small_linalg.best_rotation`).
 
     Parameters
     ----------
@@ -90,38 +116,60 @@ def kabsch(
     """
     P = np.asarray(points_base, dtype=float)
     M = np.asarray(points_world, dtype=float)
-    if P.ndim == 2:
-        # single problem: plain matrix products, no einsum or batch bookkeeping
-        if weights is None:
-            p0 = P.mean(axis=0)
-            m0 = M.mean(axis=0)
-            H = (P - p0).T @ (M - m0)
-        else:
-            w = np.asarray(weights, dtype=float) / np.sum(weights)
-            p0 = w @ P
-            m0 = w @ M
-            H = (P - p0).T @ ((M - m0) * w[:, None])
-        U, _, Vt = np.linalg.svd(H)
-        R = (U @ Vt).T
-        (a, b, c), (d, e, f), (g, h, i) = R.tolist()
-        if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:
-            Vt[2] = -Vt[2]
-            R = (U @ Vt).T
-        return R, m0 - R @ p0
-    w = np.ones(P.shape[:-1]) if weights is None else np.asarray(weights, dtype=float)
-    w = w / w.sum(axis=-1, keepdims=True)
-    p0 = np.einsum("...n,...ni->...i", w, P)
-    m0 = np.einsum("...n,...ni->...i", w, M)
-    H = np.einsum("...n,...ni,...nj->...ij", w, P - p0[..., None, :], M - m0[..., None, :])
-    U, _, Vt = np.linalg.svd(H)
-    # R = V diag(1, 1, det(V U^T)) U^T: flipping the weakest axis avoids a reflection
-    s = np.sign(_det3(U) * _det3(Vt))
-    s = np.where(s == 0, 1.0, s)
-    Vt = Vt.copy()
-    Vt[..., 2, :] *= s[..., None]
-    R = np.swapaxes(U @ Vt, -1, -2)
-    t = m0 - np.einsum("...ij,...j->...i", R, p0)
-    return R, t
+    if weights is None:
+        p0 = P.mean(axis=-2)
+        m0 = M.mean(axis=-2)
+        H = np.swapaxes(P - p0[..., None, :], -1, -2) @ (M - m0[..., None, :])
+    else:
+        w = np.asarray(weights, dtype=float)
+        w = w / w.sum(axis=-1, keepdims=True)
+        p0 = (w[..., None, :] @ P)[..., 0, :]
+        m0 = (w[..., None, :] @ M)[..., 0, :]
+        H = np.swapaxes(P - p0[..., None, :], -1, -2) @ ((M - m0[..., None, :]) * w[..., None])
+    R = best_rotation(H)
+    return R, m0 - (R @ p0[..., None])[..., 0]
+
+
+def kabsch_leave_one_out(
+    points_base: np.ndarray, points_world: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`kabsch` of all the points and of every set with one point left out, at once.
+
+    Leaving point ``k`` out moves the weighted centroids by ``-f_k (p_k - p0)``
+    and ``-f_k (m_k - m0)``, ``f_k = w_k / (1 - w_k)`` (weights summing to 1),
+    and changes the cross-covariance by the rank-one downdate
+    ``-f_k (p_k - p0)(m_k - m0)^T``; the ``n + 1`` rotations then come from one
+    stack of 3x3 problems (:func:`~fabflow.positioning.small_linalg.best_rotation`)
+    instead of ``n`` fits.
+
+    Parameters
+    ----------
+    points_base, points_world
+        ``(..., n, 3)`` corresponding points (metres), n >= 4.
+    weights
+        ``(..., n)`` positive weights.
+
+    Returns
+    -------
+    R, t
+        ``(..., n + 1, 3, 3)`` and ``(..., n + 1, 3)``: index 0 the fit of all the
+        points, index ``1 + k`` the fit without point ``k``.
+    """
+    w = weights / weights.sum(axis=-1, keepdims=True)
+    p0 = (w[..., None, :] @ points_base)[..., 0, :]
+    m0 = (w[..., None, :] @ points_world)[..., 0, :]
+    Pc = points_base - p0[..., None, :]
+    Mc = points_world - m0[..., None, :]
+    H = np.swapaxes(Pc, -1, -2) @ (Mc * w[..., None])
+    f = w / (1.0 - w)
+    fP = f[..., None] * Pc
+    stack = np.concatenate(
+        [H[..., None, :, :], H[..., None, :, :] - fP[..., :, None] * Mc[..., None, :]], axis=-3
+    )
+    R = best_rotation(stack)
+    p_c = np.concatenate([p0[..., None, :], p0[..., None, :] - fP], axis=-2)
+    m_c = np.concatenate([m0[..., None, :], m0[..., None, :] - f[..., None] * Mc], axis=-2)
+    return R, m_c - (R @ p_c[..., None])[..., 0]
 
 
 def point_jacobians(R: np.ndarray, points_base: np.ndarray) -> np.ndarray:
@@ -144,6 +192,114 @@ def normal_matrices(J: np.ndarray, W: np.ndarray) -> np.ndarray:
     return np.einsum("...nki,...nkl,...nlj->...nij", J, W, J)
 
 
+def _jacobian_maps() -> tuple[np.ndarray, np.ndarray]:
+    """Constant parts of the ``3 x 7`` block ``[J_i | v_i]`` of a point (:func:`normal_equations`).
+
+    ``J_i = [I | -skew(q_i)]``: the identity, and the ``(3, 21)`` linear map from
+    ``q_i`` to the flattened block.
+    """
+    base = np.zeros((3, 7))
+    base[:, :3] = np.eye(3)
+    of_q = np.zeros((3, 3, 7))
+    # -skew(q)[a, b] = sign * q[c]
+    for a, b, c, sign in (
+        (0, 1, 2, 1),
+        (0, 2, 1, -1),
+        (1, 0, 2, -1),
+        (1, 2, 0, 1),
+        (2, 0, 1, 1),
+        (2, 1, 0, -1),
+    ):
+        of_q[c, a, 3 + b] = sign
+    return base, of_q.reshape(3, 21)
+
+
+_JACOBIAN_BASE, _JACOBIAN_OF_Q = _jacobian_maps()
+
+
+class NormalEquations(NamedTuple):
+    """The linearised point fit at a pose: what the Gauss-Newton step and the tests need.
+
+    Shapes for ``n`` points and batch dimensions ``...``; metres, world frame.
+
+    Attributes
+    ----------
+    q
+        ``(..., n, 3)`` the base points rotated into the world, ``R p_i``.
+    v
+        ``(..., n, 3)`` residuals ``m_i - (R p_i + t)`` (measured minus fitted).
+    WJ
+        ``(..., n, 3, 6)`` information times Jacobian, ``W_i J_i`` (see :func:`point_jacobians`).
+    Wv
+        ``(..., n, 3)`` ``W_i v_i``.
+    N
+        ``(..., 6, 6)`` normal matrix ``sum_i J_i^T W_i J_i``.
+    g
+        ``(..., 6)`` ``sum_i J_i^T W_i v_i``.
+    """
+
+    q: np.ndarray
+    v: np.ndarray
+    WJ: np.ndarray
+    Wv: np.ndarray
+    N: np.ndarray
+    g: np.ndarray
+
+
+def normal_equations(
+    R: np.ndarray, t: np.ndarray, P: np.ndarray, M: np.ndarray, W: np.ndarray
+) -> NormalEquations:
+    """The :class:`NormalEquations` of ``m_i ~ R p_i + t`` with information matrices ``W``.
+
+    ``R (..., 3, 3)``, ``t (..., 3)``, ``P, M (..., n, 3)`` (metres), ``W (..., n, 3, 3)``
+    (1/m^2). The Jacobian and the residual go through the products as one
+    ``3 x 7`` block per point, so the whole system is two batched matrix products.
+    """
+    q = P @ np.swapaxes(R, -1, -2)
+    Jv = (q @ _JACOBIAN_OF_Q).reshape(*q.shape, 7)
+    Jv += _JACOBIAN_BASE
+    v = M - q - t[..., None, :]
+    Jv[..., 6] = v
+    WJv = W @ Jv
+    sums = (np.swapaxes(Jv[..., :6], -1, -2) @ WJv).sum(axis=-3)
+    return NormalEquations(q, v, WJv[..., :6], WJv[..., 6], sums[..., :6], sums[..., 6])
+
+
+def gauss_newton(
+    R: np.ndarray,
+    t: np.ndarray,
+    P: np.ndarray,
+    M: np.ndarray,
+    W: np.ndarray,
+    max_iter: int = 5,
+    tol: float = 1e-10,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`refine_registration` with the iterations of every problem of the batch.
+
+    Each problem stops at its own convergence (a batch gives each problem what
+    it alone would give). Returns ``R``, ``t`` and the ``(...)`` integer array of
+    iterations.
+    """
+    batch = R.shape[:-2]
+    iters = np.zeros(batch, dtype=int)
+    active = np.ones(batch, dtype=bool)
+    for _ in range(max_iter):
+        eq = normal_equations(R, t, P, M, W)
+        delta = solve_spd6(eq.N, eq.g)
+        R_new = exp_rotvec(delta[..., 3:]) @ R
+        t_new = t + delta[..., :3]
+        iters += active
+        if not batch:
+            R, t = R_new, t_new
+        else:
+            R = np.where(active[..., None, None], R_new, R)
+            t = np.where(active[..., None], t_new, t)
+        active = active & (np.einsum("...i,...i->...", delta, delta) >= tol**2)
+        if not active.any():
+            break
+    return R, t, iters
+
+
 def refine_registration(
     R: np.ndarray,
     t: np.ndarray,
@@ -158,21 +314,13 @@ def refine_registration(
     Batch-capable: ``R (..., 3, 3)``, ``t (..., 3)``, ``P, M (..., n, 3)`` (metres),
     ``W (..., n, 3, 3)`` information matrices (inverse point covariances, 1/m^2).
     Steps are applied in fabflow's error convention (``R <- Exp(r) R``,
-    ``t <- t + d``). Returns the refined ``R``, ``t`` and the iterations used.
+    ``t <- t + d``); a problem stops once its step is below ``tol``. Returns the
+    refined ``R``, ``t`` and the most iterations any problem used.
     """
-    it = 0
-    while it < max_iter:
-        it += 1
-        e = np.einsum("...ij,...nj->...ni", R, P) + t[..., None, :] - M
-        J = point_jacobians(R, P)
-        A = normal_matrices(J, W).sum(axis=-3)
-        b = np.einsum("...nki,...nkl,...nl->...i", J, W, e)
-        delta = -np.linalg.solve(A, b[..., None])[..., 0]
-        R = exp_so3(delta[..., 3:]) @ R
-        t = t + delta[..., :3]
-        if np.max(np.einsum("...i,...i->...", delta, delta)) < tol**2:
-            break
-    return R, t, it
+    R, t, iters = gauss_newton(
+        np.asarray(R, dtype=float), np.asarray(t, dtype=float), P, M, W, max_iter, tol
+    )
+    return R, t, int(iters.max(initial=0))
 
 
 def optimize_registration(

@@ -124,9 +124,13 @@ def confdata(q: np.ndarray, T_base_flange: np.ndarray, arm: OPWParameters) -> tu
     return cf1, cf4, cf6, cfx
 
 
-def _pose(T: np.ndarray) -> str:
-    p, q = to_abb_pose(T)
+def _pose_text(p: np.ndarray, q: np.ndarray) -> str:
+    """``[[x,y,z],[q1,q2,q3,q4]]`` of one ABB position (mm) and quaternion."""
     return "[[" + ",".join(fixed(v, 3) for v in p) + "],[" + ",".join(fixed(v, 9) for v in q) + "]]"
+
+
+def _pose(T: np.ndarray) -> str:
+    return _pose_text(*to_abb_pose(T))
 
 
 def _speed(speed: float) -> str:
@@ -180,6 +184,11 @@ def _body(
     flanges = (
         robot.frames(np.stack([m.q for m in moves]))[:, robot.dof] if moves else np.zeros((0, 4, 4))
     )
+    # every robtarget's position and quaternion in one call, as the KRL writer does
+    cartesian = [m.T_world_tool for m in moves if not m.joint]
+    positions, quats = (
+        to_abb_pose(np.stack(cartesian)) if cartesian else (np.zeros((0, 3)), np.zeros((0, 4)))
+    )
     n = first_point
     for k, ins in enumerate(moves):
         if ins.joint:
@@ -188,11 +197,11 @@ def _body(
             if declare_home and home not in decl:
                 decl.append(home)
             continue
+        pose = _pose_text(positions[n - first_point], quats[n - first_point])
         n += 1
         conf = confdata(ins.q, flanges[k], arm)
         decl.append(
-            f"  CONST robtarget p{n} := [{_pose(ins.T_world_tool)[1:-1]},"
-            f"[{','.join(str(c) for c in conf)}],{extax}];"
+            f"  CONST robtarget p{n} := [{pose[1:-1]},[{','.join(str(c) for c in conf)}],{extax}];"
         )
     for ins in body:
         if isinstance(ins, SetPayload) and ins.payload is not None:

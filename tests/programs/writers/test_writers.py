@@ -21,7 +21,7 @@ from program_readers import read_krl, read_rapid, read_urscript
 
 from fabflow.errors import InputError, UnsupportedError
 from fabflow.programs.ir import Move, Program, sanitize_identifier
-from fabflow.programs.writers import WRITERS, writer_for
+from fabflow.programs.writers import WRITERS, rapid, writer_for
 from fabflow.programs.writers.krl import write_krl
 from fabflow.programs.writers.rapid import write_rapid
 from fabflow.programs.writers.urscript import write_urscript
@@ -85,6 +85,26 @@ def test_rapid_targets_parse_back() -> None:
     ):
         _assert_pose_close(read.base @ T, T_base_ref)
         _assert_pose_close(robot.fk(move.q) @ program.T_flange_tool, T_base_ref)
+
+
+@pytest.mark.parametrize("max_moves", [None, 3, 4])
+def test_rapid_one_call_conversion_writes_the_same_bytes(monkeypatch, max_moves) -> None:
+    # the writer converts every robtarget (print path included) in one call; the
+    # text must be byte for byte what one conversion per pose wrote, split or not
+    program = sample_program("abb_irb4600_60_205")
+    assert any(m.element == "P1" and not m.joint for m in program.moves)
+    batched = write_rapid(program, max_moves)
+    one_call = rapid.to_abb_pose
+
+    def per_pose(T):
+        T = np.asarray(T)
+        if T.ndim == 2:
+            return one_call(T)
+        pairs = [one_call(t) for t in T]
+        return np.stack([p for p, _ in pairs]), np.stack([q for _, q in pairs])
+
+    monkeypatch.setattr(rapid, "to_abb_pose", per_pose)
+    assert write_rapid(program, max_moves) == batched
 
 
 def test_urscript_targets_parse_back() -> None:
