@@ -1,4 +1,4 @@
-"""LiDAR ICP benchmark: scan-to-map accuracy on the simulated site and speed against Open3D.
+"""LiDAR ICP benchmark: scan-to-map accuracy on the simulated site, speed against Open3D.
 
 Prints
   1. scan-to-map localization on the simulated site (64-beam Hesai QT64 model, 1 cm range
@@ -10,12 +10,18 @@ Prints
      site, 1 cm noise, 150k points, random heading, position and a tilt of up to 3 deg) to
      the LiDAR map without an initial pose: success rate over 50 trials (1 with --quick),
      loud failures, silent failures, errors and time;
-  4. fabflow's ``icp`` against Open3D's ``registration_icp`` (point-to-plane, same source
-     scan, same target points and normals, same initial pose, same maximum correspondence
-     distance, iteration cap and tolerances, no robust kernel) for 10k, 100k and 1M-point
-     maps: median time per registration and final error. Open3D builds its KD-tree in
-     every call, so fabflow is timed both with a prepared target (the scan-to-map use) and
-     with the tree built in the call;
+  4. fabflow's ``icp`` against Open3D's ``registration_icp`` and small_gicp's ``align``
+     (same source scan, same target points, same initial pose, same maximum correspondence
+     distance and iteration cap, no robust kernel; each estimates its map normals by PCA
+     over the same 20 neighbours) for 10k, 100k and 1M-point maps: the map set-up (normals
+     and KD-tree, once per map) and the registration of one scan (median wall and CPU time,
+     implementations run in turns), the time ratios and each final error. Open3D stops on
+     the relative changes of fitness and RMSE, as fabflow does, with the same tolerances;
+     small_gicp stops on the size of an update, which is set to fabflow's step criterion
+     (1e-5 m at the scan's radius). small_gicp runs point-to-plane (``PLANE_ICP``, its
+     residual weighted per axis by the normal) and its default ``GICP`` (the scan's
+     covariances estimated in the call), on one thread and on every core (10k map and 2
+     repeats with --quick);
   5. EKF fusion of 10 Hz ICP poses with 100 Hz kinematics on a simulated arm trajectory:
      position and rotation RMSE of the fused 100 Hz output against ICP alone (last pose
      held) and kinematics alone;
@@ -64,6 +70,14 @@ try:
     import open3d as o3d
 except ImportError:  # benchmark-only dependency (pip install -e .[bench])
     o3d = None
+try:
+    import small_gicp
+except ImportError:  # benchmark-only dependency (pip install -e .[bench])
+    small_gicp = None
+
+NORMAL_K = 20
+"""Neighbours of the PCA normals each implementation estimates on the map (fabflow's
+default for maps without normals)."""
 
 
 def _median_time(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
@@ -73,6 +87,24 @@ def _median_time(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
         out = fn()
         times.append(time.perf_counter() - t0)
     return float(np.median(times)), out
+
+
+def _in_turns(
+    fns: dict[str, Callable[[], Any]], repeats: int
+) -> dict[str, tuple[float, float, Any]]:
+    """Median wall and CPU time (s; CPU of all the process's threads) and the last
+    result of each function, run in turns so that a change of load on a shared
+    machine falls on all of them alike."""
+    wall: dict[str, list[float]] = {name: [] for name in fns}
+    cpu: dict[str, list[float]] = {name: [] for name in fns}
+    out: dict[str, Any] = {}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0, c0 = time.perf_counter(), time.process_time()
+            out[name] = fn()
+            wall[name].append(time.perf_counter() - t0)
+            cpu[name].append(time.process_time() - c0)
+    return {k: (float(np.median(wall[k])), float(np.median(cpu[k])), out[k]) for k in fns}
 
 
 def _random_station(rng: np.random.Generator) -> np.ndarray:
@@ -232,77 +264,166 @@ def global_registration(n: int, seed: int) -> None:
     print("target (issue 8): >= 90 % of 50 trials; paper 002: 90 %, ~1 s\n")
 
 
-def versus_open3d(sizes: list[int], repeats: int, seed: int) -> None:
-    """Section 4: identical registrations with fabflow and Open3D."""
+def _open3d_map(points: np.ndarray) -> Any:
+    """Open3D's map set-up: a point cloud with PCA normals over NORMAL_K neighbours."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_K))
+    return cloud
+
+
+def _small_gicp_map(points: np.ndarray) -> Any:
+    """small_gicp's map set-up: KD-tree, normals and covariances over NORMAL_K neighbours."""
+    cloud = small_gicp.PointCloud(points)
+    tree = small_gicp.KdTree(cloud)
+    small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=NORMAL_K)
+    return cloud, tree
+
+
+Timed = dict[str, tuple[float, float, Any]]
+
+
+def _ms(times: Timed, name: str, cpu: bool = False) -> str:
+    return f"{1e3 * times[name][int(cpu)]:.1f}" if name in times else "-"
+
+
+def _ratio(times: Timed, names: list[str], cpu: bool = False) -> str:
+    """fabflow's time over the fastest of ``names`` that ran."""
+    there = [times[k][int(cpu)] for k in names if k in times]
+    return f"{times['fabflow'][int(cpu)] / min(there):.2f}" if there else "-"
+
+
+def versus_peers(sizes: list[int], repeats: int, seed: int) -> None:
+    """Section 4: identical registrations with fabflow, Open3D and small_gicp."""
     rng = np.random.default_rng(seed)
     scene = site_scene(landmarks=SiteLandmarks(ground_half_size=20.0))
     T_true = make_T(exp_so3([0.0, 0.0, 0.4]), [6.0, 1.0, 1.8])
     scan = simulate_scan(scene, T_true, rng)
     source = voxel_downsample(scan.points, 0.05)[0]
     init = perturb(T_true, [0.12, -0.08, 0.0, 0.0, 0.0, np.radians(2.0)])
-    dmax, iters, tol = 0.3, 30, 1e-6
+    dmax, iters, tol, step = 0.3, 30, 1e-6, 1e-5
+    radius = float(np.max(np.linalg.norm(source - source.mean(axis=0), axis=1)))
+    cores = os.cpu_count() or 1
     print(
-        f"source: one 64-beam scan, {len(scan)} returns, {len(source)} after 5 cm voxels; "
-        f"init 0.14 m / 2 deg off; max correspondence {dmax} m, <= {iters} iterations, "
-        f"tolerance {tol:g}; point-to-plane, no robust kernel; median of {repeats}"
+        f"source: one 64-beam scan, {len(scan)} returns, {len(source)} after 5 cm voxels "
+        f"({radius:.1f} m radius); init 0.14 m / 2 deg off; max correspondence {dmax} m, "
+        f"<= {iters} iterations, relative tolerances {tol:g}, step {step:g} m; "
+        f"point-to-plane, no robust kernel; map normals from {NORMAL_K} neighbours; "
+        f"median of {repeats} registrations and {min(repeats, 3)} map set-ups"
     )
-    if o3d is None:
-        print("open3d is not installed (pip install -e .[bench]): fabflow only\n")
-    widths = [9, 30, 9, 11, 11, 7]
-    print(_row(["map pts", "implementation", "time ms", "err mm", "err deg", "iters"], widths))
+    for name, module in (("open3d", o3d), ("small_gicp", small_gicp)):
+        if module is None:
+            print(f"{name} is not installed (pip install -e .[bench]): skipped")
+    setup_rows: list[list[str]] = []
+    icp_rows: list[list[str]] = []
+    cpu_rows: list[list[str]] = []
     for n in sizes:
-        pts, face = trimesh.sample.sample_surface(scene, n, seed=int(rng.integers(2**31)))
+        pts, _ = trimesh.sample.sample_surface(scene, n, seed=int(rng.integers(2**31)))
         pts = np.asarray(pts, dtype=float)
-        normals = np.asarray(scene.face_normals[face], dtype=float)
-        target = prepare_target(pts, normals)
-
-        def run_prepared(target: Any = target) -> Any:
-            return icp(
+        setup: dict[str, Callable[[], Any]] = {
+            "fabflow": lambda pts=pts: prepare_target(pts, normal_k=NORMAL_K)
+        }
+        if o3d is not None:
+            setup["open3d"] = lambda pts=pts: _open3d_map(pts)
+            setup["open3d tree"] = lambda pts=pts: o3d.geometry.KDTreeFlann(
+                o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+            )
+        if small_gicp is not None:
+            setup["small_gicp"] = lambda pts=pts: _small_gicp_map(pts)
+        made = _in_turns(setup, min(repeats, 3))  # seconds each on the 1M map
+        target = made["fabflow"][2]
+        runs: dict[str, Callable[[], Any]] = {
+            "fabflow": lambda target=target: icp(
                 source, target, init=init, max_correspondence_distance=dmax,
                 max_iterations=iters, relative_fitness=tol, relative_rmse=tol, kernel="none",
-            )  # fmt: skip
-
-        def run_cold(pts: np.ndarray = pts, normals: np.ndarray = normals) -> Any:
-            return icp(
-                source, prepare_target(pts, normals), init=init, max_correspondence_distance=dmax,
-                max_iterations=iters, relative_fitness=tol, relative_rmse=tol, kernel="none",
-            )  # fmt: skip
-
-        rows: list[tuple[str, float, np.ndarray, int]] = []
-        t, r = _median_time(run_prepared, repeats)
-        rows.append(("fabflow (prepared target)", t, r.T, r.iterations))
-        t, r = _median_time(run_cold, repeats)
-        rows.append(("fabflow (tree built in call)", t, r.T, r.iterations))
+                min_step=step,
+            ).T
+        }  # fmt: skip
         if o3d is not None:
             src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
-            tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-            tgt.normals = o3d.utility.Vector3dVector(normals)
             est = o3d.pipelines.registration.TransformationEstimationPointToPlane()
             crit = o3d.pipelines.registration.ICPConvergenceCriteria(
                 relative_fitness=tol, relative_rmse=tol, max_iteration=iters
             )
-
-            def run_o3d(src: Any = src, tgt: Any = tgt, est: Any = est, crit: Any = crit) -> Any:
-                return o3d.pipelines.registration.registration_icp(src, tgt, dmax, init, est, crit)
-
-            t, r = _median_time(run_o3d, repeats)
-            rows.append(("open3d registration_icp", t, np.asarray(r.transformation), -1))
-        for name, t, T, it in rows:
-            e = pose_error(T, T_true)
-            print(
-                _row(
-                    [
-                        f"{n:,}",
-                        name,
-                        f"{1e3 * t:.1f}",
-                        f"{1e3 * np.linalg.norm(e[:3]):.2f}",
-                        f"{np.degrees(np.linalg.norm(e[3:])):.4f}",
-                        "-" if it < 0 else str(it),
-                    ],
-                    widths,
-                )
+            tgt = made["open3d"][2]
+            runs["open3d"] = lambda src=src, tgt=tgt, est=est, crit=crit: np.asarray(
+                o3d.pipelines.registration.registration_icp(
+                    src, tgt, dmax, init, est, crit
+                ).transformation
             )
-    print()
+        if small_gicp is not None:
+            cloud, tree = made["small_gicp"][2]
+
+            def run_sg(kind: str, threads: int, cloud: Any = cloud, tree: Any = tree) -> Any:
+                src = small_gicp.PointCloud(source)
+                if kind == "GICP":  # the scan's covariances are part of each registration
+                    src_tree = small_gicp.KdTree(src, num_threads=threads)
+                    small_gicp.estimate_covariances(
+                        src, src_tree, num_neighbors=NORMAL_K, num_threads=threads
+                    )
+                return small_gicp.align(
+                    cloud, src, tree, init_T_target_source=init, registration_type=kind,
+                    max_correspondence_distance=dmax, num_threads=threads, max_iterations=iters,
+                    translation_epsilon=step, rotation_epsilon=step / radius,
+                ).T_target_source  # fmt: skip
+
+            for kind in ("PLANE_ICP", "GICP"):
+                runs[f"sg {kind}"] = lambda kind=kind: run_sg(kind, 1)
+                if cores > 1:
+                    runs[f"sg {kind} x{cores}"] = lambda kind=kind: run_sg(kind, cores)
+        done = _in_turns(runs, repeats)
+
+        def err(name: str, done: Timed = done) -> str:
+            if name not in done:
+                return "-"
+            return f"{1e3 * np.linalg.norm(pose_error(done[name][2], T_true)[:3]):.2f}"
+
+        single = ["sg PLANE_ICP", "sg GICP"]
+        multi = [f"sg PLANE_ICP x{cores}", f"sg GICP x{cores}"]
+        setup_rows.append(
+            [f"{n:,}", _ms(made, "fabflow"), _ms(made, "open3d"), _ms(made, "open3d tree"),
+             _ms(made, "small_gicp"), _ratio(made, ["open3d"]), _ratio(made, ["small_gicp"])]
+        )  # fmt: skip
+        icp_rows.append(
+            [f"{n:,}", _ms(done, "fabflow"), _ms(done, "open3d"), *(_ms(done, k) for k in single),
+             *(_ms(done, k) for k in multi), _ratio(done, ["open3d"]), _ratio(done, single),
+             _ratio(done, multi), err("fabflow"), err("open3d"), *(err(k) for k in single)]
+        )  # fmt: skip
+        cpu_rows.append(
+            [f"{n:,}", _ms(done, "fabflow", True), _ms(done, "open3d", True),
+             *(_ms(done, k, True) for k in single + multi), _ratio(done, ["open3d"], True),
+             _ratio(done, single + multi, True)]
+        )  # fmt: skip
+    print(f"registration of the scan to a prepared map (sg: small_gicp; x{cores}: {cores} threads)")
+    widths = [9, 8, 8, 9, 8, 10, 9, 8, 7, 7, 8, 8, 9, 8]
+    header = [
+        "map pts", "fab ms", "O3D ms", "sg pl ms", "sg G ms", f"sg pl x{cores}",
+        f"sg G x{cores}", "fab/O3D", "fab/sg", f"/sg x{cores}",
+        "fab mm", "O3D mm", "sg pl mm", "sg G mm",
+    ]  # fmt: skip
+    print(_row(header, widths))
+    for row in icp_rows:
+        print(_row(row, widths))
+    print(
+        "fab/sg: fabflow over the faster small_gicp on one thread; "
+        f"/sg x{cores}: over the faster on {cores}; mm: final translation error"
+    )
+    print("the same registrations in CPU time (all threads of the process), which load")
+    print("changes less than wall time")
+    widths = [9, 8, 8, 9, 8, 10, 9, 8, 7]
+    header = [
+        "map pts", "fab ms", "O3D ms", "sg pl ms", "sg G ms", f"sg pl x{cores}",
+        f"sg G x{cores}", "fab/O3D", "fab/sg",
+    ]  # fmt: skip
+    print(_row(header, widths))
+    for row in cpu_rows:
+        print(_row(row, widths))
+    print(f"map set-up: normals from {NORMAL_K} neighbours and KD-tree, once per map")
+    widths = [9, 8, 8, 15, 8, 8, 7]
+    header = ["map pts", "fab ms", "O3D ms", "O3D tree ms", "sg ms", "fab/O3D", "fab/sg"]
+    print(_row(header, widths))
+    for row in setup_rows:
+        print(_row(row, widths))
+    print("O3D tree: the KD-tree Open3D builds over the map again in every registration\n")
 
 
 def fusion(duration: float, seed: int) -> None:
@@ -368,9 +489,9 @@ def main() -> None:
     fusion(3.0 if args.quick else 30.0, args.seed)
     turn_joint(1 if args.quick else 10, 20.0 if args.quick else 60.0, args.seed)
     if args.quick:
-        versus_open3d([10_000], repeats=2, seed=args.seed)
+        versus_peers([10_000], repeats=2, seed=args.seed)
     else:
-        versus_open3d([10_000, 100_000, 1_000_000], repeats=5, seed=args.seed)
+        versus_peers([10_000, 100_000, 1_000_000], repeats=7, seed=args.seed)
 
 
 if __name__ == "__main__":

@@ -8,13 +8,22 @@ RMSE and a 6x6 covariance of the pose in fabflow's convention (see
 the target frame, ``T_true = [Exp(r) R, t + d]``).
 
 The algorithm: nearest-neighbour correspondences from a KD-tree over the target
-(:class:`scipy.spatial.cKDTree`, all cores, pruned at the current maximum
-correspondence distance); a coarse-to-fine schedule of maximum correspondence
-distances; a robust kernel (iteratively reweighted least squares); each step is
-the closed-form weighted Kabsch solution (point-to-point) or one Gauss-Newton
-step of the linearized point-to-plane problem. A stage ends when the relative
-changes of fitness and inlier RMSE both drop below their tolerances, or the step
-becomes negligible, or after ``max_iterations``.
+(:class:`scipy.spatial.cKDTree`); a coarse-to-fine schedule of maximum
+correspondence distances; a robust kernel (iteratively reweighted least squares);
+each step is the closed-form weighted Kabsch solution (point-to-point) or one
+Gauss-Newton step of the linearized point-to-plane problem. A stage ends when the
+relative changes of fitness and inlier RMSE both drop below their tolerances, or
+the step becomes negligible, or after ``max_iterations``.
+
+The searches are cut without changing what ICP converges to
+(:mod:`fabflow.positioning.icp_search`): a point's correspondence is kept while
+it cannot have changed, and a stage on a source of at least ``THIN_FACTOR *
+THIN_POINTS`` points first iterates on nested subsets of it, ``THIN_FACTOR`` times
+smaller each (down to ``THIN_POINTS``), each handing over to the next once an
+update moves no point by more than ``LEVEL_STEP`` times the correspondence
+distance. The large first moves cost a fraction of the searches; the last level
+uses every point and ends by the stage's own criteria, so the result is a
+minimum of the full problem.
 
 The covariance is the robust "sandwich" of an M-estimator (Huber 1967; White
 1980), ``C = N^-1 M N^-1`` with ``N = sum_i w_i J_i^T J_i`` and
@@ -46,10 +55,17 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from fabflow.errors import InputError, LocalizationError
+from fabflow.positioning.icp_search import (
+    Matches,
+    Workspace,
+    levels,
+    row_cross,
+    row_dot,
+    transformed,
+)
 from fabflow.positioning.icp_shared import SharedErrors, group_sums, shared_errors, shared_rows
 from fabflow.positioning.pointcloud import as_points, estimate_normals
-from fabflow.transforms.se3 import apply_T
-from fabflow.transforms.so3 import exp_so3, skew
+from fabflow.transforms.so3 import exp_so3_one, skew
 
 FloatArray = NDArray[np.float64]
 Method = Literal["point_to_point", "point_to_plane"]
@@ -61,6 +77,9 @@ MIN_BLOCKS = 30
 """Fewer occupied covariance blocks than this: the blocked sum is too coarse to
 estimate a 6x6 matrix (cluster-robust estimators want some tens of clusters), and
 each correspondence becomes its own block."""
+LEVEL_STEP = 0.1
+"""A coarse level hands over to the next when an update moves no point by more than
+this fraction of the stage's correspondence distance."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,7 +154,7 @@ class IcpResult:
         RMS distance of those correspondences (metres; point-to-plane distances for
         ``point_to_plane``, Euclidean for ``point_to_point``).
     iterations
-        Total iterations over all stages.
+        Total iterations (updates of the pose) over all stages and their levels.
     covariance
         6x6 covariance of ``T`` over ``[dx, dy, dz, rx, ry, rz]`` (target frame;
         m^2, rad^2): the sandwich of the final correspondences (module docstring).
@@ -199,17 +218,23 @@ def _kabsch(p: FloatArray, q: FloatArray, w: FloatArray) -> tuple[FloatArray, Fl
 
 
 def _plane_system(
-    p: FloatArray, n: FloatArray, r: FloatArray, w: FloatArray
+    p: FloatArray, n: FloatArray, r: FloatArray, w: FloatArray, work: Workspace
 ) -> tuple[FloatArray, FloatArray]:
-    """Weighted normal equations of point-to-plane residuals r = n.(p - q).
+    """Weighted normal equations of point-to-plane residuals r = n.(p - q), assembled
+    in 3x3 blocks in ``work``'s arrays.
 
     Rows of the Jacobian for the update ``p <- Exp(w) p + v`` are ``[n, p x n]``.
     """
-    J = np.empty((len(p), 6))
-    J[:, :3] = n
-    J[:, 3:] = np.cross(p, n)
-    Jw = J * w[:, None]
-    return Jw.T @ J, Jw.T @ r
+    m = len(p)
+    c = row_cross(p, n, out=work.cross[:m])
+    nw = np.multiply(n, w[:, None], out=work.nw[:m])
+    cw = np.multiply(c, w[:, None], out=work.cw[:m])
+    A = np.empty((6, 6))
+    A[:3, :3] = nw.T @ n
+    A[:3, 3:] = nw.T @ c
+    A[3:, :3] = A[:3, 3:].T
+    A[3:, 3:] = cw.T @ c
+    return A, np.concatenate([nw.T @ r, cw.T @ r])
 
 
 def _block_sums(scores: FloatArray, points: FloatArray, block: float | None) -> FloatArray:
@@ -300,7 +325,8 @@ def icp(
         them (one ICP stage per value, in the given order). Fitness and RMSE refer to
         the last value.
     max_iterations
-        Iteration limit per stage.
+        Iteration limit per stage, and per level of a stage on a large source
+        (module docstring).
     relative_fitness, relative_rmse
         A stage has converged when the relative changes of fitness and of inlier
         RMSE between iterations both fall below these.
@@ -316,7 +342,9 @@ def icp(
         (metres; bounded by the centroid's motion plus rotation angle times the
         source radius).
     workers
-        Threads for the KD-tree queries (``-1``: all cores).
+        Threads for the KD-tree queries (``-1``: all cores); a query for fewer than
+        :data:`~fabflow.positioning.icp_search.PARALLEL_QUERY_MIN` source points runs
+        on one.
     covariance_block
         Edge (metres, target frame) of the cubes whose correspondences the
         covariance treats as sharing their errors (module docstring); ``None``: each
@@ -392,66 +420,70 @@ def icp(
     plane = method == "point_to_plane"
     src_mean = src.mean(axis=0)
     src_radius = float(np.max(np.linalg.norm(src - src_mean, axis=1)))
-    q_all = tgt.points
     n_all = tgt.normals
     iterations = 0
     converged = False
-    for dmax in schedule:
-        scale = float(kernel_scale) if kernel_scale is not None else float(dmax) / 3.0
-        prev: tuple[float, float] | None = None
+    matches = Matches(tgt.tree, tgt.points, len(src), workers)
+    work = Workspace(len(src))
+    parts = [(rows, src if rows is None else src[rows]) for rows in levels(len(src))]
+    scale = 0.0
+    for dmax in schedule.tolist():
+        scale = float(kernel_scale) if kernel_scale is not None else dmax / 3.0
         converged = False
-        for _ in range(max_iterations):
-            p = apply_T(T, src)
-            d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=workers)
-            ok = np.isfinite(d)
-            n_ok = int(ok.sum())
-            if n_ok < MIN_CORRESPONDENCES:
-                raise LocalizationError(
-                    f"ICP found only {n_ok} correspondences within {dmax:g} m; "
-                    "the initial pose is too far off or the clouds do not overlap"
-                )
-            p, ii = p[ok], idx[ok]
-            q = q_all[ii]
-            if plane:
-                assert n_all is not None
-                nn = n_all[ii]
-                r = np.einsum("ij,ij->i", p - q, nn)
-            else:
-                r = d[ok]
-            fitness = n_ok / len(src)
-            rmse = float(np.sqrt(np.mean(r * r)))
-            if prev is not None:
-                df = abs(fitness - prev[0]) / max(fitness, 1e-12)
-                dr = abs(rmse - prev[1]) / max(rmse, 1e-12)
-                if df < relative_fitness and dr < relative_rmse:
-                    converged = True
-                    break
-            prev = (fitness, rmse)
-            w = _kernel_weights(r, kernel, scale)
-            iterations += 1
-            if plane:
-                A, b = _plane_system(p, nn, r, w)
-                try:
-                    x = -np.linalg.solve(A + 1e-12 * np.trace(A) * np.eye(6), b)
-                except np.linalg.LinAlgError:
+        for rows, part in parts:
+            fine = rows is None
+            stop = min_step if fine else max(min_step, LEVEL_STEP * dmax)
+            prev: tuple[float, float] | None = None
+            for _ in range(max_iterations):
+                p = transformed(T, part, out=work.moved[: len(part)])
+                at, ii, e, dist = matches.find(p, dmax, rows)
+                n_ok = len(at)
+                if n_ok < MIN_CORRESPONDENCES:
+                    if not fine:
+                        break  # too few in the subset: go on with more points
                     raise LocalizationError(
-                        "ICP normal equations are singular (degenerate geometry)"
-                    ) from None
+                        f"ICP found only {n_ok} correspondences within {dmax:g} m; "
+                        "the initial pose is too far off or the clouds do not overlap"
+                    )
+                if plane:
+                    assert n_all is not None
+                    nn = np.take(n_all, ii, axis=0, out=work.normals[:n_ok])
+                    r = row_dot(e, nn)
+                else:
+                    r = dist
+                fitness = n_ok / len(part)
+                rmse = float(np.sqrt(np.einsum("i,i->", r, r) / n_ok))
+                if prev is not None:
+                    df = abs(fitness - prev[0]) / max(fitness, 1e-12)
+                    dr = abs(rmse - prev[1]) / max(rmse, 1e-12)
+                    if df < relative_fitness and dr < relative_rmse:
+                        converged = fine
+                        break
+                prev = (fitness, rmse)
+                w = _kernel_weights(r, kernel, scale)
+                iterations += 1
+                if n_ok < len(p):
+                    p = np.take(p, at, axis=0)
                 dT = np.eye(4)
-                dT[:3, :3] = exp_so3(x[3:])
-                dT[:3, 3] = x[:3]
-            else:
-                R, t = _kabsch(p, q, w)
-                dT = np.eye(4)
-                dT[:3, :3] = R
-                dT[:3, 3] = t
-            c = T[:3, :3] @ src_mean + T[:3, 3]
-            angle = float(np.arccos(np.clip((np.trace(dT[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-            moved = float(np.linalg.norm(dT[:3, :3] @ c + dT[:3, 3] - c)) + angle * src_radius
-            T = dT @ T
-            if moved < min_step:
-                converged = True
-                break
+                if plane:
+                    A, b = _plane_system(p, nn, r, w, work)
+                    try:
+                        x = -np.linalg.solve(A + 1e-12 * np.trace(A) * np.eye(6), b)
+                    except np.linalg.LinAlgError:
+                        raise LocalizationError(
+                            "ICP normal equations are singular (degenerate geometry)"
+                        ) from None
+                    dT[:3, :3] = exp_so3_one(*x[3:])
+                    dT[:3, 3] = x[:3]
+                else:
+                    dT[:3, :3], dT[:3, 3] = _kabsch(p, p - e, w)
+                c = T[:3, :3] @ src_mean + T[:3, 3]
+                angle = float(np.arccos(np.clip((np.trace(dT[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+                moved = float(np.linalg.norm(dT[:3, :3] @ c + dT[:3, 3] - c)) + angle * src_radius
+                T = dT @ T
+                if moved < stop:
+                    converged = fine
+                    break
 
     return _final_result(
         src,
@@ -462,7 +494,7 @@ def icp(
         (kernel, scale),
         iterations,
         converged,
-        workers,
+        matches,
         covariance_block,
         shared,
     )
@@ -477,35 +509,34 @@ def _final_result(
     robust: tuple[Kernel, float],
     iterations: int,
     converged: bool,
-    workers: int,
+    matches: Matches,
     block: float | None,
     errors: SharedErrors | None = None,
 ) -> IcpResult:
-    p = apply_T(T, src)
-    d, idx = tgt.tree.query(p, k=1, distance_upper_bound=dmax, workers=workers)
-    ok = np.isfinite(d)
-    n_ok = int(ok.sum())
+    p = transformed(T, src)
+    at, ii, e, dist = matches.find(p, dmax)
+    n_ok = len(at)
     if n_ok < MIN_CORRESPONDENCES:
         raise LocalizationError(f"ICP ended with only {n_ok} correspondences within {dmax:g} m")
-    p, ii = p[ok], idx[ok]
-    q = tgt.points[ii]
+    p = np.take(p, at, axis=0)
+    ok = np.zeros(len(src), dtype=bool)
+    ok[at] = True
     # Jacobian w.r.t. fabflow's pose error [d, r] applied as [Exp(r) R, t + d]:
     # p_true = Exp(r) R s + t + d, so dp/dd = I and dp/dr = -skew(R s).
     Rs = p - T[:3, 3]
     if plane:
         assert tgt.normals is not None
-        nn = tgt.normals[ii]
-        r = np.einsum("ij,ij->i", p - q, nn)
+        nn = np.take(tgt.normals, ii, axis=0)
+        r = row_dot(e, nn)
         w = _kernel_weights(r, *robust)
         J = np.empty((n_ok, 6))
         J[:, :3] = nn
-        J[:, 3:] = np.cross(Rs, nn)
+        J[:, 3:] = row_cross(Rs, nn)
         info_unit = (J * w[:, None]).T @ J
         scores = J * (w * r)[:, None]
         sigma2 = float(np.sum(w * r * r) / max(n_ok - 6, 1))
     else:
-        e = p - q
-        r = np.linalg.norm(e, axis=1)
+        r = dist
         w = _kernel_weights(r, *robust)
         S = skew(Rs)
         sw = w.sum()
@@ -517,7 +548,7 @@ def _final_result(
         info_unit[3:, :3] = -Ssum.T
         info_unit[3:, 3:] = StS
         # J_i^T e_i with J_i = [I, -skew(R s_i)]
-        scores = w[:, None] * np.c_[e, np.cross(Rs, e)]
+        scores = w[:, None] * np.c_[e, row_cross(Rs, e)]
         sigma2 = float(np.sum(w * r * r) / max(3 * n_ok - 6, 1))
     sums = _block_sums(scores, p, block)
     shared = None

@@ -19,6 +19,10 @@ from fabflow.errors import InputError
 
 FloatArray = NDArray[np.float64]
 
+NORMALS_CHUNK = 32_768
+"""Points whose normals :func:`estimate_normals` computes at once (bounds the memory
+of their neighbourhoods: ``k`` times this many points)."""
+
 
 def as_points(points: ArrayLike, name: str = "points") -> FloatArray:
     """Check and convert an ``(N, 3)`` array of finite points.
@@ -96,6 +100,51 @@ def voxel_downsample(
     return out, out_n
 
 
+def _smallest_eigenvectors(cov: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The eigenvalues ``(N, 3)``, ascending, of symmetric positive semi-definite
+    ``(N, 3, 3)`` matrices, and the unit eigenvector ``(N, 3)`` of the smallest.
+
+    Closed form, several times faster than ``np.linalg.eigh`` on many small
+    matrices: the eigenvalues by the trigonometric solution of the characteristic
+    cubic (Smith 1961), the eigenvector as the longest cross product of two rows
+    of ``C - l0 I``. Where the two smallest eigenvalues nearly coincide (a line,
+    or a point repeated) the cross products vanish and ``eigh`` decides.
+    """
+    a, b, c = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]
+    d, e, f = cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]
+    q = (a + b + c) / 3.0
+    aq, bq, cq = a - q, b - q, c - q
+    p2 = (aq * aq + bq * bq + cq * cq + 2.0 * (d * d + e * e + f * f)) / 6.0
+    p = np.sqrt(p2)
+    det = aq * (bq * cq - f * f) - d * (d * cq - f * e) + e * (d * f - bq * e)
+    cos3 = np.clip(det / (2.0 * np.where(p > 0, p, 1.0) ** 3), -1.0, 1.0)
+    phi = np.arccos(cos3) / 3.0
+    l2 = q + 2.0 * p * np.cos(phi)
+    l0 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    evals = np.stack([l0, 3.0 * q - l0 - l2, l2], axis=1)
+    # rows of C - l0 I: (a - l0, d, e), (d, b - l0, f), (e, f, c - l0)
+    al, bl, cl = a - l0, b - l0, c - l0
+    cands = np.stack(
+        [
+            np.stack([d * f - e * bl, e * d - al * f, al * bl - d * d], axis=1),
+            np.stack([d * cl - e * f, e * e - al * cl, al * f - d * e], axis=1),
+            np.stack([bl * cl - f * f, f * e - d * cl, d * f - bl * e], axis=1),
+        ],
+        axis=1,
+    )
+    size2 = np.einsum("nkd,nkd->nk", cands, cands)
+    best = np.argmax(size2, axis=1)
+    rows = np.arange(len(cov))
+    vec = cands[rows, best]
+    size = np.sqrt(size2[rows, best])
+    vec /= np.where(size > 0, size, 1.0)[:, None]
+    weak = size <= 1e-9 * p2  # (l1 - l0) (l2 - l0) tiny: no direction stands out
+    if weak.any():
+        evals[weak], evecs = np.linalg.eigh(cov[weak])
+        vec[weak] = evecs[:, :, 0]
+    return evals, vec
+
+
 def estimate_normals(
     points: ArrayLike,
     k: int = 20,
@@ -130,21 +179,30 @@ def estimate_normals(
         raise InputError(f"need at least 3 points to estimate normals, got {len(p)}")
     k = int(min(max(k, 3), len(p)))
     tree = tree if tree is not None else cKDTree(p)
-    _, idx = tree.query(p, k=k, workers=-1)
-    nb = p[idx]
-    centred = nb - nb.mean(axis=1, keepdims=True)
-    cov = np.matmul(centred.transpose(0, 2, 1), centred) / k
-    evals, evecs = np.linalg.eigh(cov)
-    normals = evecs[:, :, 0]
+    normals = np.empty_like(p)
+    variation = np.empty(len(p)) if return_planarity else None
+    # In the tree's leaf order consecutive points are neighbours, so the searches and
+    # gathers of a chunk stay in the cache (about twice as fast as the given order).
+    order = tree.indices
+    for start in range(0, len(p), NORMALS_CHUNK):
+        rows = order[start : start + NORMALS_CHUNK]
+        _, idx = tree.query(np.take(p, rows, axis=0), k=k, workers=-1)
+        nb = np.take(p, idx, axis=0)
+        nb -= (np.einsum("nkd->nd", nb) / k)[:, None, :]
+        cov = np.matmul(nb.transpose(0, 2, 1), nb) / k
+        evals, normals[rows] = _smallest_eigenvectors(cov)
+        if variation is not None:
+            total = evals.sum(axis=1)
+            variation[rows] = np.where(
+                total > 0, evals[:, 0] / np.where(total > 0, total, 1.0), 0.0
+            )
     if viewpoint is not None:
         toward = np.asarray(viewpoint, dtype=float).reshape(1, 3) - p
     else:
         toward = np.broadcast_to(np.array([0.0, 0.0, 1.0]), p.shape)
     flip = np.einsum("ij,ij->i", normals, toward) < 0
     normals[flip] *= -1.0
-    if return_planarity:
-        total = evals.sum(axis=1)
-        variation = np.where(total > 0, evals[:, 0] / np.where(total > 0, total, 1.0), 0.0)
+    if variation is not None:
         return normals, variation
     return normals
 

@@ -21,12 +21,17 @@ from numpy.typing import ArrayLike, NDArray
 
 from fabflow.errors import InputError
 from fabflow.positioning.icp import IcpTarget, icp, prepare_target
-from fabflow.positioning.pointcloud import as_points, estimate_normals, voxel_downsample
+from fabflow.positioning.pointcloud import as_points, voxel_downsample
 from fabflow.positioning.pointcloud_io import read_point_cloud
 from fabflow.transforms.se3 import apply_T
 
 FloatArray = NDArray[np.float64]
 
+MAP_NORMAL_K = 20
+"""Neighbours of the PCA normals of a map without normals. Fewer are faster but
+noisier: on the simulated site's 3 cm map from noisy scans, 10 neighbours put the
+normals 3.3 deg off the surfaces (median; 1.4 deg with 20) and the localization
+0.81 mm off instead of 0.73 (median over 30 stations)."""
 COVARIANCE_BLOCK = 1.0
 """Edge (m) of the cubes of scan points whose residual errors the covariance treats
 as shared: the scale of the surfaces of a site (a column, a pallet, a stretch of
@@ -113,12 +118,11 @@ def map_from_points(
     p, n = voxel_downsample(points, voxel_size, normals)
     if len(p) < 100:
         raise InputError(f"a map needs at least 100 points after voxelizing, has {len(p)}")
-    if n is None:
-        n = estimate_normals(p, k=20)  # type: ignore[assignment]
-    pc, nc = voxel_downsample(p, 4 * voxel_size, n)
+    target = prepare_target(p, n, normal_k=MAP_NORMAL_K)  # one KD-tree for normals and ICP
+    pc, nc = voxel_downsample(p, 4 * voxel_size, target.normals)
     return ScanMap(
-        target=prepare_target(p, n),
-        coarse=prepare_target(pc, nc) if len(pc) >= 100 else prepare_target(p, n),
+        target=target,
+        coarse=prepare_target(pc, nc) if len(pc) >= 100 else target,
         voxel_size=voxel_size,
     )
 
