@@ -26,6 +26,7 @@ from fabflow.positioning.result import BasePose
 from fabflow.project import Project
 from fabflow.robots import platform
 from fabflow.tasks.plan import Plan, Station
+from fabflow.tasks.split import with_pieces
 from fabflow.transforms.se3 import compose_covariance, pose_error
 from fabflow.transforms.so3 import exp_so3
 
@@ -106,7 +107,9 @@ def localize_plan(
         Stations and the elements built before each visit (for LiDAR scans of the
         structure as built so far).
     elements
-        All elements of the project.
+        All elements of the project, as designed or with the plan's print path
+        pieces in place of their parents (:func:`~fabflow.tasks.split.with_pieces`,
+        applied here when needed).
     rng
         Random generator for the simulated sensors and parking errors.
     method
@@ -125,6 +128,7 @@ def localize_plan(
     """
     method = method or project.localization.method
     localize = station_localizer(project, method)
+    elements = with_pieces(elements, plan.split_elements)
     timeline = structure_timeline(elements, [wp.elements for wp in plan.work_packages])
     T_platform_base = project.robot.platform.T_platform_base.matrix()
     track = track_for(project, method, plan, elements, setups)

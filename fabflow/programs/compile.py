@@ -25,6 +25,7 @@ from fabflow.programs.replan import checked_program, replanned_program, with_con
 from fabflow.programs.writers import writer_for
 from fabflow.project import Project
 from fabflow.tasks.plan import Plan, WorkPackage
+from fabflow.tasks.split import with_pieces
 from fabflow.tasks.targets import element_tool_frames
 from fabflow.version import __version__
 
@@ -146,7 +147,8 @@ def write_programs(
     plan
         The plan (work packages in order).
     elements
-        All elements of the project.
+        All elements of the project, as designed or with the plan's print path
+        pieces in place of their parents (applied here when needed).
     project
         The project (robot, tool, program settings).
     base_poses
@@ -169,6 +171,7 @@ def write_programs(
     """
     fmt = fmt or project.program.format
     writer = writer_for(fmt, project.robot.name)
+    elements = with_pieces(elements, plan.split_elements)
     by_id = {e.id: e for e in elements}
     programs: list[Program] = []
     files: dict[str, str] = {}
