@@ -19,7 +19,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from fabflow.errors import FabflowError
+from fabflow.errors import FabflowError, LocalizationError
 from fabflow.version import __version__
 
 if TYPE_CHECKING:
@@ -27,15 +27,17 @@ if TYPE_CHECKING:
     from fabflow.project import Project
 
 app = typer.Typer(
-    name="fabflow",
-    help="From an architectural design to a mobile construction robot.",
+    name="fabflow",  # its help is main()'s docstring
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     add_completion=False,
+    rich_markup_mode=None,  # plain help: the boxed one imports markdown_it (0.3 s a --help)
+    context_settings={"max_content_width": 120},
 )
 localize_app = typer.Typer(
     help="Localize the robot base from measurements; writes the base pose JSON.",
     no_args_is_help=True,
+    rich_markup_mode=None,
 )
 app.add_typer(localize_app, name="localize")
 console = Console()
@@ -238,8 +240,6 @@ def report_base_pose(
     written = (Path(out) / "base_pose.json").resolve()
     console.print(f"[green]wrote[/] {written}")
     if pose.integrity is None or pose.integrity.failed:
-        from fabflow.errors import LocalizationError
-
         reason = "untested" if pose.integrity is None else pose.integrity.reason
         raise LocalizationError(
             f"integrity failed: {reason}; do not build from this pose (its tests are in {written})"

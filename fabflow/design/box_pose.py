@@ -17,7 +17,6 @@ choice makes two files of the same boxes give the same poses.
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
 CORNER_TOLERANCE = 1e-6
 """Largest distance (m) of a corner from the box its neighbours span."""
@@ -153,6 +152,8 @@ def oriented_box_pose(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     spread = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
     if spread[-1] <= CORNER_TOLERANCE:
         raise ValueError("the shape is flat (no volume)")
+    import trimesh  # heavy; only meshes drawn without a frame need it
+
     T_box_world, extents = trimesh.bounds.oriented_bounds(points)
     T_world_box = np.linalg.inv(T_box_world)
     R, ext = canonical_frames(T_world_box[None, :3, :3], np.asarray(extents)[None])

@@ -18,6 +18,7 @@ from fabflow.design.elements import Element, element_boxes
 from fabflow.errors import InputError
 from fabflow.localize.site import anchors_world, points_in_world
 from fabflow.positioning.boxes import Boxes, segments_inside
+from fabflow.positioning.medians import nanmedian
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Method
 from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers_static
@@ -239,14 +240,14 @@ def estimate_station(
         # may differ by stays in each link's variance, with the multipath's
         predicted = material_excess(model, data.material_length)
         ranges = ranges - predicted[None]
-        per_link = np.nanmedian(ranges, axis=0)
+        per_link = nanmedian(ranges, 0)
         link_sigma = np.hypot(
             model.field_sigma(np.where(np.isfinite(per_link), per_link, 0.0)),
             model.material_delay_spread * predicted,
         )
     rej = reject_outliers_static(ranges, model.sigma(ranges))
     method: Method = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
-    first_guess = np.nanmedian(ranges, axis=(0, 1))
+    first_guess = nanmedian(ranges, (0, 1))
     fix = locate_platform(
         A,
         rej.ranges,

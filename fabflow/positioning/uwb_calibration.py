@@ -10,7 +10,6 @@ is not pulled by them).
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -19,6 +18,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from fabflow.errors import InputError
+from fabflow.positioning.medians import nanmedian
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,7 @@ class RangeCalibration:
         x = np.asarray(true_distances, dtype=float)
         y = np.asarray(measured, dtype=float)
         if y.ndim == 3:
-            y = np.nanmedian(y, axis=1)
+            y = nanmedian(y, 1)
         if y.ndim != 2 or y.shape[0] != x.size:
             raise InputError(
                 "calibration data must be (k, n_anchors) or (k, samples, n_anchors) with k "
@@ -178,9 +178,7 @@ def running_median(series: np.ndarray, window: int, causal: bool = False) -> np.
         pad = [(window // 2, window - 1 - window // 2)] + [(0, 0)] * (x.ndim - 1)
     padded = np.pad(x, pad, mode="constant", constant_values=np.nan)
     view = sliding_window_view(padded, window, axis=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows give NaN
-        return np.nanmedian(view, axis=-1)
+    return nanmedian(view, -1)  # all-NaN windows give NaN
 
 
 def reject_outliers(
@@ -285,11 +283,7 @@ def reject_outliers_static(
     # twice on the samples within the threshold
     for _ in range(2):
         near = np.isfinite(clean) & (np.abs(clean - center[None]) <= thr)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            center = np.where(
-                near.any(axis=0), np.nanmedian(np.where(near, clean, np.nan), axis=0), center
-            )
+        center = np.where(near.any(axis=0), nanmedian(np.where(near, clean, np.nan), 0), center)
     far = np.isfinite(clean) & (np.abs(clean - center[None]) > thr)
     rejected = oob | far
     return Rejection(ranges=np.where(rejected, np.nan, y), rejected=rejected, out_of_bounds=oob)

@@ -21,6 +21,7 @@ from scipy.spatial import ConvexHull
 
 from fabflow.errors import InputError, LocalizationError
 from fabflow.positioning.integrity import ALPHA, Integrity, TestResult, identify, record
+from fabflow.positioning.medians import nanmedian
 from fabflow.positioning.uwb import (
     COND_LIMIT,
     MIN_RANGE_FOR_WEIGHT,
@@ -109,9 +110,10 @@ def locate_platform(
 
     Every tag's epochs are first multilaterated with ``method``; the median tag
     positions give the initial pose (2D Procrustes fit of the lever arms). For
-    ``wls-t`` the pose is then refined by Gauss-Newton on all ranges of all tags
-    and epochs jointly (``ls`` and ``wls`` keep the median fix unless an
-    exclusion asks for a new fit, which is a Gauss-Newton fit). Roll and pitch
+    ``wls-t`` the pose is then refined by Newton's method on all ranges of all
+    tags and epochs jointly, started from each tag's fix of its per-link median
+    ranges (``ls`` and ``wls`` keep the median fix unless an exclusion asks for
+    a new fit, which is a Newton fit). Roll and pitch
     are taken as zero (a level platform); they are not observed.
 
     Every range given enters the tested solution: none is trimmed by its
@@ -296,17 +298,27 @@ def _initial_state(
     method: Method,
     heading_prior: tuple[float, float] | None,
 ) -> tuple[np.ndarray, bool]:
-    """``[x, y, z, yaw]`` from the median per-tag fixes, and whether the heading is observed."""
+    """``[x, y, z, yaw]`` from the median per-tag fixes, and whether the heading is observed.
+
+    With ``wls-t`` the median pose only starts the Newton solve on all ranges, so
+    each tag's start is the fix of its per-link median ranges, one solve instead
+    of one per epoch; the per-epoch fixes are the fallback when that fails.
+    """
     n_tags = L.shape[0]
     tag_pos = np.empty((n_tags, 3))
     for k in range(n_tags):
+        if method == "wls-t":
+            seed = locate(A, nanmedian(R[:, k, :], 0), method=method, sigma=sigma)
+            if seed.valid[0]:
+                tag_pos[k] = seed.positions[0]
+                continue
         fix = locate(A, R[:, k, :], method=method, sigma=sigma)
         if not fix.valid.any():
             raise LocalizationError(
                 f"tag {k}: no epoch has enough usable ranges ({int((~fix.too_few).sum())} of "
                 f"{len(fix.valid)} epochs with >= 4 ranges, {int(fix.degenerate.sum())} degenerate)"
             )
-        tag_pos[k] = np.nanmedian(fix.positions[fix.valid], axis=0)
+        tag_pos[k] = nanmedian(fix.positions[fix.valid], 0)
     if n_tags >= 2:
         lc = L[:, :2] - L[:, :2].mean(axis=0)
         mc = tag_pos[:, :2] - tag_pos[:, :2].mean(axis=0)
@@ -368,7 +380,7 @@ def _finish(
     checks: dict[str, Any] = _geometry(A[np.unique(an)], state)
     integrity = record(tests, excluded, adj.alpha, checks)
     if integrity.status != "failed":
-        mirror = mirror_check(adj, use, state)
+        mirror = mirror_check(adj, use, state, tests)
         integrity = integrity.with_checks(mirror=mirror)
         if not mirror["passed"]:
             dz = mirror["offset_m"][2]
@@ -528,7 +540,7 @@ def heading_from_motion(fix_xy: np.ndarray, min_travel: float = 0.3, window: int
     if np.sum(np.all(np.isfinite(xy), axis=1)) < window:
         raise LocalizationError("too few position fixes to take the heading from the motion")
     smooth = running_median(xy, window)
-    start = np.nanmedian(xy[:window], axis=0)
+    start = nanmedian(xy[:window], 0)
     dist = np.linalg.norm(smooth - start, axis=1)
     moved = np.flatnonzero(dist > min_travel)
     if moved.size == 0:

@@ -364,7 +364,9 @@ def _strict_subset(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.all(b[a]) and b.sum() > a.sum())
 
 
-def mirror_check(adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray) -> dict[str, Any]:
+def mirror_check(
+    adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray, tests: TestResult | None = None
+) -> dict[str, Any]:
     """Whether the tags' reflection through the plane of the anchors used fits as well.
 
     Anchors nearly in one plane (three always are; A1-A3 at one height once A4
@@ -382,6 +384,9 @@ def mirror_check(adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray) ->
     A mirror that much worse is told apart by the ranges (the level platform,
     the anchors off their plane); one within it is not.
 
+    ``tests``, the tests of the ranges ``use`` at ``state`` when the caller has
+    them (:meth:`PlatformAdjustment.tests`), saves computing them again.
+
     Returns
     -------
     dict
@@ -391,7 +396,7 @@ def mirror_check(adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray) ->
         statistic minus the fix's) and ``limit`` (``lambda_0``), ``offset_m``
         (``x, y, z`` of the mirror fit minus the fix, metres), ``distinct``.
     """
-    return _mirror(adj, use, state)[0]
+    return _mirror(adj, use, state, tests)[0]
 
 
 def hidden_mirrors(
@@ -426,7 +431,7 @@ def hidden_mirrors(
             near, _, converged = adj.fit(rest, state)
         except LocalizationError:
             continue
-        check, mirror = _mirror(adj, rest, near)
+        check, mirror = _mirror(adj, rest, near, decision_only=True)
         if not converged or check["passed"] or mirror is None:
             continue
         residual = adj.raw_mean[mask] - platform_ranges(
@@ -449,25 +454,35 @@ def _base(adj: PlatformAdjustment, state: np.ndarray) -> np.ndarray:
 
 
 def _mirror(
-    adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray
+    adj: PlatformAdjustment,
+    use: np.ndarray,
+    state: np.ndarray,
+    tests: TestResult | None = None,
+    decision_only: bool = False,
 ) -> tuple[dict[str, Any], np.ndarray | None]:
-    """:func:`mirror_check` and the mirror fit's state (``None`` when it failed to solve)."""
+    """:func:`mirror_check` and the mirror fit's state (``None`` when it failed to solve).
+
+    With ``decision_only``, a mirror fit that did not converge or came back to
+    the fix is reported as ``passed`` without its tests (they cannot change that).
+    """
     start, h = _reflected(adj, use, state)
     out: dict[str, Any] = {"passed": True, "plane_distance_m": h}
     try:
         mirror, _, converged = adj.fit(use, start)
     except LocalizationError:
         return out, None
-    test, _ = adj.tests(use, mirror)
-    main, _ = adj.tests(use, state)
-    worse_by = test.statistic - main.statistic
-    limit = noncentrality(adj.alpha / max(len(main.labels), 1), POWER, 1)
     info = adj.information(use, state)
     if not adj.heading_observed:
         info = info[:3, :3]
     cov = np.linalg.pinv(info)[:3, :3]
     dp = mirror[:3] - state[:3]
     distinct = float(dp @ np.linalg.pinv(cov) @ dp) > float(special.chdtri(3, adj.alpha))
+    if decision_only and not (converged and distinct):
+        return out, mirror
+    test, _ = adj.tests(use, mirror)
+    main = tests if tests is not None else adj.tests(use, state)[0]
+    worse_by = test.statistic - main.statistic
+    limit = noncentrality(adj.alpha / max(len(main.labels), 1), POWER, 1)
     out.update(
         statistic=test.statistic,
         threshold=test.threshold,

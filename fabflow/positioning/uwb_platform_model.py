@@ -21,22 +21,35 @@ def rotz(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def _links(
+    A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rotated lever arms ``(n_tags, 3)``, and per link the vector anchor to tag
+    ``(m, 3)`` and its length ``(m,)`` (metres) at ``state``."""
+    Rl = L @ rotz(state[3]).T
+    diff = (state[:3] + Rl)[tag_idx] - A[anc_idx]
+    return Rl, diff, np.linalg.norm(diff, axis=1)
+
+
 def platform_ranges(
     A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
 ) -> np.ndarray:
     """Predicted ranges (metres) of the tag-anchor pairs ``(tag_idx, anc_idx)`` at ``state``."""
-    tags = state[:3] + L @ rotz(state[3]).T
-    return np.linalg.norm(tags[tag_idx] - A[anc_idx], axis=1)
+    return _links(A, L, state, tag_idx, anc_idx)[2]
 
 
 def platform_jacobian(
     A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
 ) -> np.ndarray:
     """(m, 4) derivative of the ranges by ``x, y, z`` (1) and ``yaw`` (metres per radian)."""
-    Rl = L @ rotz(state[3]).T
-    tags = state[:3] + Rl
-    diff = tags[tag_idx] - A[anc_idx]
-    u = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]
+    Rl, diff, dist = _links(A, L, state, tag_idx, anc_idx)
+    return _jacobian(Rl, diff, dist, tag_idx)
+
+
+def _jacobian(
+    Rl: np.ndarray, diff: np.ndarray, dist: np.ndarray, tag_idx: np.ndarray
+) -> np.ndarray:
+    u = diff / np.maximum(dist, 1e-9)[:, None]
     dyaw = np.column_stack([-Rl[:, 1], Rl[:, 0]])[tag_idx]
     return np.column_stack([u, np.sum(u[:, :2] * dyaw, axis=1)])
 
@@ -50,9 +63,14 @@ def range_curvature(
     With ``G = [I | dp/dyaw]`` the tag's derivative and ``u`` the unit vector to it:
     ``G^T (I - u u^T) G / range``, plus ``u . d2p/dyaw2`` in yaw-yaw.
     """
-    Rl = L @ rotz(state[3]).T
-    diff = state[:3] + Rl[tag_idx] - A[anc_idx]
-    dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
+    Rl, diff, dist = _links(A, L, state, tag_idx, anc_idx)
+    return _curvature(Rl, diff, dist, tag_idx)
+
+
+def _curvature(
+    Rl: np.ndarray, diff: np.ndarray, dist: np.ndarray, tag_idx: np.ndarray
+) -> np.ndarray:
+    dist = np.maximum(dist, 1e-9)
     u = diff / dist[:, None]
     G = np.zeros((len(diff), 3, 4))
     G[:, [0, 1, 2], [0, 1, 2]] = 1.0
@@ -115,8 +133,9 @@ def platform_newton(
 
     cost = cost_of(state)
     for iteration in range(1, max_iter + 1):
-        J = platform_jacobian(A, L, state, tag_idx, anc_idx)
-        r = d - platform_ranges(A, L, state, tag_idx, anc_idx)
+        Rl, diff, dist = _links(A, L, state, tag_idx, anc_idx)
+        J = _jacobian(Rl, diff, dist, tag_idx)
+        r = d - dist
         Wj = J / s[:, None] ** 2
         M = J.T @ Wj
         g = Wj.T @ r
@@ -127,7 +146,7 @@ def platform_newton(
         # Newton's Hessian adds the ranges' curvature, which Gauss-Newton drops: with
         # residuals not small against it (height over anchors near one plane) Gauss-
         # Newton only creeps, as the per-tag fixes of positioning.uwb also find.
-        H = M - np.einsum("m,mij->ij", r / s**2, range_curvature(A, L, state, tag_idx, anc_idx))
+        H = M - np.einsum("m,mij->ij", r / s**2, _curvature(Rl, diff, dist, tag_idx))
         if np.linalg.eigvalsh(H)[0] <= 1e-9 * np.trace(M):
             H = M
         try:

@@ -412,14 +412,29 @@ class RobotModel:
         lo, hi = self.joint_limits[:, 0], self.joint_limits[:, 1]
         k0 = np.round((ref - qa) / TWO_PI)
         best = qa + k0 * TWO_PI
-        best_ok = (best >= lo - 1e-9) & (best <= hi + 1e-9)
+        # The nearest turn is within limits and less than half a turn from the
+        # reference: no other turn can be closer. Not a number stays one. Only the
+        # rest (outside limits, or near a tie) try the neighbouring turns.
+        settled = (best >= lo - 1e-9) & (best <= hi + 1e-9) & (np.abs(best - ref) < np.pi - 1e-6)
+        settled |= np.isnan(best)
+        shape = settled.shape
+        best = np.array(np.broadcast_to(best, shape))
+        if settled.all():
+            return best
+        rest = ~settled
+        qa_r = np.broadcast_to(qa, shape)[rest]
+        ref_r = np.broadcast_to(ref, shape)[rest]
+        lo_r, hi_r = np.broadcast_to(lo, shape)[rest], np.broadcast_to(hi, shape)[rest]
+        k_r, best_r = np.broadcast_to(k0, shape)[rest], best[rest]
+        best_ok = (best_r >= lo_r - 1e-9) & (best_r <= hi_r + 1e-9)
         for dk in (-1.0, 1.0, -2.0, 2.0):
-            cand = qa + (k0 + dk) * TWO_PI
-            ok = (cand >= lo - 1e-9) & (cand <= hi + 1e-9)
-            closer = np.abs(cand - ref) < np.abs(best - ref)
+            cand = qa_r + (k_r + dk) * TWO_PI
+            ok = (cand >= lo_r - 1e-9) & (cand <= hi_r + 1e-9)
+            closer = np.abs(cand - ref_r) < np.abs(best_r - ref_r)
             take = ok & (~best_ok | closer)
-            best = np.where(take, cand, best)
+            best_r = np.where(take, cand, best_r)
             best_ok = best_ok | ok
+        best[rest] = best_r
         return best
 
     def _turn_variants(self, sols: FloatArray) -> FloatArray:

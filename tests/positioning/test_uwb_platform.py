@@ -210,3 +210,30 @@ def test_the_fix_converges_where_the_residuals_bend_the_height(seed: int) -> Non
     cost = np.sum(((d - platform_ranges(A, TAGS, state, tag_idx, anc_idx)) / s) ** 2)
     assert cost <= 2 * ref.cost * (1 + 1e-9)
     assert np.allclose(state, ref.x, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(12))
+@pytest.mark.parametrize("anchors", [PAPER_ANCHORS_3D, ANCHORS_5], ids=["4 anchors", "5 anchors"])
+def test_the_wls_t_fix_is_the_least_squares_minimum_whatever_its_start(seed: int, anchors) -> None:
+    # the Newton solve starts from the fix of each tag's per-link median ranges
+    # (one solve, not one per epoch); where it ends must not depend on that
+    from scipy.optimize import least_squares
+
+    from fabflow.positioning.uwb_platform_model import platform_ranges
+
+    rng = np.random.default_rng(seed)
+    R = _ranges(anchors, seed)
+    R[rng.random(R.shape) < 0.1] = np.nan  # dropped ranges
+    fix = locate_platform(anchors, R, TAGS, SIGMA, base_lever=BASE)
+    assert fix.converged and not fix.integrity.excluded
+    finite = np.isfinite(R)
+    tag_idx = np.broadcast_to(np.arange(2)[None, :, None], R.shape)[finite]
+    anc_idx = np.broadcast_to(np.arange(len(anchors))[None, None, :], R.shape)[finite]
+    ref = least_squares(
+        lambda x: R[finite] - platform_ranges(anchors, TAGS, x, tag_idx, anc_idx),
+        TRUTH,
+        xtol=1e-15,
+        ftol=1e-15,
+        gtol=1e-15,
+    )
+    np.testing.assert_allclose(fix.state, ref.x, atol=1e-6)
