@@ -40,7 +40,7 @@ def main() -> None:
     header = (
         f"{'cabins':>6} {'elements':>8} {'robot':>7} {'median s':>9} {'cpu s':>8} {'stations':>8} "
         f"{'bound':>5} {'visits':>6} {'travel m':>9}  {'cand':>5} {'cover':>5} {'select':>6} "
-        f"{'order':>5}  selection"
+        f"{'awkward':>7} {'order':>5} {'pack':>5}  selection"
     )
     print(header)
     print("-" * len(header))
@@ -68,7 +68,8 @@ def main() -> None:
             f"{s['stations']:>8} "
             f"{s['station_lower_bound']:>5} {s['visits']:>6} {s['travel_m']:>9.1f}  "
             f"{ts['candidates']:>5.2f} {ts['coverage']:>5.2f} {ts['selection']:>6.2f} "
-            f"{ts['order']:>5.2f}  {s['selection']}",
+            f"{ts['awkward_lifts']:>7.2f} {ts['order']:>5.2f} {ts['packages']:>5.2f}  "
+            f"{s['selection']}",
             flush=True,
         )
     print("\ngrowth of planning CPU time with the robot-built element count:")

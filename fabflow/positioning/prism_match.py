@@ -13,6 +13,14 @@ from fabflow.errors import LocalizationError
 
 MAX_PERMUTED = 7
 """Up to this many points every order of the readings is tried; beyond, pairwise swaps."""
+RCOND = 1e-5
+"""Directions of the distances' covariance with a variance below this fraction of the
+largest are left out of the test. There the distances change only to second order
+(the errors squared over the distance, about a micrometre for millimetre errors a
+metre apart), which the linear covariance does not hold: prisms nearly in one
+plane leave up to three such directions (``2n - 3`` distances are then
+independent, not ``3n - 6``), and kept in the test they raised its mean from its
+degrees of freedom to over a hundred times them."""
 
 
 def match_prisms(
@@ -57,14 +65,14 @@ def match_prisms(
     iu, ju = np.triu_indices(n, 1)
     d_P = np.linalg.norm(P[iu] - P[ju], axis=1)
     # n points in space have 3n - 6 independent distances: the n(n-1)/2 measured
-    # ones share points, so they are tested with their full (singular) covariance
-    dof = min(len(iu), 3 * n - 6)
-    threshold = float(special.chdtri(dof, alpha))
+    # ones share points, so they are tested with their full (singular) covariance,
+    # over the directions it determines (RCOND)
     incidence = np.zeros((len(iu), n))
     incidence[np.arange(len(iu)), iu] = 1.0
     incidence[np.arange(len(iu)), ju] = -1.0
 
-    def statistic(orders: np.ndarray) -> np.ndarray:
+    def statistic(orders: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The test statistic and its degrees of freedom per order."""
         Mo = M[orders]
         diff = Mo[:, iu] - Mo[:, ju]
         d_M = np.linalg.norm(diff, axis=-1)
@@ -73,10 +81,15 @@ def match_prisms(
         Cu = np.einsum("okij,oqj->okqi", C[orders], u, optimize=True)
         cov = np.einsum("pk,qk,opi,okqi->opq", incidence, incidence, u, Cu, optimize=True)
         e = d_M - d_P
-        return np.einsum("op,opq,oq->o", e, np.linalg.pinv(cov, rcond=1e-10, hermitian=True), e)
+        w, V = np.linalg.eigh(cov)
+        keep = w > RCOND * w[:, -1:]
+        z = np.einsum("opq,op->oq", V, e)
+        return np.sum(np.where(keep, z**2 / np.where(keep, w, 1.0), 0.0), axis=1), keep.sum(1)
 
     identity = np.arange(n)[None]
-    t0 = float(statistic(identity)[0])
+    stat0, dof0 = statistic(identity)
+    t0, dof = float(stat0[0]), int(dof0[0])
+    threshold = float(special.chdtri(dof, alpha))
     report: dict[str, Any] = {"distance_test": t0, "threshold": threshold, "dof": dof}
     if t0 <= threshold:
         return np.arange(n), {**report, "assignment": "as given"}
@@ -87,8 +100,8 @@ def match_prisms(
         orders = np.tile(np.arange(n), (len(swaps), 1))
         for k, (a, b) in enumerate(swaps):
             orders[k, [a, b]] = orders[k, [b, a]]
-    stats = statistic(orders)
-    fits = np.flatnonzero(stats <= threshold)
+    stats, dofs = statistic(orders)
+    fits = np.flatnonzero(stats <= special.chdtri(dofs, alpha))
     if len(fits) > 1:
         raise LocalizationError(
             f"the prism readings do not fit the robot points as given (distance test "

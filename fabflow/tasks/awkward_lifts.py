@@ -182,12 +182,14 @@ def _case_flags(
     singular = ~(valid & ~flips).any(axis=-1)
     # the pick approach, the travel point above the block at its height (where the
     # block comes from below it) and the approach pose (the descent's first sample)
-    T_pick_up = np.repeat(T_pick[None], n, axis=0)
-    T_pick_up[:, 2, 3] += up
-    q_pick, _ = robot.ik_batch(T_pick_up @ T_tool_flange)  # (C, branch, dof)
+    # blocks share a few approach distances: one pick approach each
+    ups, which = np.unique(up, return_inverse=True)
+    T_pick_up = np.repeat(T_pick[None], len(ups), axis=0)
+    T_pick_up[:, 2, 3] += ups
+    q_pick = robot.ik_batch(T_pick_up @ T_tool_flange)[0][which.ravel()]  # (C, branch, dof)
     T_up = T[:, 0] @ np.linalg.inv(T_tool_flange)  # (C, 4, 4) tools at the approach pose
     T_travel = T_up.copy()
-    T_travel[:, 2, 3] = np.maximum(T_up[:, 2, 3], T_pick_up[:, 2, 3])
+    T_travel[:, 2, 3] = np.maximum(T_up[:, 2, 3], T_pick_up[which.ravel(), 2, 3])
     q_travel, _ = robot.ik_batch(T_travel @ T_tool_flange)
     q_up = q.reshape(n, DESCENT_SAMPLES, -1, robot.dof)[:, 0]  # (C, branch, dof)
     turn = np.maximum(

@@ -11,6 +11,13 @@ three Gauss-Newton steps from the full fit, short of their optimum by up to
 ~1e-6 (relative) when a point is far off; they are now the exact weighted
 Kabsch fits (rank-one downdates). Those fields are compared to the recording
 within :data:`LOO_RTOL`, and to a brute-force refit of every subset within 1e-9.
+
+A second, later one: the prism identification's distance test now leaves out
+the directions its covariance does not determine
+(:data:`fabflow.positioning.prism_match.RCOND`). Where the points lie nearly in
+one plane its degrees of freedom drop, and the recorded statistic (in the tens
+where a handful was due, so no order of the readings fitted) is replaced by a
+smaller one; everything else must still agree.
 """
 
 from __future__ import annotations
@@ -61,6 +68,12 @@ def assert_same(
     near-zero residual or off-diagonal covariance carries the rounding of the
     large ones); a number alone relative to itself.
     """
+    if isinstance(old, dict) and path.endswith("prism_identification") and new != old:
+        if new.get("dof") != old.get("dof"):
+            assert new["dof"] < old["dof"], f"{path}: {new} != {old}"
+            assert new["distance_test"] < old["distance_test"], f"{path}: {new} != {old}"
+            assert new["assignment"].startswith("as given"), f"{path}: {new} != {old}"
+            return
     if isinstance(old, dict):
         assert isinstance(new, dict) and set(new) == set(old), f"{path}: keys differ"
         f_test = old.get("test") == "F(3, 3n-9)"
