@@ -89,6 +89,13 @@ def match_prisms(
     identity = np.arange(n)[None]
     stat0, dof0 = statistic(identity)
     t0, dof = float(stat0[0]), int(dof0[0])
+    if dof == 0:  # no spread at all (zero covariances): nothing to test
+        return np.arange(n), {
+            "distance_test": t0,
+            "threshold": 0.0,
+            "dof": 0,
+            "assignment": "as given",
+        }
     threshold = float(special.chdtri(dof, alpha))
     report: dict[str, Any] = {"distance_test": t0, "threshold": threshold, "dof": dof}
     if t0 <= threshold:

@@ -14,7 +14,7 @@ from fabflow.positioning.medians import nanmedian
 @settings(deadline=None, max_examples=200)
 @given(
     seed=st.integers(0, 2**31),
-    shape=st.lists(st.integers(1, 9), min_size=1, max_size=3),
+    shape=st.lists(st.integers(0, 9), min_size=1, max_size=3),
     nan_fraction=st.sampled_from([0.0, 0.2, 0.7, 1.0]),
     repeats=st.booleans(),
     data=st.data(),
@@ -40,6 +40,11 @@ def test_nanmedian_equals_numpys(
     got = nanmedian(a, axes)
     assert got.shape == np.shape(expected)
     np.testing.assert_array_equal(got, expected)
+
+
+def test_numpy_integers_name_the_axis() -> None:
+    a = np.arange(12.0).reshape(3, 4)
+    np.testing.assert_array_equal(nanmedian(a, np.int64(1)), np.median(a, axis=1))
 
 
 def test_a_large_sample_takes_numpys_other_path_and_still_agrees() -> None:
