@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 PROJECTS = ROOT / "projects"
 DATA = ROOT / "tests" / "data"
@@ -59,3 +61,18 @@ def small_stone_wall(folder: Path) -> Path:
     path = folder / "project.yaml"
     path.write_text(SMALL_STONE_WALL, encoding="utf-8")
     return path
+
+
+def icp_room(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Points on the six walls of a 6 x 4 x 3 m room and on a round column (ICP tests)."""
+    size = np.array([6.0, 4.0, 3.0])
+    parts = []
+    for axis in range(3):
+        for value in (0.0, size[axis]):
+            q = rng.uniform(0, 1, (n, 3)) * size
+            q[:, axis] = value
+            parts.append(q)
+    u = rng.uniform(0, 1, (n, 2))
+    th = 2 * np.pi * u[:, 0]
+    parts.append(np.c_[2 + 0.3 * np.cos(th), 1.5 + 0.3 * np.sin(th), 3 * u[:, 1]])
+    return np.vstack(parts)

@@ -7,6 +7,9 @@ the diff.
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 from helpers import ROOT
 
@@ -20,6 +23,16 @@ from fabflow.transforms.so3 import exp_so3
 
 GOLDEN = ROOT / "tests" / "golden" / "programs"
 PROJECT = ROOT / "tests" / "data" / "programs" / "project.yaml"
+
+
+def golden(files: dict[str, str], folder: Path) -> dict[str, str]:
+    """The golden files in ``folder`` by name; with ``FABFLOW_UPDATE_GOLDEN`` set,
+    ``files`` are written there first."""
+    if os.environ.get("FABFLOW_UPDATE_GOLDEN"):
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, text in files.items():
+            (folder / name).write_text(text, encoding="utf-8")
+    return {p.name: p.read_text(encoding="utf-8") for p in folder.iterdir()}
 
 
 def make_pose(xyz, yaw=0.0, flip=False) -> np.ndarray:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import icp_room as room
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -11,21 +12,6 @@ from fabflow.errors import InputError, LocalizationError
 from fabflow.positioning.icp import icp, prepare_target
 from fabflow.positioning.icp_weakness import weakest_direction
 from fabflow.transforms.se3 import apply_T, inv_T, perturb, pose_error
-
-
-def room(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Points on the six walls of a 6 x 4 x 3 m room and on a round column."""
-    size = np.array([6.0, 4.0, 3.0])
-    parts = []
-    for axis in range(3):
-        for value in (0.0, size[axis]):
-            q = rng.uniform(0, 1, (n, 3)) * size
-            q[:, axis] = value
-            parts.append(q)
-    u = rng.uniform(0, 1, (n, 2))
-    th = 2 * np.pi * u[:, 0]
-    parts.append(np.c_[2 + 0.3 * np.cos(th), 1.5 + 0.3 * np.sin(th), 3 * u[:, 1]])
-    return np.vstack(parts)
 
 
 @pytest.fixture(scope="module")

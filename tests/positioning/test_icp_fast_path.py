@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers import icp_room as room
 from scipy.spatial import cKDTree
 
 import fabflow.positioning.icp_search as search_module
@@ -20,21 +21,6 @@ from fabflow.positioning.icp import IcpTarget, icp, prepare_target
 from fabflow.positioning.icp_search import Matches, levels
 from fabflow.positioning.pointcloud import estimate_normals
 from fabflow.transforms.se3 import apply_T, inv_T, perturb, pose_error
-
-
-def room(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Points on the six walls of a 6 x 4 x 3 m room and on a round column."""
-    size = np.array([6.0, 4.0, 3.0])
-    parts = []
-    for axis in range(3):
-        for value in (0.0, size[axis]):
-            q = rng.uniform(0, 1, (n, 3)) * size
-            q[:, axis] = value
-            parts.append(q)
-    u = rng.uniform(0, 1, (n, 2))
-    th = 2 * np.pi * u[:, 0]
-    parts.append(np.c_[2 + 0.3 * np.cos(th), 1.5 + 0.3 * np.sin(th), 3 * u[:, 1]])
-    return np.vstack(parts)
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ regenerate them after an intended change with
 from __future__ import annotations
 
 import dataclasses
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +21,7 @@ from gcodeparser import parse_gcode_lines
 from helpers import PROJECTS, run_cli
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from program_cases import GOLDEN, PROJECT, T_WORLD_BASE, make_pose, sample_program
+from program_cases import GOLDEN, PROJECT, T_WORLD_BASE, golden, make_pose, sample_program
 
 from fabflow.build.runner import run_build
 from fabflow.design.elements import Element
@@ -199,13 +198,7 @@ def print_program(flavor: str = "marlin") -> Program:
 @pytest.mark.parametrize("flavor", FLAVORS)
 def test_golden(flavor: str) -> None:
     files = WRITERS["gcode"].write(print_program(flavor))
-    folder = GOLDEN / "gcode" / flavor
-    if os.environ.get("FABFLOW_UPDATE_GOLDEN"):
-        folder.mkdir(parents=True, exist_ok=True)
-        for name, text in files.items():
-            (folder / name).write_text(text, encoding="utf-8")
-    expected = {p.name: p.read_text(encoding="utf-8") for p in folder.iterdir()}
-    assert files == expected
+    assert files == golden(files, GOLDEN / "gcode" / flavor)
     assert WRITERS["gcode"].write(print_program(flavor)) == files  # deterministic
 
 

@@ -10,13 +10,12 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
-import os
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
-from program_cases import CASES, GOLDEN, sample_program
+from program_cases import CASES, GOLDEN, golden, sample_program
 from program_readers import read_krl, read_rapid, read_urscript
 
 from fabflow.errors import InputError, UnsupportedError
@@ -32,13 +31,7 @@ from fabflow.transforms.so3 import matrix_from_quat
 @pytest.mark.parametrize(("fmt", "robot"), CASES)
 def test_golden(fmt: str, robot: str) -> None:
     files = WRITERS[fmt].write(sample_program(robot))
-    folder = GOLDEN / fmt
-    if os.environ.get("FABFLOW_UPDATE_GOLDEN"):
-        folder.mkdir(parents=True, exist_ok=True)
-        for name, text in files.items():
-            (folder / name).write_text(text, encoding="utf-8")
-    expected = {p.name: p.read_text(encoding="utf-8") for p in folder.iterdir()}
-    assert files == expected
+    assert files == golden(files, GOLDEN / fmt)
 
 
 @pytest.mark.parametrize(("fmt", "robot"), CASES)
