@@ -12,6 +12,10 @@ Status S (3 bits):
 
 Turn T (6 bits): bit i is 1 when axis A(i+1) is negative.
 
+An axis within float noise of 0 counts as 0 for bit 2 and the turn bits
+(:mod:`fabflow.robots.joint_boundaries`): A1 straight ahead gives the same
+bits however the solve rounded it.
+
 The KUKA home pose A1..A6 = (0, -90, 90, 0, 10, 0) deg gives S = 2, T = 2.
 """
 
@@ -23,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from fabflow.errors import UnsupportedError
 from fabflow.robots.catalog import KR60_3_OPW, get_robot
 from fabflow.robots.chain import RobotModel
+from fabflow.robots.joint_boundaries import settle_zeros
 
 KR60_3_PHI = float(np.arctan2(-KR60_3_OPW.a2, KR60_3_OPW.c3))
 """A3 angle (radians) at which the KR 60-3 wrist root point is in line with A2 and A3."""
@@ -72,9 +77,10 @@ def kuka_status_turn(
     x_a1 = wrist[:, 0] * np.cos(t1) + wrist[:, 1] * np.sin(t1)
     bit0 = (x_a1 < 0).astype(np.int64)
     bit1 = (p.signs[2] * qb[:, 2] - p.offsets[2] >= phi).astype(np.int64)
-    bit2 = (qb[:, 4] <= 0).astype(np.int64)
+    signs = settle_zeros(qb)
+    bit2 = (signs[:, 4] <= 0).astype(np.int64)
     S = bit0 | (bit1 << 1) | (bit2 << 2)
-    turn = (qb < 0).astype(np.int64) << np.arange(6)
+    turn = (signs < 0).astype(np.int64) << np.arange(6)
     T = turn.sum(axis=1)
     if single:
         return int(S[0]), int(T[0])

@@ -44,6 +44,7 @@ from fabflow.programs.writers.base import (
     split_modules,
 )
 from fabflow.robots.catalog import get_robot
+from fabflow.robots.joint_boundaries import quadrants, settle_zeros
 from fabflow.robots.opw import OPWParameters
 from fabflow.transforms.vendors import to_abb_pose
 
@@ -96,6 +97,8 @@ def confdata(q: np.ndarray, T_base_flange: np.ndarray, arm: OPWParameters) -> tu
     """ABB ``confdata`` [cf1, cf4, cf6, cfx] for a 6-axis configuration.
 
     cf1, cf4, cf6 are the quadrants (``floor(q / 90 deg)``) of axes 1, 4 and 6.
+    A joint within float noise of a quadrant's edge or of 0 is read as on it
+    (:mod:`fabflow.robots.joint_boundaries`), so the numbers do not follow rounding.
     cfx packs three flags, as ABB's table orders them: 4 when the wrist centre is
     behind axis 1, 2 when it is behind the lower arm (the line from axis 2 to
     axis 3, seen in the arm's plane), 1 when axis 5 is negative.
@@ -110,7 +113,8 @@ def confdata(q: np.ndarray, T_base_flange: np.ndarray, arm: OPWParameters) -> tu
         The arm's geometry: axis 2 offset and height, lower arm length, wrist
         centre to flange.
     """
-    cf1, cf4, cf6 = (int(np.floor(np.degrees(q[i]) / 90.0)) for i in (0, 3, 5))
+    cf1, cf4, cf6 = (int(c) for c in quadrants(np.asarray(q)[[0, 3, 5]]))
+    q = settle_zeros(q)
     wrist = T_base_flange[:3, 3] - arm.c4 * T_base_flange[:3, 2]
     heading = np.array([np.cos(q[0]), np.sin(q[0]), 0.0])
     forward = float(wrist @ heading)
