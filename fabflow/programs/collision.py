@@ -287,17 +287,23 @@ class _Bodies:
     ):
         self.move = move
         self.parts = parts
-        self.seg, self.radii, self.names = link_segments(robot, q, T_flange_tool)
+        frames = robot.frames(q) if len(q) else np.zeros((0, robot.dof + 2, 4, 4))
+        self.seg, self.radii, self.names = link_segments(robot, q, T_flange_tool, frames)
         n = len(q)
         self.T_held = np.zeros((n, 4, 4))
         self.ext_held = np.zeros((n, 3))
         held_move = np.array([h is not None and h in held_boxes for h in motion.held], dtype=bool)
         self.held_rows = np.flatnonzero(held_move[move]) if n else np.zeros(0, dtype=np.intp)
         if len(self.held_rows):
-            boxes = [held_boxes[motion.held[m]] for m in move[self.held_rows]]  # type: ignore[index]
-            T_tool_box = np.stack([b[0] for b in boxes])
-            self.ext_held[self.held_rows] = np.stack([b[1] for b in boxes])
-            T = robot.fk(q[self.held_rows]) @ T_flange_tool @ T_tool_box
+            # the boxes of the moves that hold one, then of the samples (few moves, many samples)
+            moves = np.flatnonzero(held_move)
+            of_move = np.zeros(len(held_move), dtype=np.intp)
+            of_move[moves] = np.arange(len(moves))
+            boxes = [held_boxes[motion.held[m]] for m in moves]  # type: ignore[index]
+            which = of_move[move[self.held_rows]]
+            T_tool_box = np.stack([b[0] for b in boxes])[which]
+            self.ext_held[self.held_rows] = np.stack([b[1] for b in boxes])[which]
+            T = frames[self.held_rows, -1] @ T_flange_tool @ T_tool_box
             self.T_held[self.held_rows] = T
 
     def near(self, motion: _Motion, obs: Obstacles, grow: np.ndarray, limit: np.ndarray) -> _Near:
@@ -306,8 +312,11 @@ class _Bodies:
         seg, radii = self.seg, self.radii
         n_samples, n_links = seg.shape[:2]
         pad = radii[None, :, None] + grow[:, None, None]
-        lo = np.concatenate([seg.min(axis=2) - pad, np.full((n_samples, 1, 3), np.inf)], axis=1)
-        hi = np.concatenate([seg.max(axis=2) + pad, np.full((n_samples, 1, 3), -np.inf)], axis=1)
+        # the held block's box last, empty (inf, -inf) where nothing is held
+        lo = np.full((n_samples, n_links + 1, 3), np.inf)
+        hi = np.full((n_samples, n_links + 1, 3), -np.inf)
+        np.subtract(np.minimum(seg[:, :, 0], seg[:, :, 1]), pad, out=lo[:, :n_links])
+        np.add(np.maximum(seg[:, :, 0], seg[:, :, 1]), pad, out=hi[:, :n_links])
         rows = self.held_rows
         if len(rows):
             lo[rows, -1], hi[rows, -1] = box_aabb(self.T_held[rows], self.ext_held[rows])
@@ -327,15 +336,22 @@ class _Bodies:
         rows = np.repeat(starts[chunk], counts) + ranges(counts)
         b, k = np.repeat(b, counts), np.repeat(k, counts)
         mv = self.move[rows]
-        keep = np.all((lo[rows, b] <= o_hi[k]) & (hi[rows, b] >= o_lo[k]), axis=-1)
+        keep = np.ones(len(rows), dtype=bool)
+        for axis in range(3):
+            keep &= lo[rows, b, axis] <= o_hi[k, axis]
+            keep &= hi[rows, b, axis] >= o_lo[k, axis]
         keep &= obs.since[k] < motion.stage[mv]
         if "base" in self.names:
             keep &= ~((b == self.names.index("base")) & (obs.kinds[k] == "platform"))
         if "tool" in self.names:
-            element = np.array(
-                [self.parts.get(m.element, m.element) or "" for m in motion.moves], dtype=object
+            # parts as integers (-1: no part; -2: a move's part no obstacle has)
+            code = {e: i for i, e in enumerate(set(obs.element.tolist()) - {""})}
+            of_obstacle = np.array([code.get(e, -1) for e in obs.element.tolist()], dtype=np.intp)
+            of_move = np.array(
+                [code.get(self.parts.get(m.element, m.element) or "", -2) for m in motion.moves],
+                dtype=np.intp,
             )
-            own = (obs.element[k] == element[mv]) & (element[mv] != "")
+            own = of_obstacle[k] == of_move[mv]
             keep &= ~((b == self.names.index("tool")) & own)
         rows, b, k = rows[keep], b[keep], k[keep]
         # Level 3: a lower bound of the distance in the obstacle's own frame.

@@ -132,12 +132,18 @@ def aabb_pairs(
     ia = np.repeat(ao, n)
     key = np.repeat(akey, n)
     ib = bo[np.repeat(left, n) + ranges(n)]
-    ref = np.clip(
-        np.floor(np.maximum(a_lo[ia, :2], b_lo[ib, :2]) / cell).astype(np.int64) - lo_cell,
-        0,
-        span - 1,
-    )
-    once = ref[:, 0] * span[1] + ref[:, 1] == key
-    overlap = np.all((a_lo[ia] <= b_hi[ib]) & (a_hi[ia] >= b_lo[ib]), axis=1)
-    keep = once & overlap
-    return ia[keep], ib[keep]
+    # overlap one axis at a time on contiguous columns, dropping pairs as they fail
+    for axis in range(3):
+        keep = (a_lo[:, axis][ia] <= b_hi[:, axis][ib]) & (a_hi[:, axis][ia] >= b_lo[:, axis][ib])
+        ia, ib, key = ia[keep], ib[keep], key[keep]
+    ref = [
+        np.clip(
+            np.floor(np.maximum(a_lo[:, axis][ia], b_lo[:, axis][ib]) / cell).astype(np.int64)
+            - lo_cell[axis],
+            0,
+            span[axis] - 1,
+        )
+        for axis in range(2)
+    ]
+    once = ref[0] * span[1] + ref[1] == key
+    return ia[once], ib[once]

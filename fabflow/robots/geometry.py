@@ -124,7 +124,10 @@ def link_capsules(robot: RobotModel) -> tuple[LinkCapsule, ...]:
 
 
 def link_segments(
-    robot: RobotModel, q: np.ndarray, T_flange_tool: np.ndarray | None = None
+    robot: RobotModel,
+    q: np.ndarray,
+    T_flange_tool: np.ndarray | None = None,
+    frames: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Segment end points of every link capsule for many configurations.
 
@@ -138,6 +141,8 @@ def link_segments(
         4x4 tool centre point in the flange frame; when given, a tool capsule
         (radius :data:`TOOL_RADIUS`) from the flange to the TCP is appended,
         its end cap touching the TCP.
+    frames
+        ``robot.frames(q)`` of the (N, dof) configurations when the caller has it.
 
     Returns
     -------
@@ -148,16 +153,22 @@ def link_segments(
     names
         The L link names (``"tool"`` last when a tool is given).
     """
-    frames = robot.frames(np.atleast_2d(np.asarray(q, dtype=float)))
+    if frames is None:
+        frames = robot.frames(np.atleast_2d(np.asarray(q, dtype=float)))
     caps = link_capsules(robot)
     ia = np.array([c.frame_a for c in caps])
     ib = np.array([c.frame_b for c in caps])
     pa = np.array([c.p_a for c in caps])
     pb = np.array([c.p_b for c in caps])
-    Fa, Fb = frames[:, ia], frames[:, ib]
-    a = (Fa[..., :3, :3] @ pa[:, :, None])[..., 0] + Fa[..., :3, 3]
-    b = (Fb[..., :3, :3] @ pb[:, :, None])[..., 0] + Fb[..., :3, 3]
-    segments = [np.stack([a, b], axis=2)]
+    n = len(frames)
+    ends = np.empty((n, len(caps), 2, 3))
+    for end, index, p in ((0, ia, pa), (1, ib, pb)):
+        # R @ p + t as a sum of the columns p uses (capsules run along an axis):
+        # numpy's stacked 3x3 products are slow; the sum's order is the product's
+        terms = [frames[:, :, :3, j][:, index] * p[:, j, None] for j in range(3) if p[:, j].any()]
+        origin = frames[:, :, :3, 3][:, index]
+        ends[:, :, end] = sum(terms[1:], terms[0]) + origin if terms else origin
+    segments = [ends]
     radii = [c.radius for c in caps]
     names = [c.name for c in caps]
     if T_flange_tool is not None:
