@@ -20,6 +20,12 @@ from collections.abc import Sequence
 import numpy as np
 
 from fabflow.errors import InfeasibleError
+from fabflow.programs.branch_follow import (
+    MAX_JOINT_STEP,
+    MIN_SPEED_FRACTION,
+    follow_branch,
+    follow_branch_chain,
+)
 from fabflow.programs.motion_checks import configuration_of, wrap_angle, wrist_flips
 from fabflow.programs.motions import Waypoint
 from fabflow.programs.wrist_lin import (
@@ -37,12 +43,9 @@ STEP_TRANSLATION = 0.02
 """Largest tool translation between two checked samples of a linear move (m)."""
 STEP_ROTATION = 0.015
 """Largest tool rotation between two checked samples of a linear move (rad)."""
-MIN_SPEED_FRACTION = 0.1
-"""A linear move may be slowed near a singularity so its joints stay within their
-speed limits, down to this fraction of its programmed speed; slower is an error."""
-MAX_JOINT_STEP = np.pi / 2
-"""A joint moving more than this between neighbouring samples (rad) is a
-configuration change, whatever the time allowed."""
+FAST_WINDOW = 64
+"""Linear moves followed at once on one branch at most (:func:`follow_branch_chain`): a
+move it refuses is searched alone, and the next window starts after it."""
 TOOL_ROTATION_SPEED = 1.0
 """Tool rotation speed assumed for timing linear moves (rad/s)."""
 WRIST_SAMPLES = 36
@@ -216,7 +219,7 @@ def solve_moves(
     def follow(i: int, q_prev: np.ndarray, branch: int) -> tuple[np.ndarray, int, float]:
         """Joint path of linear move ``i`` from ``q_prev`` on IK branch ``branch``."""
         rows = slice(starts[i], stops[i])
-        path = _follow_branch(
+        path = follow_branch(
             robot, q_all[rows, branch], valid[rows, branch], q_prev, multi_turn, dt[i]
         )
         if path is not None:
@@ -241,10 +244,23 @@ def solve_moves(
         tool poses (world) of a wrist-interpolated move's path, None for the
         others; ``joint``: made a joint move (:func:`_as_joint_move`).
         """
-        chain = []
+        chain: list[tuple[np.ndarray, float, np.ndarray | None, bool]] = []
         q_chain = q_i
         flips = False
-        for k in range(i + 1, end):
+        k = i + 1
+        while k < end:
+            if end - k > 1:  # several linear moves: as many as go, at once on this branch
+                last = min(end, k + FAST_WINDOW)
+                rows = slice(starts[k], stops[last - 1])
+                fast = follow_branch_chain(
+                    robot, q_all[rows, branch], valid[rows, branch], (stops - starts)[k:last],
+                    q_chain, multi_turn, dt[k:last],
+                )  # fmt: skip
+                if fast:
+                    chain += [(path, slow, None, False) for path, slow in fast]
+                    q_chain = fast[-1][0][-1]
+                    k += len(fast)
+                    continue
             path, branch, slow = follow(k, q_chain, branch)
             samples = None
             as_joint = False
@@ -262,6 +278,7 @@ def solve_moves(
                     flips = True
             chain.append((path, slow, samples, as_joint))
             q_chain = path[-1]
+            k += 1
         return chain, flips
 
     def _as_joint_move(k: int, q_from: np.ndarray) -> np.ndarray | None:
@@ -485,34 +502,6 @@ def _nearest_turn(robot: RobotModel, q: np.ndarray, q_ref: np.ndarray) -> np.nda
         ref = np.broadcast_to(q_ref, q.shape)
         turned[outside] = robot.nearest_turn(q[outside], ref[outside])
     return turned
-
-
-def _follow_branch(
-    robot: RobotModel,
-    q_branch: np.ndarray,
-    ok: np.ndarray,
-    q_prev: np.ndarray,
-    multi_turn: np.ndarray,
-    dt: float,
-) -> tuple[np.ndarray, float] | None:
-    """The joint path along one IK branch and its slowdown, or None when the branch
-    leaves the limits, jumps, or would need more than the allowed slowdown.
-
-    The fast path for linear moves: consecutive samples are one controller step
-    apart (``dt`` seconds at the programmed speed), so joints with more than one
-    turn of range are unwrapped by the shortest angle between neighbours.
-    """
-    if not ok.all():
-        return None
-    steps = np.diff(np.vstack([q_prev, q_branch]), axis=0)
-    steps[:, multi_turn] = wrap_angle(steps[:, multi_turn])
-    if np.abs(steps).max() > MAX_JOINT_STEP:
-        return None
-    slowdown = max(1.0, float((np.abs(steps) / (robot.velocity_limits * dt)).max()))
-    if slowdown > 1.0 / MIN_SPEED_FRACTION:
-        return None
-    path = q_prev + np.cumsum(steps, axis=0)
-    return (path, slowdown) if robot.within_limits(path).all() else None
 
 
 def _step_through(

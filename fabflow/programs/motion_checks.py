@@ -31,7 +31,7 @@ SWING_A1_EXCESS_DEG = 30.0
 """A PTP turning A1 this much (degrees) more than the wrist centre moves about it turns around."""
 _SAME_ANGLE = 1e-4
 """Two joint values closer than this (radians, modulo a turn) are the same branch."""
-_A5_ZERO = 5e-10
+A5_ZERO = 5e-10
 """A5 values closer to 0 than this (radians) have no sign (at the singularity)."""
 _WRIST_FRAME = 4
 """Index in :meth:`RobotModel.frames` of the frame at the wrist centre (DH frame 4)."""
@@ -142,7 +142,7 @@ def avoidable_swings(
 def wrist_flips(q_path: np.ndarray) -> bool:
     """Whether A5 changes sign along a joint path ``(k, dof)`` (the wrist configuration flips)."""
     a5 = q_path[:, 4]
-    return bool((a5 >= _A5_ZERO).any() and (a5 <= -_A5_ZERO).any())
+    return bool((a5 >= A5_ZERO).any() and (a5 <= -A5_ZERO).any())
 
 
 def program_checks(
