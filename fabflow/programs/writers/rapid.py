@@ -97,11 +97,11 @@ def confdata(q: np.ndarray, T_base_flange: np.ndarray, arm: OPWParameters) -> tu
     """ABB ``confdata`` [cf1, cf4, cf6, cfx] for a 6-axis configuration.
 
     cf1, cf4, cf6 are the quadrants (``floor(q / 90 deg)``) of axes 1, 4 and 6.
-    A joint within float noise of a quadrant's edge or of 0 is read as on it
-    (:mod:`fabflow.robots.joint_boundaries`), so the numbers do not follow rounding.
     cfx packs three flags, as ABB's table orders them: 4 when the wrist centre is
     behind axis 1, 2 when it is behind the lower arm (the line from axis 2 to
     axis 3, seen in the arm's plane), 1 when axis 5 is negative.
+    A joint within float noise of a quadrant's edge or of 0 is read as on it
+    (:mod:`fabflow.robots.joint_boundaries`), so the numbers do not follow rounding.
 
     Parameters
     ----------
@@ -113,19 +113,28 @@ def confdata(q: np.ndarray, T_base_flange: np.ndarray, arm: OPWParameters) -> tu
         The arm's geometry: axis 2 offset and height, lower arm length, wrist
         centre to flange.
     """
-    cf1, cf4, cf6 = (int(c) for c in quadrants(np.asarray(q)[[0, 3, 5]]))
+    return tuple(int(c) for c in confdata_batch(np.asarray(q)[None], T_base_flange[None], arm)[0])
+
+
+def confdata_batch(q: np.ndarray, T_base_flange: np.ndarray, arm: OPWParameters) -> np.ndarray:
+    """:func:`confdata` of ``(n, 6)`` configurations and their ``(n, 4, 4)`` flange poses.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n, 4)`` integers [cf1, cf4, cf6, cfx] per configuration.
+    """
+    q = np.asarray(q, dtype=float)
+    quadrant = quadrants(q[:, [0, 3, 5]])
     q = settle_zeros(q)
-    wrist = T_base_flange[:3, 3] - arm.c4 * T_base_flange[:3, 2]
-    heading = np.array([np.cos(q[0]), np.sin(q[0]), 0.0])
-    forward = float(wrist @ heading)
+    wrist = T_base_flange[:, :3, 3] - arm.c4 * T_base_flange[:, :3, 2]
+    forward = wrist[:, 0] * np.cos(q[:, 0]) + wrist[:, 1] * np.sin(q[:, 0])
     behind_axis1 = forward < 0.0
     # In the arm's plane (forward, up): axis 2 at (a1, c1), axis 3 along the lower arm.
-    axis2 = np.array([arm.a1, arm.c1])
-    lower_arm = np.array([np.sin(q[1]), np.cos(q[1])])
-    to_wrist = np.array([forward, wrist[2]]) - axis2
-    behind_lower_arm = lower_arm[0] * to_wrist[1] - lower_arm[1] * to_wrist[0] > 0.0
-    cfx = 4 * behind_axis1 + 2 * behind_lower_arm + 1 * bool(q[4] < 0.0)
-    return cf1, cf4, cf6, cfx
+    to_wrist_x, to_wrist_z = forward - arm.a1, wrist[:, 2] - arm.c1
+    behind_lower_arm = np.sin(q[:, 1]) * to_wrist_z - np.cos(q[:, 1]) * to_wrist_x > 0.0
+    cfx = 4 * behind_axis1 + 2 * behind_lower_arm + 1 * (q[:, 4] < 0.0)
+    return np.c_[quadrant, cfx].astype(np.int64)
 
 
 def _pose_text(p: np.ndarray, q: np.ndarray) -> str:
@@ -193,8 +202,15 @@ def _body(
     positions, quats = (
         to_abb_pose(np.stack(cartesian)) if cartesian else (np.zeros((0, 3)), np.zeros((0, 4)))
     )
+    # every robtarget's confdata in one call
+    cartesian_k = [k for k, m in enumerate(moves) if not m.joint]
+    confs = (
+        confdata_batch(np.stack([moves[k].q for k in cartesian_k]), flanges[cartesian_k], arm)
+        if cartesian_k
+        else np.zeros((0, 4), dtype=np.int64)
+    ).tolist()
     n = first_point
-    for k, ins in enumerate(moves):
+    for ins in moves:
         if ins.joint:
             axes = ",".join(fixed(v, 4) for v in np.degrees(ins.q))
             home = f"  CONST jointtarget {HOME} := [[{axes}],{extax}];"
@@ -203,7 +219,7 @@ def _body(
             continue
         pose = _pose_text(positions[n - first_point], quats[n - first_point])
         n += 1
-        conf = confdata(ins.q, flanges[k], arm)
+        conf = confs[n - 1 - first_point]
         decl.append(
             f"  CONST robtarget p{n} := [{pose[1:-1]},[{','.join(str(c) for c in conf)}],{extax}];"
         )
