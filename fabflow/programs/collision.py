@@ -46,13 +46,20 @@ import numpy as np
 
 from fabflow.design.elements import Element
 from fabflow.programs.collision_model import Obstacles, box_aabb, held_box, part_of
+from fabflow.programs.collision_motion import (
+    CheckMemo,
+    CheckMotion,
+    move_keys,
+    only_moves,
+    program_motion,
+)
 from fabflow.programs.collision_phases import (
     Narrow,
     aabb_pairs,
     capsule_frames,
     ranges,
 )
-from fabflow.programs.ir import Move, Program, SetOutput
+from fabflow.programs.ir import Program
 from fabflow.project import Project
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
@@ -68,8 +75,6 @@ MAX_JOINT_STEP = np.radians(1.0)
 """Largest joint step between fine samples of a PTP move (radians)."""
 SEAT_TOLERANCE = 0.001
 """Penetration allowed for the held block on its seat moves (metres)."""
-SEAT_HEIGHT = 0.001
-"""A linear move ending within this height of the place's is on the bed (metres)."""
 CHUNK = 16
 """Samples swept together in the first broad-phase level."""
 GRID_CELL = 0.5
@@ -119,145 +124,6 @@ class Contact:
         )
 
 
-@dataclass(frozen=True)
-class _Motion:
-    """A program's moves for the check: what holds per move, and the samples.
-
-    ``fixed_*`` are samples checked as they are (linear-move samples, the first
-    target); ``ptp_*`` describe each PTP move for the coarse-to-fine sampling.
-    """
-
-    moves: list[Move]
-    stage: np.ndarray  # (M,) obstacles with since < stage are present
-    held: list[str | None]  # (M,) block held during each move
-    seat: np.ndarray  # (M,) the held block's seat move
-    fixed_q: np.ndarray  # (F, dof)
-    fixed_move: np.ndarray  # (F,)
-    ptp_move: np.ndarray  # (P,)
-    ptp_q0: np.ndarray  # (P, dof)
-    ptp_q1: np.ndarray  # (P, dof)
-    ptp_travel: np.ndarray  # (P,) first-order body travel bound (metres)
-    ptp_step: np.ndarray  # (P,) largest joint change (radians)
-
-
-def _lever_arms(
-    robot: RobotModel, q: np.ndarray, T_flange_tool: np.ndarray, reach_beyond: float
-) -> np.ndarray:
-    """(M, dof) distance of the farthest body point from each joint axis at each target (m).
-
-    The points are the frame origins and the TCP; ``reach_beyond`` (metres) covers
-    the capsule radii and a held block around them.
-    """
-    F = robot.frames(q)
-    tcp = F[:, -1, :3, :3] @ T_flange_tool[:3, 3] + F[:, -1, :3, 3]
-    points = np.concatenate([F[:, :, :3, 3], tcp[:, None]], axis=1)  # (M, P, 3)
-    origin = F[:, : robot.dof, None, :3, 3]  # joint j turns about z of frame j
-    axis = F[:, : robot.dof, None, :3, 2]
-    rel = points[:, None] - origin
-    along = np.sum(rel * axis, axis=-1, keepdims=True)
-    return np.linalg.norm(rel - along * axis, axis=-1).max(axis=-1) + reach_beyond
-
-
-def program_motion(program: Program, robot: RobotModel, reach_beyond: float) -> _Motion:
-    """The moves of a program, with stage, held block and seat flag per move.
-
-    ``reach_beyond`` bounds how far a body reaches past the frame origins and the
-    TCP (metres), for the lever arms of :func:`_lever_arms`.
-    """
-    moves: list[Move] = []
-    grip_at: dict[int, str | None] = {}
-    last_move: dict[str, int] = {}
-    released: dict[str | None, int] = {}
-    for ins in program.instructions:
-        if isinstance(ins, Move):
-            moves.append(ins)
-            if ins.element is not None:
-                last_move[ins.element] = len(moves)
-        elif isinstance(ins, SetOutput) and ins.name == "gripper":
-            if ins.value:
-                grip_at[len(moves)] = ins.element
-            else:
-                released[ins.element] = len(moves)
-    # An element is complete from its release on, else after its last move.
-    complete = np.sort([released.get(e, last) for e, last in last_move.items()])
-    release = set(released.values())
-    targets = np.array([m.q for m in moves], dtype=float).reshape(len(moves), robot.dof)
-    T_flange_tool = np.asarray(program.T_flange_tool, dtype=float)
-    arms = _lever_arms(robot, targets, T_flange_tool, reach_beyond)
-    fixed: list[np.ndarray] = []
-    fixed_move: list[int] = []
-    ptp: list[int] = []
-    held_of: list[str | None] = []
-    seat: list[bool] = []
-    held: str | None = None
-    for i, move in enumerate(moves):
-        held = grip_at.get(i, held)
-        if i in release:
-            held = None
-        if move.kind == "lin" and move.via_q is not None:
-            fixed.append(np.vstack([move.via_q, targets[i][None]]))
-            fixed_move += [i] * (len(move.via_q) + 1)
-        elif i > 0 and move.kind == "ptp":
-            ptp.append(i)
-        else:
-            fixed.append(targets[i][None])
-            fixed_move.append(i)
-        held_of.append(held)
-        seat.append(held is not None and move.kind == "lin" and i in grip_at)
-    # down onto the bed: the linear moves right before a release that end at the
-    # place's height (the place, and the lowering beside it of a block slid in),
-    # or a descent straight down made a joint move (through the wrist singularity)
-    for i in release:
-        z_place = moves[i - 1].T_world_tool[2, 3]
-        k = i - 1
-        while k >= 0 and held_of[k] is not None:
-            down = moves[k].kind != "lin"
-            if down and not _straight_down(moves, k):
-                break
-            if abs(moves[k].T_world_tool[2, 3] - z_place) > SEAT_HEIGHT:
-                break
-            seat[k] = True
-            if down:  # the way down ends the way onto the bed
-                break
-            k -= 1
-    # stage 2c - 1 for the moves of the c-th completed element after its completion
-    # (its retract), 2c from the next element's first move (see
-    # fabflow.programs.collision_model): what comes by hand waits for the tool to leave
-    done_at = {e: released.get(e, last) for e, last in last_move.items()}
-    own_done = np.array(
-        [m.element is not None and done_at[m.element] <= i for i, m in enumerate(moves)],
-        dtype=bool,
-    )
-    p = np.array(ptp, dtype=np.intp)
-    dq = np.abs(targets[p] - targets[p - 1])
-    lever = np.maximum(arms[p - 1], arms[p])
-    return _Motion(
-        moves=moves,
-        # never back: a HOME move between two moves of one block keeps what came
-        stage=np.maximum.accumulate(
-            2 * np.searchsorted(complete, np.arange(len(moves)), side="right") - own_done
-        ),
-        held=held_of,
-        seat=np.array(seat, dtype=bool),
-        fixed_q=np.vstack(fixed) if fixed else np.zeros((0, robot.dof)),
-        fixed_move=np.array(fixed_move, dtype=np.intp),
-        ptp_move=p,
-        ptp_q0=targets[p - 1],
-        ptp_q1=targets[p],
-        ptp_travel=np.sum(dq * lever, axis=1),
-        ptp_step=dq.max(axis=1, initial=0.0),
-    )
-
-
-def _straight_down(moves: Sequence[Move], k: int) -> bool:
-    """Whether move ``k`` takes the tool straight down from where the move before ended
-    (within :data:`SEAT_HEIGHT` horizontally)."""
-    if k == 0:
-        return False
-    start, end = moves[k - 1].T_world_tool[:3, 3], moves[k].T_world_tool[:3, 3]
-    return bool(np.hypot(*(end[:2] - start[:2])) <= SEAT_HEIGHT and end[2] < start[2])
-
-
 def _counts(travel: np.ndarray, step: np.ndarray, max_travel: float, max_step: float) -> np.ndarray:
     return np.maximum(1, np.ceil(np.maximum(travel / max_travel, step / max_step))).astype(np.intp)
 
@@ -278,7 +144,7 @@ class _Bodies:
     def __init__(
         self,
         robot: RobotModel,
-        motion: _Motion,
+        motion: CheckMotion,
         q: np.ndarray,
         move: np.ndarray,
         T_flange_tool: np.ndarray,
@@ -306,7 +172,9 @@ class _Bodies:
             T = frames[self.held_rows, -1] @ T_flange_tool @ T_tool_box
             self.T_held[self.held_rows] = T
 
-    def near(self, motion: _Motion, obs: Obstacles, grow: np.ndarray, limit: np.ndarray) -> _Near:
+    def near(
+        self, motion: CheckMotion, obs: Obstacles, grow: np.ndarray, limit: np.ndarray
+    ) -> _Near:
         """Triples whose distance lower bound is below their limit (:func:`_limit`); bodies
         grown by ``grow[row]`` (metres) in the broad phase."""
         seg, radii = self.seg, self.radii
@@ -424,6 +292,7 @@ def check_program(
     held_boxes: Mapping[str, tuple[np.ndarray, np.ndarray]],
     clearance: float,
     parts: Mapping[str, str] | None = None,
+    memo: CheckMemo | None = None,
 ) -> list[Contact]:
     """Every body that comes closer than ``clearance`` to an obstacle, per move.
 
@@ -443,6 +312,12 @@ def check_program(
         Element id to the part it belongs to
         (:func:`fabflow.programs.collision_model.part_of`; default: itself), for
         the tool's by-design contact with its own part.
+    memo
+        The results of earlier checks against the same obstacles, robot, tool,
+        clearance, held boxes and parts (a re-planning's rounds; start with
+        ``{}``): moves whose check depends on nothing new
+        (:func:`~fabflow.programs.collision_motion.move_keys`) take their
+        contacts from it, and the moves checked here are added to it.
 
     Returns
     -------
@@ -452,11 +327,43 @@ def check_program(
     """
     if not len(obstacles) or not program.moves:
         return []
-    T_flange_tool = np.asarray(program.T_flange_tool, dtype=float)
     obs = obstacles.moved(np.asarray(program.T_base_world, dtype=float))
     beyond = max(float(c.radius) for c in link_capsules(robot))
     beyond = max([beyond, *(float(np.linalg.norm(e)) for _, e in held_boxes.values())])
     motion = program_motion(program, robot, beyond)
+    keys = move_keys(motion, parts or {}) if memo is not None else []
+    todo = np.array([k not in memo for k in keys], dtype=bool) if memo is not None else None
+    found: dict[tuple[int, int, int], float] = {}
+    if todo is None or todo.any():
+        checked = motion if todo is None else only_moves(motion, todo)
+        found = _contacts(checked, program, robot, obs, held_boxes, clearance, parts or {})
+    if memo is not None:
+        assert todo is not None
+        for mv in np.flatnonzero(todo).tolist():
+            memo[keys[mv]] = [(b, k, d) for (m, b, k), d in found.items() if m == mv]
+        for mv in np.flatnonzero(~todo).tolist():
+            found.update({(mv, b, k): d for b, k, d in memo[keys[mv]]})
+    names = [*(c.name for c in link_capsules(robot)), "tool", "held"]  # as link_segments names them
+    out = []
+    for (mv, body, k), d in sorted(found.items()):
+        link = f"held {motion.held[mv]}" if body == len(names) - 1 else names[body]
+        m = motion.moves[mv]
+        out.append(Contact(mv, m.element, m.label, link, str(obs.names[k]), d))
+    return out
+
+
+def _contacts(
+    motion: CheckMotion,
+    program: Program,
+    robot: RobotModel,
+    obs: Obstacles,
+    held_boxes: Mapping[str, tuple[np.ndarray, np.ndarray]],
+    clearance: float,
+    parts: Mapping[str, str],
+) -> dict[tuple[int, int, int], float]:
+    """:func:`check_program`'s smallest distance below the clearance per (move, body,
+    obstacle) over the samples of ``motion``, obstacles ``obs`` in the base frame."""
+    T_flange_tool = np.asarray(program.T_flange_tool, dtype=float)
     narrow: Narrow | None = None
 
     def limits(bodies: _Bodies) -> np.ndarray:
@@ -480,7 +387,7 @@ def check_program(
     coarse = coarse[order]
     sample_ptp = np.r_[np.full(len(motion.fixed_q), -1), which][order]
     sample_j = np.r_[np.zeros(len(motion.fixed_q), dtype=np.intp), j][order]
-    bodies = _Bodies(robot, motion, q, move, T_flange_tool, held_boxes, parts or {})
+    bodies = _Bodies(robot, motion, q, move, T_flange_tool, held_boxes, parts)
     limit = limits(bodies) + grow[:, None]
     near = bodies.near(motion, obs, clearance + grow, limit)
     # Every sample at the clearance itself: linear-move samples are final; a coarse
@@ -512,20 +419,14 @@ def check_program(
         move = motion.ptp_move[p[owner]]
         order = np.argsort(move, kind="stable")
         q = (q0 + frac[:, None] * (q1 - q0))[order]
-        fine = _Bodies(robot, motion, q, move[order], T_flange_tool, held_boxes, parts or {})
+        fine = _Bodies(robot, motion, q, move[order], T_flange_tool, held_boxes, parts)
         limit = limits(fine)
         near = fine.near(motion, obs, np.full(len(q), clearance), limit)
         if len(near.rows):
             narrow = narrow or Narrow(obs, _lengths(fine), fine.radii, clearance + SEAT_TOLERANCE)
             for key, d in fine.distances(near, narrow, limit).items():
                 found[key] = min(d, found.get(key, np.inf))
-    names = [*bodies.names, "held"]
-    out = []
-    for (mv, body, k), d in sorted(found.items()):
-        link = f"held {motion.held[mv]}" if body == len(names) - 1 else names[body]
-        m = motion.moves[mv]
-        out.append(Contact(mv, m.element, m.label, link, str(obs.names[k]), d))
-    return out
+    return found
 
 
 def _limit(limit: np.ndarray, rows: np.ndarray, body: np.ndarray, n_links: int) -> np.ndarray:
@@ -544,6 +445,7 @@ def check_package(
     obstacles: Obstacles,
     package: Sequence[Element],
     clearance: float | None = None,
+    memo: CheckMemo | None = None,
 ) -> list[Contact]:
     """:func:`check_program` of a work package's program.
 
@@ -559,8 +461,11 @@ def check_package(
         The program's elements in build order (the blocks it holds).
     clearance
         Overrides ``project.program.clearance`` (metres).
+    memo
+        To :func:`check_program`: earlier checks of the package's programs.
     """
     held = {e.id: box for e in package if (box := held_box(e)) is not None}
     limit = project.program.clearance if clearance is None else clearance
     parts = {e.id: part_of(e) for e in package}
-    return check_program(program, get_robot(program.robot), obstacles, held, limit, parts)
+    robot = get_robot(program.robot)
+    return check_program(program, robot, obstacles, held, limit, parts, memo)

@@ -27,6 +27,7 @@ from fabflow.programs.collision_model import (
     safe_heights,
     tuck_heights,
 )
+from fabflow.programs.collision_motion import CheckMemo
 from fabflow.programs.ir import Program
 from fabflow.programs.motions import Placement, Route, work_package_motion
 from fabflow.project import Project
@@ -134,10 +135,11 @@ def replanned_program(
     program and those of the rounds the best by the same order is returned.
     """
     obstacles = environment(project, T_world_base, built, elements, coming)
+    memo: CheckMemo = {}  # the rounds' programs share most moves: each is checked once
     placed = placements(obstacles, elements, project)
     steps = work_package_motion(elements, project, T_world_base, placements=placed)
     program = compile_program(name, steps, project, T_world_base, header, **options)
-    contacts = check_package(program, project, obstacles, elements)
+    contacts = check_package(program, project, obstacles, elements, memo=memo)
     if not contacts and not _swings(program):
         return program, contacts
     candidates = candidate_routes(elements, project, T_world_base, obstacles)
@@ -172,7 +174,7 @@ def replanned_program(
         if compiled is None:
             break
         program, level = compiled
-        contacts = check_package(program, project, obstacles, elements)
+        contacts = check_package(program, project, obstacles, elements, memo=memo)
         best = min(best, (_total(program, contacts), program, contacts), key=lambda b: b[0])
         defects = _defects(program, contacts)
         for eid, d in defects.items():
@@ -186,7 +188,7 @@ def replanned_program(
     )
     if compiled is not None:
         program = compiled[0]
-        contacts = check_package(program, project, obstacles, elements)
+        contacts = check_package(program, project, obstacles, elements, memo=memo)
         best = min(best, (_total(program, contacts), program, contacts), key=lambda b: b[0])
     return best[1], best[2]
 
