@@ -417,6 +417,9 @@ class RobotModel:
         # rest (outside limits, or near a tie) try the neighbouring turns.
         settled = (best >= lo - 1e-9) & (best <= hi + 1e-9) & (np.abs(best - ref) < np.pi - 1e-6)
         settled |= np.isnan(best)
+        # A joint whose whole range lies within half a turn of the reference has no
+        # other turn within limits: the nearest turn stays, within limits or not.
+        settled |= (lo - 1e-9 > ref - np.pi + 1e-6) & (hi + 1e-9 < ref + np.pi - 1e-6)
         shape = settled.shape
         best = np.array(np.broadcast_to(best, shape))
         if settled.all():

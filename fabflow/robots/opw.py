@@ -208,6 +208,11 @@ def opw_ik(
     q[:, 4:, 4] = -th5
     q[:, 4:, 5] = th6 - np.pi
     exists = np.concatenate([exists4, exists4], axis=1)
-    q = (q + np.asarray(p.offsets)) * np.asarray(p.signs)
-    q = np.pi - np.mod(np.pi - q, 2.0 * np.pi)
+    # in place: the same arithmetic as (q + offsets) * signs, then pi - mod(pi - q, 2 pi),
+    # without three more arrays of 48 values per pose
+    q += np.asarray(p.offsets)
+    q *= np.asarray(p.signs)
+    np.subtract(np.pi, q, out=q)
+    np.mod(q, 2.0 * np.pi, out=q)
+    np.subtract(np.pi, q, out=q)
     return q, exists
