@@ -104,19 +104,50 @@ class ReachModel:
         np.ndarray
             Boolean array of the broadcast shape.
         """
-        r = np.asarray(r, dtype=float)
+        return self._padded[self._r_index(r), self._z_index(z)]
+
+    def level_masks(self, r: np.ndarray, frame: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """:meth:`reachable` of many points at a few heights each, as bit masks.
+
+        Parameters
+        ----------
+        r
+            ``(P,)`` horizontal distances from the base axis (metres).
+        frame
+            ``(P,)`` row of ``z`` of each point.
+        z
+            ``(K, L)`` heights above the base frame origin (metres), ``L <= 63``:
+            per row, the heights each point of that row is looked at.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(P,)`` int64: bit ``l`` set where point ``p`` is reachable at
+            height ``z[frame[p], l]``.
+
+        The heights' table columns are found once per row of ``z``, and the
+        masks once per row and distance cell, not per point.
+        """
         z = np.asarray(z, dtype=float)
-        padded = self._padded
-        # Indices into the table padded with one unreachable cell on every side;
-        # everything outside the table lands on that border.
-        i = np.clip(np.floor(r * (1.0 / self.r_step)), -1, padded.shape[0] - 2).astype(np.intp) + 1
-        j = (
-            np.clip(
-                np.floor((z - self.z_min) * (1.0 / self.z_step)), -1, padded.shape[1] - 2
-            ).astype(np.intp)
-            + 1
+        j = self._z_index(z)  # (K, L)
+        masks = np.zeros((self._padded.shape[0], len(z)), dtype=np.int64)  # (r cells, K)
+        for level in range(z.shape[1]):
+            masks |= self._padded[:, j[:, level]].astype(np.int64) << level
+        return masks[self._r_index(r), np.asarray(frame, dtype=np.intp)]
+
+    def _r_index(self, r: np.ndarray) -> np.ndarray:
+        """Row of the padded table (:attr:`_padded`) of each distance; outside: its border."""
+        r = np.asarray(r, dtype=float)
+        n = self._padded.shape[0]
+        return np.clip(np.floor(r * (1.0 / self.r_step)), -1, n - 2).astype(np.intp) + 1
+
+    def _z_index(self, z: np.ndarray) -> np.ndarray:
+        """Column of the padded table of each height; outside: its border."""
+        z = np.asarray(z, dtype=float)
+        n = self._padded.shape[1]
+        return (
+            np.clip(np.floor((z - self.z_min) * (1.0 / self.z_step)), -1, n - 2).astype(np.intp) + 1
         )
-        return padded[i, j]
 
     @functools.cached_property
     def _padded(self) -> np.ndarray:

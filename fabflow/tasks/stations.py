@@ -120,6 +120,29 @@ def footprint_corners(
     return np.einsum("cij,kj->cki", R, local) + xy[:, None, :]
 
 
+def _footprints_with_arm(
+    xy: np.ndarray, heading: np.ndarray, platform: Platform, margin: float, radius: float
+) -> np.ndarray:
+    """Footprints (:func:`footprint_corners`) joined with the disc the arm's base sweeps.
+
+    One union per heading, made at the origin and moved to every platform
+    position (GEOS unions are slow one by one; the shape only turns with the
+    heading).
+    """
+    headings, which = np.unique(heading, return_inverse=True)
+    zero = np.zeros((len(headings), 2))
+    off = platform.T_platform_base.matrix()[:2, 3]
+    c, s = np.cos(headings), np.sin(headings)
+    base = np.stack([c * off[0] - s * off[1], s * off[0] + c * off[1]], axis=1)
+    shapes = shapely.union(
+        shapely.polygons(footprint_corners(zero, headings, platform.footprint, margin)),
+        shapely.buffer(shapely.points(base), radius, quad_segs=8),
+    )
+    fp = shapes[which.ravel()]
+    shift = np.repeat(xy, shapely.get_num_coordinates(fp), axis=0)
+    return shapely.transform(fp, lambda coords: coords + shift)
+
+
 def footprint_polygons(
     xy: np.ndarray, heading: np.ndarray, size: tuple[float, float], margin: float
 ) -> np.ndarray:
@@ -275,9 +298,10 @@ def generate_candidates(
 
     margin = float(platform.safety_margin)
     fp_corners = footprint_corners(xy, heading, platform.footprint, margin)
-    fp = shapely.polygons(fp_corners)
     if arm_radius > 0:
-        fp = shapely.union(fp, shapely.buffer(shapely.points(base_xy), arm_radius, quad_segs=8))
+        fp = _footprints_with_arm(xy, heading, platform, margin, arm_radius)
+    else:
+        fp = shapely.polygons(fp_corners)
     inside = np.all((fp_corners >= lo) & (fp_corners <= hi), axis=(1, 2))
 
     bad = ~inside
@@ -377,7 +401,6 @@ def coverage(
     p = T_world_tool[:, :3, 3]
     n_frames = np.bincount(owner, minlength=n_elements)
     single = bool(np.all(n_frames == 1)) and len(owner) == n_elements
-    weights = (1 << np.arange(len(lifts), dtype=np.int64))[None, :]
     z_rel0 = p[:, 2] - cands.base_z0
 
     rows = np.arange(C) if rows is None else np.asarray(rows, dtype=np.intp)
@@ -400,10 +423,8 @@ def coverage(
         pairs = sub.sparse_distance_matrix(tree_c, reach.r_max, output_type="ndarray")
         f = pairs["i"].astype(np.intp) + start
         cand = rows[pairs["j"].astype(np.intp)]
-        r = pairs["v"]
-        zr = z_rel0[f][:, None] - lifts[None, :]
-        ok = reach.reachable(r[:, None], zr)
-        mask = (ok * weights).sum(axis=1)
+        zr = z_rel0[start:stop, None] - lifts[None, :]
+        mask = reach.level_masks(pairs["v"], f - start, zr)
         keep = mask != 0
         f, cand, mask = f[keep], cand[keep], mask[keep]
         e = owner[f]

@@ -32,7 +32,7 @@ from fabflow.tasks.order import (
 from fabflow.tasks.planner import make_plan, plan_project
 from fabflow.tasks.reachability import thin_frames
 from fabflow.tasks.split import split_wide_paths, with_pieces
-from fabflow.tasks.stations import element_polygons, footprint_polygons
+from fabflow.tasks.stations import _footprints_with_arm, element_polygons, footprint_polygons
 from fabflow.tasks.targets import (
     T_base_pick_tool,
     block_approach,
@@ -315,6 +315,45 @@ def test_reach_model_is_conservative_against_ik():
     assert valid.any(axis=1).all()
     assert reach.reachable_base(T[:, :3, 3]).all()
     assert not reach.reachable(np.array([reach.r_max + 0.1]), np.array([0.0]))[0]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 12))
+def test_level_masks_are_reachable_at_every_height(seed: int, levels: int) -> None:
+    """The per-row masks equal :meth:`reachable` point by point, inside, on and beyond
+    the table's edges."""
+    reach = reach_model("kuka_kr60_3", small_project().robot.tool.T_flange_tool.matrix())
+    rng = np.random.default_rng(seed)
+    rows = int(rng.integers(1, 6))
+    z = rng.uniform(reach.z_min - 0.5, reach.z_min + reach.table.shape[1] * reach.z_step + 0.5,
+                    (rows, levels))  # fmt: skip
+    z[0, 0] = reach.z_min  # a cell edge
+    frame = rng.integers(0, rows, 200)
+    r = rng.uniform(-0.1, reach.r_max + 0.3, 200)
+    r[:3] = [0.0, reach.r_step, reach.r_max]
+    expected = (reach.reachable(r[:, None], z[frame]) << np.arange(levels)).sum(axis=1)
+    assert np.array_equal(reach.level_masks(r, frame, z), expected)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.05, 1.5))
+def test_footprints_with_the_arm_are_the_unions_one_by_one(seed: int, radius: float) -> None:
+    """Unions made once per heading and moved equal the footprint joined with the disc
+    about each base (up to rounding of the moved vertices)."""
+    platform = small_project().robot.platform
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-20.0, 20.0, (25, 2))
+    heading = np.radians(rng.choice([0.0, 45.0, 90.0, 180.0, 270.0], 25))
+    got = _footprints_with_arm(xy, heading, platform, 0.1, radius)
+    off = platform.T_platform_base.matrix()[:2, 3]
+    c, s = np.cos(heading), np.sin(heading)
+    base = xy + np.stack([c * off[0] - s * off[1], s * off[0] + c * off[1]], axis=1)
+    expected = shapely.union(
+        footprint_polygons(xy, heading, platform.footprint, 0.1),
+        shapely.buffer(shapely.points(base), radius, quad_segs=8),
+    )
+    assert (shapely.hausdorff_distance(got, expected) < 1e-9).all()
+    assert (shapely.area(shapely.symmetric_difference(got, expected)) < 1e-9).all()
 
 
 def test_fallback_reach_model_is_close_to_ik():
