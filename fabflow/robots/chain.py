@@ -17,7 +17,7 @@ Everything is batch-capable: ``q`` of shape ``(dof,)`` or ``(N, dof)``.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import TYPE_CHECKING
@@ -365,7 +365,10 @@ class RobotModel:
         return [s.copy() for s in sols]
 
     def ik_batch(
-        self, T_base_flange: ArrayLike, q_ref: ArrayLike | None = None
+        self,
+        T_base_flange: ArrayLike,
+        q_ref: ArrayLike | None = None,
+        arms: Sequence[int] | None = None,
     ) -> tuple[FloatArray, NDArray[np.bool_]]:
         """Closed-form IK for many poses at once (all branches).
 
@@ -376,6 +379,10 @@ class RobotModel:
         q_ref
             ``(dof,)`` or ``(N, dof)`` reference (radians): each joint is moved by
             whole turns to the value nearest the reference that is within limits.
+        arms
+            For an arm with an ortho-parallel geometry (:attr:`opw`), solve only
+            these arm branches (0-3) and their wrist flips (4-7); the others come
+            back NaN and invalid. Ignored for other arms (every branch is solved).
 
         Returns
         -------
@@ -388,7 +395,10 @@ class RobotModel:
         if self.analytic_ik is None:
             raise UnsupportedError(f"{self.name} has no closed-form IK; use ik()")
         T = np.asarray(T_base_flange, dtype=float)
-        q, exists = self.analytic_ik(T, q_ref)
+        if arms is not None and self.opw is not None:
+            q, exists = self.analytic_ik(T, q_ref, arms=arms)
+        else:
+            q, exists = self.analytic_ik(T, q_ref)
         ref = np.zeros(self.dof) if q_ref is None else np.asarray(q_ref, dtype=float)
         if ref.ndim == 2:
             ref = ref[:, None, :]

@@ -261,9 +261,10 @@ def _opw_ik_with_flange(
     T_flange_n: FloatArray,
     T_base_flange: FloatArray,
     q_ref: FloatArray | None = None,
+    arms: Sequence[int] | None = None,
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """:func:`opw_ik` of an arm whose flange is offset from the OPW flange."""
-    return opw_ik(p, np.asarray(T_base_flange, dtype=float) @ T_flange_n, q_ref)
+    return opw_ik(p, np.asarray(T_base_flange, dtype=float) @ T_flange_n, q_ref, arms)
 
 
 def _check_length(values: Sequence[object] | None, dof: int, field: tuple[str, ...]) -> None:

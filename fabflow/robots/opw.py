@@ -13,6 +13,7 @@ for many poses at once.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -109,7 +110,10 @@ def _ry(t: FloatArray) -> FloatArray:
 
 
 def opw_ik(
-    p: OPWParameters, T_base_flange: FloatArray, q_ref: FloatArray | None = None
+    p: OPWParameters,
+    T_base_flange: FloatArray,
+    q_ref: FloatArray | None = None,
+    arms: Sequence[int] | None = None,
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """All eight closed-form solutions for many flange poses.
 
@@ -122,6 +126,9 @@ def opw_ik(
     q_ref
         ``(6,)`` or ``(N, 6)`` reference (controller joints, radians); only used at
         a wrist singularity.
+    arms
+        Solve only these arm branches (0-3: front/back, elbow a/b) and their
+        wrist flips (4-7); the others come back NaN and not existing. Default all.
 
     Returns
     -------
@@ -178,6 +185,10 @@ def opw_ik(
     th2 = np.stack([-tmp13 + tmp14, tmp13 + tmp14, -tmp15 - tmp16, tmp15 - tmp16], axis=1)
     th3 = np.stack([tmp11 - tmp10, -tmp11 - tmp10, tmp12 - tmp10, -tmp12 - tmp10], axis=1)
     exists4 = np.stack([ok_front, ok_front, ok_back, ok_back], axis=1)
+    if arms is not None:  # the wrist below is most of the work: only for these
+        arm = np.unique(np.asarray(arms, dtype=np.intp))
+        flip = arm + 4
+        th1, th2, th3, exists4 = th1[:, arm], th2[:, arm], th3[:, arm], exists4[:, arm]
 
     # Wrist: R_c_e = Rz(q4) Ry(q5) Rz(q6). q5 from the norm of the third column
     # (no cancellation near q5 = 0), q4 from its direction, and q6 from the rest of
@@ -200,14 +211,14 @@ def opw_ik(
     M = np.swapaxes(_rz(th4) @ _ry(th5), -1, -2) @ Rce
     th6 = np.arctan2(M[..., 1, 0], M[..., 0, 0])
 
-    q = np.empty((T.shape[0], 8, 6))
-    q[:, :4, 0], q[:, :4, 1], q[:, :4, 2] = th1, th2, th3
-    q[:, :4, 3], q[:, :4, 4], q[:, :4, 5] = th4, th5, th6
-    q[:, 4:, :3] = q[:, :4, :3]
-    q[:, 4:, 3] = th4 + np.pi
-    q[:, 4:, 4] = -th5
-    q[:, 4:, 5] = th6 - np.pi
-    exists = np.concatenate([exists4, exists4], axis=1)
+    k = th1.shape[1]
+    q = np.empty((T.shape[0], 2 * k, 6))  # the branches solved, then their wrist flips
+    q[:, :k, 0], q[:, :k, 1], q[:, :k, 2] = th1, th2, th3
+    q[:, :k, 3], q[:, :k, 4], q[:, :k, 5] = th4, th5, th6
+    q[:, k:, :3] = q[:, :k, :3]
+    q[:, k:, 3] = th4 + np.pi
+    q[:, k:, 4] = -th5
+    q[:, k:, 5] = th6 - np.pi
     # in place: the same arithmetic as (q + offsets) * signs, then pi - mod(pi - q, 2 pi),
     # without three more arrays of 48 values per pose
     q += np.asarray(p.offsets)
@@ -215,4 +226,12 @@ def opw_ik(
     np.subtract(np.pi, q, out=q)
     np.mod(q, 2.0 * np.pi, out=q)
     np.subtract(np.pi, q, out=q)
+    exists = np.concatenate([exists4, exists4], axis=1)
+    if arms is not None:  # in the branch order of all eight
+        solved = np.r_[arm, flip]
+        q_all = np.full((T.shape[0], 8, 6), np.nan)
+        q_all[:, solved] = q
+        exists_all = np.zeros((T.shape[0], 8), dtype=bool)
+        exists_all[:, solved] = exists
+        q, exists = q_all, exists_all
     return q, exists

@@ -172,7 +172,9 @@ def _case_flags(
     T_path = np.repeat(T_place[:, None], DESCENT_SAMPLES, axis=1)
     T_path[..., 2, 3] += up[:, None] * frac[None, ::-1]
     T = T_base_world[:, None] @ T_path @ T_tool_flange
-    q, valid = robot.ik_batch(T.reshape(-1, 4, 4))
+    # only the arm branches that reach the pick (a block's motion keeps one) are solved
+    arms = np.flatnonzero(at_pick) % 4 if robot.opw is not None and len(at_pick) == 8 else None
+    q, valid = robot.ik_batch(T.reshape(-1, 4, 4), arms=arms)
     shape = (n, DESCENT_SAMPLES, valid.shape[-1])
     a5 = q[..., 4].reshape(shape)
     valid = valid.reshape(shape).all(axis=1) & at_pick  # the whole descent and the pick
@@ -190,7 +192,7 @@ def _case_flags(
     T_up = T[:, 0] @ np.linalg.inv(T_tool_flange)  # (C, 4, 4) tools at the approach pose
     T_travel = T_up.copy()
     T_travel[:, 2, 3] = np.maximum(T_up[:, 2, 3], T_pick_up[which.ravel(), 2, 3])
-    q_travel, _ = robot.ik_batch(T_travel @ T_tool_flange)
+    q_travel, _ = robot.ik_batch(T_travel @ T_tool_flange, arms=arms)
     q_up = q.reshape(n, DESCENT_SAMPLES, -1, robot.dof)[:, 0]  # (C, branch, dof)
     turn = np.maximum(
         np.abs(q_travel[..., 1:3] - q_pick[..., 1:3]).max(axis=-1),

@@ -349,3 +349,25 @@ def test_kuka_status_turn_batch_and_branches() -> None:
     # The 8 branches are exactly the 8 status values: S identifies the branch.
     assert sorted(S.tolist()) == list(range(8))
     assert Tn.dtype.kind == "i"
+
+
+@pytest.mark.parametrize("name", ["kuka_kr60_3", "abb_irb4600_60_205"])
+@pytest.mark.parametrize("arms", [[0], [0, 3], [1, 2], [3, 1, 3], []])
+def test_ik_batch_of_some_arm_branches_is_those_of_all(name: str, arms: list[int]) -> None:
+    robot = get_robot(name)
+    T = robot.fk(np.random.default_rng(7).uniform(-2.0, 2.0, (300, 6)))
+    q, valid = robot.ik_batch(T, q_ref=np.full(6, 0.3))
+    q_some, valid_some = robot.ik_batch(T, q_ref=np.full(6, 0.3), arms=arms)
+    solved = np.zeros(8, dtype=bool)
+    solved[np.r_[arms, np.asarray(arms, dtype=int) + 4].astype(int)] = True
+    assert np.array_equal(q_some[:, solved], q[:, solved], equal_nan=True)
+    assert np.array_equal(valid_some[:, solved], valid[:, solved])
+    assert np.isnan(q_some[:, ~solved]).all() and not valid_some[:, ~solved].any()
+
+
+def test_ik_batch_solves_every_branch_of_an_arm_without_an_opw_geometry() -> None:
+    robot = get_robot("ur10e")
+    T = robot.fk(np.random.default_rng(8).uniform(-2.0, 2.0, (50, 6)))
+    q, valid = robot.ik_batch(T)
+    q_some, valid_some = robot.ik_batch(T, arms=[0])
+    assert np.array_equal(q_some, q, equal_nan=True) and np.array_equal(valid_some, valid)
