@@ -99,6 +99,11 @@ class Study:
         method reads (ICP's map, the total station's measured readings), read once
         where the study is prepared (:func:`fabflow.localize.methods.file_inputs`):
         the study ships data, not paths, so a worker needs no project file.
+    visit_arguments
+        Per visit, the method's keyword arguments of the localizer
+        (:func:`fabflow.localize.methods.localizer_arguments`: a UWB station's
+        ranging zone, ICP's lift), worked out once: they follow from the plan,
+        not from a run. Empty: worked out at every visit of every run.
     """
 
     project: Project
@@ -113,6 +118,7 @@ class Study:
     setups: tuple[InstrumentSetup, ...] | None = None
     label: str = ""
     file_data: dict[str, Any] = field(default_factory=dict)
+    visit_arguments: tuple[dict[str, Any], ...] = ()
 
     @property
     def name(self) -> str:
@@ -241,6 +247,10 @@ def prepare_study(
         setups=layout.setups,
         label=label,
         file_data=file_inputs(project, method),
+        visit_arguments=tuple(
+            localizer_arguments(project, method, wp.station, standing)
+            for wp, standing in zip(plan.work_packages, built_before, strict=True)
+        ),
     )
     if fidelity == "sensors":
         return study
@@ -363,8 +373,12 @@ def _localizer_extra(
     """Keyword arguments of the localizer at visit ``v``: the method's, the data of its
     files (:attr:`Study.file_data`), and the instrument set-up standing then
     (registered when it is put up)."""
-    extra: dict[str, Any] = localizer_arguments(
-        study.project, study.method, study.stations[v], study.built_before[v]
+    extra: dict[str, Any] = (
+        dict(study.visit_arguments[v])
+        if study.visit_arguments
+        else localizer_arguments(
+            study.project, study.method, study.stations[v], study.built_before[v]
+        )
     )
     extra.update(study.file_data)
     if track is not None:

@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from helpers import DATA, PROJECTS
 
+from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
+from fabflow.localize.anchors import layout_anchors
+from fabflow.localize.methods import localizer_arguments
 from fabflow.project import Project, load_project
 from fabflow.sim.monte_carlo import run_study
 from fabflow.sim.run import Study, prepare_study, run_seed, simulate_run
+from fabflow.tasks.planner import plan_project
 from fabflow.transforms import FrameGraph, Pose
 from fabflow.transforms.se3 import inv_T, perturb
 
@@ -54,6 +60,32 @@ def test_study_covers_every_robot_built_element_once(cabin_study: Study) -> None
     # every visit sees what was built before it, and more as the build goes on
     sizes = [len(b) for b in st.built_before]
     assert sizes == sorted(sizes) and sizes[-1] > sizes[0]
+
+
+def test_the_localizer_arguments_worked_out_once_are_those_of_each_visit() -> None:
+    """The UWB zones kept with the study are those of each visit's station and
+    structure, and a run with them is the run that works them out at every visit
+    (the cabin with planned anchors, which the walls hide from some stations)."""
+    project = load_project(CABIN)
+    elements = generate_elements(project.elements, project.path)
+    plan = plan_project(project, elements)
+    uwb = project.localization.uwb.model_copy(update={"anchors": {}})
+    unplanned = project.model_copy(
+        update={"localization": project.localization.model_copy(update={"uwb": uwb})}
+    )
+    planned, _ = layout_anchors(unplanned, plan, elements)
+    st = prepare_study(planned, "uwb", elements, plan)
+    assert len(st.visit_arguments) == st.n_visits
+    zoned = [v for v, a in enumerate(st.visit_arguments) if "zone" in a]
+    assert zoned
+    for v in (0, zoned[0], st.n_visits - 1):
+        assert st.visit_arguments[v] == localizer_arguments(
+            st.project, st.method, st.stations[v], st.built_before[v]
+        )
+    kept = simulate_run(st, 3, 0)
+    again = simulate_run(dataclasses.replace(st, visit_arguments=()), 3, 0)
+    for name in ("translation_m", "localization_error", "localization_covariance", "integrity"):
+        assert np.array_equal(getattr(kept, name), getattr(again, name))
 
 
 def test_a_study_of_split_print_paths_simulates_their_pieces() -> None:
