@@ -143,7 +143,7 @@ class TestResult:
     @property
     def global_passed(self) -> bool:
         """Whether the global test passes (no redundancy: nothing to test, passes)."""
-        return self.redundancy <= 0 or self.statistic <= self.threshold
+        return global_passes(self.redundancy, self.statistic, self.threshold)
 
     @property
     def worst(self) -> int | None:
@@ -197,6 +197,30 @@ def noncentrality(alpha0: float, power: float = POWER, dof: int = 1) -> float:
     return float(optimize.brentq(gap, 0.0, hi, xtol=1e-10))
 
 
+def global_passes(redundancy: int, statistic: float, threshold: float) -> bool:
+    """Whether a global test passes (no redundancy: nothing to test, passes)."""
+    return redundancy <= 0 or statistic <= threshold
+
+
+def global_test(
+    A: np.ndarray,
+    Q: Covariance,
+    v: np.ndarray,
+    alpha: float = ALPHA,
+    extra_statistic: float = 0.0,
+    extra_redundancy: int = 0,
+) -> tuple[int, float, float]:
+    """The global test of :func:`adjustment_test` alone: redundancy, statistic
+    ``v^T Q^-1 v`` (plus ``extra_statistic``) and critical value at ``alpha``
+    (``inf`` without redundancy). For a caller that needs no w-test."""
+    A = np.asarray(A, dtype=float)
+    v = np.asarray(v, dtype=float)
+    r = A.shape[0] - int(np.linalg.matrix_rank(A)) + extra_redundancy
+    statistic = float(v @ Q.solve(v)) + extra_statistic
+    threshold = chi2_quantile(r, alpha) if r > 0 else math.inf
+    return r, statistic, threshold
+
+
 def adjustment_test(
     A: np.ndarray,
     Q: Covariance,
@@ -242,10 +266,7 @@ def adjustment_test(
     if prior_information is not None:
         N = N + prior_information
     Ninv = np.linalg.pinv(N)
-    Qiv = Q.solve(v)
-    r = m - int(np.linalg.matrix_rank(A)) + extra_redundancy
-    statistic = float(v @ Qiv) + extra_statistic
-    threshold = chi2_quantile(r, alpha) if r > 0 else math.inf
+    r, statistic, threshold = global_test(A, Q, v, alpha, extra_statistic, extra_redundancy)
     p_value = float(special.chdtrc(r, statistic)) if r > 0 else 1.0
     G = np.eye(3, u) if position_map is None else np.asarray(position_map, dtype=float)
     h = len(hypotheses)

@@ -37,6 +37,8 @@ from fabflow.positioning.integrity import (
     Hypothesis,
     TestResult,
     adjustment_test,
+    global_passes,
+    global_test,
     noncentrality,
 )
 from fabflow.positioning.uwb import COND_LIMIT
@@ -174,18 +176,7 @@ class PlatformAdjustment:
         range to one anchor shares, ``Q = diag(s^2) + U diag(bias_sigma^2) U^T``
         (``U``: one indicator column per anchor).
         """
-        tg, an = self.tag_idx[use], self.anc_idx[use]
-        J = platform_jacobian(self.anchors, self.lever_arms, state, tg, an)
-        if not self.heading_observed:
-            J = J[:, :3]
-        anchors = np.unique(an)
-        U = (an[:, None] == anchors[None, :]).astype(float)
-        Q = Covariance(
-            diag=self.s[use] ** 2,
-            low_rank=U if np.any(self.bias_sigma[anchors] > 0) else None,
-            low_rank_var=np.maximum(self.bias_sigma[anchors], 1e-9) ** 2,
-        )
-        v = self.d[use] - platform_ranges(self.anchors, self.lever_arms, state, tg, an)
+        J, Q, v = self._test_inputs(use, state)
         labels, masks = self.hypotheses(use)
         hyps = [
             Hypothesis(label, m[use].astype(float)) for label, m in zip(labels, masks, strict=True)
@@ -205,6 +196,31 @@ class PlatformAdjustment:
             extra_redundancy=int((self.count[use] - 1).sum()),
         )  # fmt: skip
         return test, masks
+
+    def global_test(self, use: np.ndarray, state: np.ndarray) -> tuple[int, float, float]:
+        """The global test of :meth:`tests` alone: redundancy, statistic, critical value."""
+        J, Q, v = self._test_inputs(use, state)
+        return global_test(
+            J, Q, v, self.alpha, float(self.scatter[use].sum()), int((self.count[use] - 1).sum())
+        )
+
+    def _test_inputs(
+        self, use: np.ndarray, state: np.ndarray
+    ) -> tuple[np.ndarray, Covariance, np.ndarray]:
+        """Design matrix, observation covariance and residuals of the ranges ``use``."""
+        tg, an = self.tag_idx[use], self.anc_idx[use]
+        J = platform_jacobian(self.anchors, self.lever_arms, state, tg, an)
+        if not self.heading_observed:
+            J = J[:, :3]
+        anchors = np.unique(an)
+        U = (an[:, None] == anchors[None, :]).astype(float)
+        Q = Covariance(
+            diag=self.s[use] ** 2,
+            low_rank=U if np.any(self.bias_sigma[anchors] > 0) else None,
+            low_rank_var=np.maximum(self.bias_sigma[anchors], 1e-9) ** 2,
+        )
+        v = self.d[use] - platform_ranges(self.anchors, self.lever_arms, state, tg, an)
+        return J, Q, v
 
 
 @dataclass(frozen=True)
@@ -479,17 +495,23 @@ def _mirror(
     distinct = float(dp @ np.linalg.pinv(cov) @ dp) > float(special.chdtri(3, adj.alpha))
     if decision_only and not (converged and distinct):
         return out, mirror
-    test, _ = adj.tests(use, mirror)
-    main = tests if tests is not None else adj.tests(use, state)[0]
-    worse_by = test.statistic - main.statistic
-    limit = noncentrality(adj.alpha / max(len(main.labels), 1), POWER, 1)
+    # the global tests decide; the w-tests are not needed
+    redundancy, statistic, threshold = adj.global_test(use, mirror)
+    if tests is not None:
+        main_statistic, n_hypotheses = tests.statistic, len(tests.labels)
+    else:
+        main_statistic = adj.global_test(use, state)[1]
+        n_hypotheses = len(adj.hypotheses(use)[0])
+    worse_by = statistic - main_statistic
+    limit = noncentrality(adj.alpha / max(n_hypotheses, 1), POWER, 1)
+    global_passed = global_passes(redundancy, statistic, threshold)
     out.update(
-        statistic=test.statistic,
-        threshold=test.threshold,
+        statistic=statistic,
+        threshold=threshold,
         worse_by=worse_by,
         limit=limit,
         offset_m=[float(x) for x in dp],
         distinct=distinct,
-        passed=not (converged and distinct and test.global_passed and worse_by < limit),
+        passed=not (converged and distinct and global_passed and worse_by < limit),
     )
     return out, mirror

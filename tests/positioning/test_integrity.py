@@ -12,6 +12,8 @@ from fabflow.positioning.integrity import (
     Hypothesis,
     Integrity,
     adjustment_test,
+    global_passes,
+    global_test,
     identify,
     noncentrality,
     record,
@@ -77,6 +79,21 @@ def test_one_column_hypotheses_at_once_match_one_at_a_time(seed: int, m: int, sh
         np.concatenate(fast.bias), np.concatenate(slow.bias[:h]), rtol=1e-7, atol=1e-12
     )
     assert not np.isfinite(fast.mdb[-1])  # a bias along A's column is invisible
+
+
+@settings(deadline=None, max_examples=30)
+@given(seed=st.integers(0, 2**31), m=st.integers(3, 12), extra=st.integers(0, 3))
+def test_the_global_test_alone_is_that_of_the_full_tests(seed: int, m: int, extra: int) -> None:
+    """Redundancy, statistic, critical value and verdict of :func:`global_test` are
+    those :func:`adjustment_test` reports, with and without redundancy."""
+    rng = np.random.default_rng(seed)
+    A, Q, _ = _model(rng, m, 3, bool(seed % 2))
+    v = rng.normal(size=m) * 0.01 * rng.uniform(0.1, 10.0)
+    scatter = float(rng.uniform(0.0, 5.0)) if extra else 0.0
+    full = adjustment_test(A, Q, v, [], 0.01, extra_statistic=scatter, extra_redundancy=extra)
+    r, statistic, threshold = global_test(A, Q, v, 0.01, scatter, extra)
+    assert (r, statistic, threshold) == (full.redundancy, full.statistic, full.threshold)
+    assert global_passes(r, statistic, threshold) == full.global_passed
 
 
 def test_false_alarm_rate_is_alpha_and_mdb_is_found_with_its_power() -> None:
