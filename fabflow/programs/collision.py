@@ -269,13 +269,15 @@ class _Bodies:
         )
         R[~capsule] = self.T_held[rows[~capsule], :3, :3]
         t[~capsule] = self.T_held[rows[~capsule], :3, 3]
+        ends = self.seg[rows, np.minimum(b, n_links - 1)]
+        length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).tolist()
         found: dict[int, float] = {}
         for i in [*np.flatnonzero(rank < FIRST_SAMPLES), *np.flatnonzero(rank >= FIRST_SAMPLES)]:
             key = int(triple[i])
             if rank[i] >= FIRST_SAMPLES and key in found:
                 continue
             extents = None if capsule[i] else self.ext_held[rows[i]]
-            d = narrow.distance(int(k[i]), int(b[i]), R[i], t[i], extents)
+            d = narrow.distance(int(k[i]), int(b[i]), R[i], t[i], extents, length[i])
             if d < _limit(limit, rows[i], b[i], n_links):
                 found[key] = min(d, found.get(key, np.inf))
         out = {}
@@ -398,7 +400,7 @@ def _contacts(
     limit = limits(bodies)
     at_sample = near.bound < _limit(limit, near.rows, near.body, len(bodies.names))
     if at_sample.any():
-        narrow = Narrow(obs, _lengths(bodies), bodies.radii, clearance + SEAT_TOLERANCE)
+        narrow = Narrow(obs, bodies.radii, clearance + SEAT_TOLERANCE)
         sub = _Near(*(getattr(near, f)[at_sample] for f in ("rows", "body", "obstacle", "bound")))
         found.update(bodies.distances(sub, narrow, limit))
     refine = coarse[near.rows]
@@ -423,7 +425,7 @@ def _contacts(
         limit = limits(fine)
         near = fine.near(motion, obs, np.full(len(q), clearance), limit)
         if len(near.rows):
-            narrow = narrow or Narrow(obs, _lengths(fine), fine.radii, clearance + SEAT_TOLERANCE)
+            narrow = narrow or Narrow(obs, fine.radii, clearance + SEAT_TOLERANCE)
             for key, d in fine.distances(near, narrow, limit).items():
                 found[key] = min(d, found.get(key, np.inf))
     return found
@@ -433,10 +435,6 @@ def _limit(limit: np.ndarray, rows: np.ndarray, body: np.ndarray, n_links: int) 
     """The distance limit of each (sample, body): ``limit`` holds per sample the links'
     (the clearance) and the held block's (less on its seat moves, where it may touch)."""
     return limit[rows, (np.asarray(body) >= n_links).astype(np.intp)]
-
-
-def _lengths(bodies: _Bodies) -> np.ndarray:
-    return np.linalg.norm(bodies.seg[0, :, 1] - bodies.seg[0, :, 0], axis=1)
 
 
 def check_package(

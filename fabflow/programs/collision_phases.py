@@ -27,21 +27,24 @@ def capsule_frames(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return np.stack([x, np.cross(z, x), z], axis=2), 0.5 * (a + b)
 
 
+LENGTH_STEP = 1e-9
+"""Capsule lengths are rounded to this (metres) to share fcl objects between samples."""
+
+
 class Narrow:
     """fcl objects of one check: obstacle boxes, and per body a true-size object and
-    one grown by the clearance (a hit of the grown one is a candidate contact)."""
+    one grown by the clearance (a hit of the grown one is a candidate contact).
 
-    def __init__(self, obs: Obstacles, lengths: np.ndarray, radii: np.ndarray, clearance: float):
+    A capsule's length is its segment's at the sample (rounded to :data:`LENGTH_STEP`):
+    a link across a prismatic joint changes length with it.
+    """
+
+    def __init__(self, obs: Obstacles, radii: np.ndarray, clearance: float):
         self.obs = obs
         self.clearance = clearance
+        self.radii = np.asarray(radii, dtype=float)
         self.boxes: dict[int, fcl.CollisionObject] = {}
-        self.capsules = [
-            (
-                fcl.CollisionObject(fcl.Capsule(float(r), float(n))),
-                fcl.CollisionObject(fcl.Capsule(float(r) + clearance, float(n))),
-            )
-            for r, n in zip(radii, lengths, strict=True)
-        ]
+        self.capsules: dict[tuple[int, int], tuple[fcl.CollisionObject, fcl.CollisionObject]] = {}
         self.held: dict[tuple[float, ...], tuple[fcl.CollisionObject, fcl.CollisionObject]] = {}
         self.request = fcl.CollisionRequest()
         self.distance_request = fcl.DistanceRequest(enable_signed_distance=True)
@@ -54,6 +57,16 @@ class Narrow:
             )
         return self.boxes[k]
 
+    def _capsule(self, body: int, length: float) -> tuple[fcl.CollisionObject, fcl.CollisionObject]:
+        key = (body, round(length / LENGTH_STEP))
+        if key not in self.capsules:
+            r, n = float(self.radii[body]), key[1] * LENGTH_STEP
+            self.capsules[key] = (
+                fcl.CollisionObject(fcl.Capsule(r, n)),
+                fcl.CollisionObject(fcl.Capsule(r + self.clearance, n)),
+            )
+        return self.capsules[key]
+
     def _held(self, extents: np.ndarray) -> tuple[fcl.CollisionObject, fcl.CollisionObject]:
         key = tuple(np.round(extents, 9).tolist())
         if key not in self.held:
@@ -65,11 +78,18 @@ class Narrow:
         return self.held[key]
 
     def distance(
-        self, k: int, body: int, R: np.ndarray, t: np.ndarray, extents: np.ndarray | None
+        self,
+        k: int,
+        body: int,
+        R: np.ndarray,
+        t: np.ndarray,
+        extents: np.ndarray | None,
+        length: float = 0.0,
     ) -> float:
         """Signed distance of a body at (R, t) from obstacle k, or +inf when the body
-        grown by the clearance does not touch it."""
-        true, grown = self.capsules[body] if extents is None else self._held(extents)
+        grown by the clearance does not touch it: a capsule of segment ``length``
+        (metres), or a held box of ``extents``."""
+        true, grown = self._capsule(body, length) if extents is None else self._held(extents)
         box = self._box(k)
         transform = fcl.Transform(R, t)
         grown.setTransform(transform)

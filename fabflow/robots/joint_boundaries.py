@@ -56,8 +56,15 @@ def quadrants(q: ArrayLike, step: float = np.pi / 2) -> NDArray[np.int64]:
     numpy.ndarray
         Integer quadrants, the shape of ``q``: a value just below ``k * step``
         (by rounding) counts as ``k`` like the value ``k * step`` itself.
+
+    Raises
+    ------
+    ValueError
+        For a value that is not finite (it has no quadrant).
     """
     t = np.asarray(q, dtype=float) / step
+    if not np.isfinite(t).all():
+        raise ValueError("quadrants of joint values that are not finite")
     k = np.round(t)
     t = np.where(np.abs(t - k) * step <= BOUNDARY_TOL_RAD, k, t)
     return np.floor(t).astype(np.int64)

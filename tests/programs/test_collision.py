@@ -17,11 +17,12 @@ from fabflow.programs.assemble import compile_program
 from fabflow.programs.collision import check_package
 from fabflow.programs.collision_model import (
     SLIDE_MARGIN,
+    Obstacles,
     environment,
     placements,
     print_path_boxes,
 )
-from fabflow.programs.collision_phases import aabb_pairs
+from fabflow.programs.collision_phases import Narrow, aabb_pairs
 from fabflow.programs.motions import (
     Placement,
     Route,
@@ -368,3 +369,20 @@ def test_a_memo_of_earlier_checks_gives_the_contacts_of_a_fresh_check(project) -
         if not which:
             assert fresh  # the wall is in the way: contacts to carry over
     assert checked >= 3 and reused > 0
+
+
+@pytest.mark.parametrize("length", [0.4, 1.0, 2.0])
+def test_the_narrow_phase_capsule_has_its_segments_length(length: float) -> None:
+    """A link across a prismatic joint changes length: the capsule fcl measures is the
+    segment's at that sample, not the first sample's (the box 1.5 m above the
+    capsule's centre, the capsule 0.1 m in radius along z)."""
+    box = np.eye(4)
+    box[2, 3] = 2.0
+    obstacles = Obstacles(
+        box[None], np.array([[1.0, 1.0, 1.0]]), np.array(["box"]), np.array(["site"]),
+        np.array([""]), np.array([-1]),
+    )  # fmt: skip
+    narrow = Narrow(obstacles, np.array([0.1]), clearance=2.0)
+    for n in (length, 0.7, length):  # another length between: nothing is kept from it
+        d = narrow.distance(0, 0, np.eye(3), np.zeros(3), None, n)
+    assert d == pytest.approx(1.5 - 0.5 * length - 0.1, abs=1e-5)  # fcl GJK tolerance

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -80,3 +81,8 @@ def test_settle_zeros_keeps_other_values_and_signs() -> None:
     assert np.array_equal(out, [0.0, 0.0, -2e-9, 2e-9, 0.0, 0.5])
     assert not np.signbit(out[:2]).any() and not np.signbit(out[4])
     assert q[0] == -1e-12  # the input is not changed
+
+
+def test_a_joint_value_that_is_not_finite_has_no_quadrant() -> None:
+    with pytest.raises(ValueError, match="not finite"):
+        quadrants(np.array([0.1, np.nan]))
