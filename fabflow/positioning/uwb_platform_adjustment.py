@@ -447,8 +447,10 @@ def hidden_mirrors(
             near, _, converged = adj.fit(rest, state)
         except LocalizationError:
             continue
+        if not converged:  # no fix without the anchor to mirror
+            continue
         check, mirror = _mirror(adj, rest, near, decision_only=True)
-        if not converged or check["passed"] or mirror is None:
+        if check["passed"] or mirror is None:
             continue
         residual = adj.raw_mean[mask] - platform_ranges(
             adj.anchors, adj.lever_arms, mirror, adj.tag_idx[mask], adj.anc_idx[mask]

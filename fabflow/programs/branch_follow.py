@@ -38,17 +38,11 @@ def follow_branch(
     apart (``dt`` seconds at the programmed speed), so joints with more than one
     turn of range are unwrapped by the shortest angle between neighbours.
     """
-    if not ok.all():
-        return None
-    steps = np.diff(np.vstack([q_prev, q_branch]), axis=0)
-    steps[:, multi_turn] = wrap_angle(steps[:, multi_turn])
-    if np.abs(steps).max() > MAX_JOINT_STEP:
-        return None
-    slowdown = max(1.0, float((np.abs(steps) / (robot.velocity_limits * dt)).max()))
-    if slowdown > 1.0 / MIN_SPEED_FRACTION:
-        return None
-    path = q_prev + np.cumsum(steps, axis=0)
-    return (path, slowdown) if robot.within_limits(path).all() else None
+    moves = follow_branch_chain(
+        robot, q_branch, ok, np.array([len(q_branch)]), q_prev, multi_turn, np.array([dt]),
+        stop_at_flip=False,
+    )  # fmt: skip
+    return moves[0] if moves else None
 
 
 def follow_branch_chain(
@@ -59,6 +53,7 @@ def follow_branch_chain(
     q_prev: np.ndarray,
     multi_turn: np.ndarray,
     dt: np.ndarray,
+    stop_at_flip: bool = True,
 ) -> list[tuple[np.ndarray, float]]:
     """:func:`follow_branch` of consecutive linear moves on one branch, all at once,
     up to the first move it would refuse or that takes A5 through 0.
@@ -79,6 +74,9 @@ def follow_branch_chain(
         (dof,) joints with more than a turn of range (unwrapped by the shortest angle).
     dt
         (k,) seconds per sample of each move at its programmed speed.
+    stop_at_flip
+        Whether a move that takes A5 through 0 ends the moves followed
+        (:func:`follow_branch` leaves that to its caller).
 
     Returns
     -------
@@ -104,12 +102,12 @@ def follow_branch_chain(
         )
         slowdown = np.maximum(np.maximum.reduceat(np.where(bad_row, 0.0, load), first), 1.0)
     bad = np.logical_or.reduceat(bad_row, first) | (slowdown > 1.0 / MIN_SPEED_FRACTION)
-    # A5 on both sides of zero within a move, or between the row before it and the move
-    a5 = np.r_[q_prev[4], path[:, 4]] if robot.dof > 4 else np.zeros(len(path) + 1)
-    positive, negative = a5 >= A5_ZERO, a5 <= -A5_ZERO
-    bad |= (np.logical_or.reduceat(positive[1:], first) | positive[first]) & (
-        np.logical_or.reduceat(negative[1:], first) | negative[first]
-    )
+    if stop_at_flip:  # A5 on both sides of zero within a move, or from the row before it
+        a5 = np.r_[q_prev[4], path[:, 4]] if robot.dof > 4 else np.zeros(len(path) + 1)
+        positive, negative = a5 >= A5_ZERO, a5 <= -A5_ZERO
+        bad |= (np.logical_or.reduceat(positive[1:], first) | positive[first]) & (
+            np.logical_or.reduceat(negative[1:], first) | negative[first]
+        )
     n_good = int(np.argmax(bad)) if bad.any() else len(counts)
     if n_good == 0:
         return []

@@ -63,7 +63,7 @@ from fabflow.programs.ir import Program
 from fabflow.project import Project
 from fabflow.robots.catalog import get_robot
 from fabflow.robots.chain import RobotModel
-from fabflow.robots.geometry import link_capsules, link_segments
+from fabflow.robots.geometry import link_capsules, link_names, link_segments
 
 COARSE_TRAVEL = 0.1
 """Body travel between the coarse samples of a PTP move (metres)."""
@@ -345,7 +345,7 @@ def check_program(
             memo[keys[mv]] = [(b, k, d) for (m, b, k), d in found.items() if m == mv]
         for mv in np.flatnonzero(~todo).tolist():
             found.update({(mv, b, k): d for b, k, d in memo[keys[mv]]})
-    names = [*(c.name for c in link_capsules(robot)), "tool", "held"]  # as link_segments names them
+    names = [*link_names(robot, tool=True), "held"]
     out = []
     for (mv, body, k), d in sorted(found.items()):
         link = f"held {motion.held[mv]}" if body == len(names) - 1 else names[body]

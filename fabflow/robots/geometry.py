@@ -170,7 +170,7 @@ def link_segments(
         ends[:, :, end] = sum(terms[1:], terms[0]) + origin if terms else origin
     segments = [ends]
     radii = [c.radius for c in caps]
-    names = [c.name for c in caps]
+    names = link_names(robot, tool=T_flange_tool is not None)
     if T_flange_tool is not None:
         T = np.asarray(T_flange_tool, dtype=float)
         flange = frames[:, -1]
@@ -180,8 +180,13 @@ def link_segments(
         end = tcp + back * (flange[:, :3, 3] - tcp)
         segments.append(np.stack([flange[:, :3, 3], end], axis=1)[:, None])
         radii.append(TOOL_RADIUS)
-        names.append("tool")
     return np.concatenate(segments, axis=1), np.array(radii), names
+
+
+def link_names(robot: RobotModel, tool: bool = False) -> list[str]:
+    """The names of :func:`link_segments`' bodies: the link capsules', then ``"tool"``
+    when it appends the tool capsule."""
+    return [*(c.name for c in link_capsules(robot)), *(["tool"] if tool else [])]
 
 
 def shoulder_radius(robot: RobotModel) -> float:

@@ -173,7 +173,7 @@ def _case_flags(
     T_path[..., 2, 3] += up[:, None] * frac[None, ::-1]
     T = T_base_world[:, None] @ T_path @ T_tool_flange
     # only the arm branches that reach the pick (a block's motion keeps one) are solved
-    arms = np.flatnonzero(at_pick) % 4 if robot.opw is not None and len(at_pick) == 8 else None
+    arms = np.flatnonzero(at_pick) % 4 if robot.opw is not None else None
     q, valid = robot.ik_batch(T.reshape(-1, 4, 4), arms=arms)
     shape = (n, DESCENT_SAMPLES, valid.shape[-1])
     a5 = q[..., 4].reshape(shape)

@@ -121,22 +121,25 @@ def footprint_corners(
 
 
 def _footprints_with_arm(
-    xy: np.ndarray, heading: np.ndarray, platform: Platform, margin: float, radius: float
+    xy: np.ndarray,
+    heading: np.ndarray,
+    offset: np.ndarray,
+    size: tuple[float, float],
+    margin: float,
+    radius: float,
 ) -> np.ndarray:
-    """Footprints (:func:`footprint_corners`) joined with the disc the arm's base sweeps.
+    """Footprints (:func:`footprint_corners`) joined with the disc of ``radius`` the arm's
+    base sweeps, ``offset`` ``(C, 2)`` from each platform origin ``xy`` (it turns with
+    the heading).
 
     One union per heading, made at the origin and moved to every platform
     position (GEOS unions are slow one by one; the shape only turns with the
     heading).
     """
-    headings, which = np.unique(heading, return_inverse=True)
-    zero = np.zeros((len(headings), 2))
-    off = platform.T_platform_base.matrix()[:2, 3]
-    c, s = np.cos(headings), np.sin(headings)
-    base = np.stack([c * off[0] - s * off[1], s * off[0] + c * off[1]], axis=1)
+    headings, first, which = np.unique(heading, return_index=True, return_inverse=True)
     shapes = shapely.union(
-        shapely.polygons(footprint_corners(zero, headings, platform.footprint, margin)),
-        shapely.buffer(shapely.points(base), radius, quad_segs=8),
+        shapely.polygons(footprint_corners(np.zeros((len(headings), 2)), headings, size, margin)),
+        shapely.buffer(shapely.points(offset[first]), radius, quad_segs=8),
     )
     fp = shapes[which.ravel()]
     shift = np.repeat(xy, shapely.get_num_coordinates(fp), axis=0)
@@ -288,18 +291,19 @@ def generate_candidates(
     T_pb = platform.T_platform_base.matrix()
     c, s = np.cos(heading), np.sin(heading)
     off = T_pb[:2, 3]
-    base_xy = xy + np.stack([c * off[0] - s * off[1], s * off[0] + c * off[1]], axis=1)
+    offset = np.stack([c * off[0] - s * off[1], s * off[0] + c * off[1]], axis=1)
+    base_xy = xy + offset
     if len(frame_xy):
         d, _ = cKDTree(frame_xy).query(base_xy, distance_upper_bound=r_max)
         near = np.isfinite(d)
     else:
         near = np.zeros(len(xy), dtype=bool)
-    xy, heading, base_xy = xy[near], heading[near], base_xy[near]
+    xy, heading, offset, base_xy = xy[near], heading[near], offset[near], base_xy[near]
 
     margin = float(platform.safety_margin)
     fp_corners = footprint_corners(xy, heading, platform.footprint, margin)
     if arm_radius > 0:
-        fp = _footprints_with_arm(xy, heading, platform, margin, arm_radius)
+        fp = _footprints_with_arm(xy, heading, offset, platform.footprint, margin, arm_radius)
     else:
         fp = shapely.polygons(fp_corners)
     inside = np.all((fp_corners >= lo) & (fp_corners <= hi), axis=(1, 2))

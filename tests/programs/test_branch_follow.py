@@ -7,28 +7,60 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fabflow.programs.branch_follow import follow_branch, follow_branch_chain
-from fabflow.programs.motion_checks import wrist_flips
+from fabflow.programs.branch_follow import (
+    MAX_JOINT_STEP,
+    MIN_SPEED_FRACTION,
+    follow_branch,
+    follow_branch_chain,
+)
+from fabflow.programs.motion_checks import wrap_angle, wrist_flips
 from fabflow.robots import get_robot
 
 ROBOT = get_robot("kuka_kr60_3")
 MULTI_TURN = np.diff(ROBOT.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
 
 
+def follow_one(
+    q_branch: np.ndarray, ok: np.ndarray, q_prev: np.ndarray, dt: float
+) -> tuple[np.ndarray, float] | None:
+    """One move on one branch, written out: every sample valid, no joint step over
+    MAX_JOINT_STEP, the slowdown its speeds need within 1 / MIN_SPEED_FRACTION,
+    the path within the limits."""
+    if not ok.all():
+        return None
+    steps = np.diff(np.vstack([q_prev, q_branch]), axis=0)
+    steps[:, MULTI_TURN] = wrap_angle(steps[:, MULTI_TURN])
+    if np.abs(steps).max() > MAX_JOINT_STEP:
+        return None
+    slowdown = max(1.0, float((np.abs(steps) / (ROBOT.velocity_limits * dt)).max()))
+    if slowdown > 1.0 / MIN_SPEED_FRACTION:
+        return None
+    path = q_prev + np.cumsum(steps, axis=0)
+    return (path, slowdown) if ROBOT.within_limits(path).all() else None
+
+
 def one_by_one(
     q_branch: np.ndarray, ok: np.ndarray, counts: np.ndarray, q_prev: np.ndarray, dt: np.ndarray
 ) -> list[tuple[np.ndarray, float]]:
-    """The moves :func:`follow_branch` follows in turn, up to the first refused or flipping one."""
+    """The moves followed in turn, up to the first refused or flipping one."""
     out = []
     first = np.r_[0, np.cumsum(counts)[:-1]]
     for start, count, step in zip(first, counts, dt, strict=True):
         rows = slice(start, start + count)
-        got = follow_branch(ROBOT, q_branch[rows], ok[rows], q_prev, MULTI_TURN, float(step))
+        got = follow_one(q_branch[rows], ok[rows], q_prev, float(step))
+        assert _same(got, follow_branch(ROBOT, q_branch[rows], ok[rows], q_prev, MULTI_TURN, step))
         if got is None or wrist_flips(np.vstack([q_prev, got[0]])):
             break
         out.append(got)
         q_prev = got[0][-1]
     return out
+
+
+def _same(a: tuple[np.ndarray, float] | None, b: tuple[np.ndarray, float] | None) -> bool:
+    """Both refused, or the same path and slowdown."""
+    if a is None or b is None:
+        return a is b
+    return bool(np.array_equal(a[0], b[0]) and a[1] == b[1])
 
 
 @st.composite

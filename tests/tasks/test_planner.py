@@ -344,10 +344,11 @@ def test_footprints_with_the_arm_are_the_unions_one_by_one(seed: int, radius: fl
     rng = np.random.default_rng(seed)
     xy = rng.uniform(-20.0, 20.0, (25, 2))
     heading = np.radians(rng.choice([0.0, 45.0, 90.0, 180.0, 270.0], 25))
-    got = _footprints_with_arm(xy, heading, platform, 0.1, radius)
     off = platform.T_platform_base.matrix()[:2, 3]
     c, s = np.cos(heading), np.sin(heading)
-    base = xy + np.stack([c * off[0] - s * off[1], s * off[0] + c * off[1]], axis=1)
+    offset = np.stack([c * off[0] - s * off[1], s * off[0] + c * off[1]], axis=1)
+    got = _footprints_with_arm(xy, heading, offset, platform.footprint, 0.1, radius)
+    base = xy + offset
     expected = shapely.union(
         footprint_polygons(xy, heading, platform.footprint, 0.1),
         shapely.buffer(shapely.points(base), radius, quad_segs=8),
