@@ -36,14 +36,23 @@ from fabflow.sensors.site_scene import site_scene
 from fabflow.transforms.se3 import inv_T, perturb
 
 
-def _project_map(setup: IcpSetup, project: Project) -> ScanMap:
+def site_map(project: Project, seed: int = 0) -> ScanMap:
+    """The map the project's scans are matched to: its map file's, or the map a
+    simulated mapping run of its site builds (:func:`~fabflow.sensors.site_map.simulated_site_map`:
+    ground, landmarks and site obstacles, no blocks).
+
+    ``seed`` draws that mapping run's range errors and channel biases (and its
+    registrations, with ``localization.icp.map_drift``); the last few maps are
+    kept per process. A file map ignores it.
+    """
+    setup = project.localization.icp or IcpSetup()
     if setup.map is not None:
         return _cached_file_map(str(setup.map), setup.map_voxel_size)
     boxes, prisms = site_obstacles(project)
     return simulated_site_map(
         boxes,  # type: ignore[arg-type]
         setup.map_voxel_size,
-        0,
+        seed,
         None,
         prisms,  # type: ignore[arg-type]
         setup.lidar_errors(),
@@ -233,7 +242,7 @@ def simulate_station(
     T_init = perturb(T_world_platform, err) @ T_platform_lidar
 
     if scan_map is None:
-        scan_map = _project_map(setup, project)
+        scan_map = site_map(project)
     if setup.map_as_built:
         scan_map = with_as_built(scan_map, built, rng, setup.as_built_sigma)
     return StationScan(

@@ -91,3 +91,22 @@ def file_inputs(project: Project, method: str) -> dict[str, Any]:
         measured = total_station.measured_readings(project)
         return {} if measured is None else {"measured": measured}
     return {}
+
+
+def run_inputs(project: Project, method: str, rng: np.random.Generator) -> dict[str, Any]:
+    """Keyword arguments of ``localize_station`` drawn once per simulated construction run.
+
+    ICP's simulated site map (no map file): each run draws its own mapping run
+    (:func:`fabflow.localize.icp.site_map` seeded from ``rng``). A map's errors
+    are shared by every visit that matches it, and every fix's covariance
+    counts them (the mapping run's channel biases, its drift); a study that kept
+    one map for all its runs would sample that one map's errors, not the spread
+    the covariance predicts. Empty for the other methods, with a map file, and
+    without sensor noise.
+    """
+    if method != "icp" or not project.simulation.sensor_noise:
+        return {}
+    setup = project.localization.icp
+    if setup is not None and setup.map is not None:
+        return {}
+    return {"scan_map": icp.site_map(project, int(rng.integers(2**32)))}

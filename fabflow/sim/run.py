@@ -7,7 +7,10 @@ Physics of a run (all poses 4x4, metres, world frame):
 2. The localization method simulates its sensors at that pose and estimates the
    base: ``T_world_base_est`` with a 6x6 covariance (:class:`BasePose`). With the
    ``"covariance"`` fidelity the error of the estimate is drawn from the covariance
-   calibrated per visit instead (see :func:`prepare_study`).
+   calibrated per visit instead (see :func:`prepare_study`). What a real site
+   shares between visits is drawn once per run: the total station's set-ups
+   (:func:`study_track`) and ICP's simulated map, each run its own mapping run
+   (:func:`fabflow.localize.methods.run_inputs`).
 3. The robot program is computed in the estimated base frame, so a target
    ``T_world_target`` is commanded as ``inv(T_world_base_est) @ T_world_target`` and
    lands at ``T_world_base_true @ inv(T_world_base_est) @ T_world_target``. The same
@@ -34,7 +37,7 @@ from fabflow.design.elements import Element, structure_timeline
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
 from fabflow.localize.layout import site_layout
-from fabflow.localize.methods import file_inputs, localizer_arguments
+from fabflow.localize.methods import file_inputs, localizer_arguments, run_inputs
 from fabflow.localize.plan import LocalizeStation, check_visit, parked_pose, station_localizer
 from fabflow.localize.setups import InstrumentSetup
 from fabflow.localize.stationing import InstrumentTrack
@@ -369,10 +372,12 @@ def _localizer_extra(
     rng: np.random.Generator,
     track: InstrumentTrack | None,
     previous: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    drawn: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Keyword arguments of the localizer at visit ``v``: the method's, the data of its
-    files (:attr:`Study.file_data`), and the instrument set-up standing then
-    (registered when it is put up)."""
+    files (:attr:`Study.file_data`), what the run drew for all its visits
+    (``drawn``: :func:`~fabflow.localize.methods.run_inputs`) and the instrument
+    set-up standing then (registered when it is put up)."""
     extra: dict[str, Any] = (
         dict(study.visit_arguments[v])
         if study.visit_arguments
@@ -381,6 +386,7 @@ def _localizer_extra(
         )
     )
     extra.update(study.file_data)
+    extra.update(drawn or {})
     if track is not None:
         extra["instrument"] = track.pose_at(v, rng, study.built_before[v], previous)
     return extra
@@ -427,6 +433,9 @@ def simulate_run(
     estimates: list[BasePose] = []
     status = np.full(V, STATUSES.index("untested"), dtype=np.int8)
     track = study_track(study)
+    drawn = (
+        {} if study.visit_covariance is not None else run_inputs(study.project, study.method, rng)
+    )
     for v, station in enumerate(study.stations):
         T_planned, T_true[v] = parked_pose(study.project, station, rng)
         if study.visit_covariance is not None:
@@ -438,7 +447,7 @@ def simulate_run(
             rng,
             station.id,
             built=study.built_before[v],
-            **_localizer_extra(study, v, rng, track, previous),
+            **_localizer_extra(study, v, rng, track, previous, drawn),
         )
         estimate = check_visit(study.project, estimate, T_planned)
         assert estimate.integrity is not None

@@ -31,6 +31,7 @@ import fabflow.localize.icp as icp
 import fabflow.sim.monte_carlo as mc
 from fabflow.cli import app
 from fabflow.errors import InputError, UnsupportedError
+from fabflow.localize.methods import run_inputs
 from fabflow.positioning.pointcloud_io import write_point_cloud
 from fabflow.project import Project, load_project
 from fabflow.sensors.site_map import simulated_site_map
@@ -270,6 +271,8 @@ def test_a_study_carries_the_data_of_its_files_and_gives_what_reading_them_gives
     project = icp_project if kind == "icp" else load_project(write_measured_ts_project(tmp_path))
     study = prepare_study(project)
     assert set(study.file_data) == {"icp": {"scan_map"}, "total_station": {"measured"}}[kind]
+    # a map file is the one site map: no run draws its own
+    assert run_inputs(project, kind, np.random.default_rng(0)) == {}
     icp._cached_file_map.cache_clear()
     by_path = mc.run_study(replace(study, file_data={}), 3, seed=2)
     assert_same(mc.run_study(study, 3, seed=2), by_path)

@@ -10,8 +10,9 @@ from helpers import DATA, PROJECTS
 
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
+from fabflow.localize import icp
 from fabflow.localize.anchors import layout_anchors
-from fabflow.localize.methods import localizer_arguments
+from fabflow.localize.methods import localizer_arguments, run_inputs
 from fabflow.project import Project, load_project
 from fabflow.sim.monte_carlo import run_study
 from fabflow.sim.run import Study, prepare_study, run_seed, simulate_run
@@ -247,3 +248,38 @@ def test_covariance_fidelity_without_noise_is_exact(small: Project) -> None:
 def test_unknown_fidelity_is_an_input_error(small: Project) -> None:
     with pytest.raises(InputError, match="unknown fidelity 'fast'"):
         prepare_study(small, fidelity="fast")  # type: ignore[arg-type]
+
+
+def test_each_icp_run_draws_its_own_mapping_run(small: Project) -> None:
+    """A simulated map's errors are shared by the visits that match it; a study that
+    kept one map for all its runs would sample that one map's errors only."""
+    seen: list[tuple[int, int]] = []
+
+    def recording(project, T, rng, station_id, built=(), **kw):
+        seen.append((run, id(kw["scan_map"])))
+        return icp.localize_station(project, T, rng, station_id, built, **kw)
+
+    study = prepare_study(small, "icp")
+    maps = {}
+    for run in (0, 1):
+        result = simulate_run(study, run, 7, localize=recording)
+        assert result.localization_error.shape[0] == study.n_visits
+        maps[run] = {m for r, m in seen if r == run}
+    # one map per run, shared by its visits; another for the other run
+    assert len(maps[0]) == len(maps[1]) == 1 and maps[0] != maps[1]
+    assert len(seen) == 2 * study.n_visits
+
+
+def test_run_inputs_draw_a_map_only_for_a_simulated_icp_site(small: Project) -> None:
+    def draw(project: Project, method: str, seed: int) -> dict:
+        return run_inputs(project, method, np.random.default_rng(seed))
+
+    a, b = draw(small, "icp", 1)["scan_map"], draw(small, "icp", 2)["scan_map"]
+    again = draw(small, "icp", 1)["scan_map"]
+    np.testing.assert_array_equal(a.target.points, again.target.points)  # the seed fixes it
+    same_size = a.target.points.shape == b.target.points.shape
+    assert not same_size or not np.array_equal(a.target.points, b.target.points)
+    # the mapping runs err alike: their maps stand within centimetres of each other
+    assert abs(len(a.target.points) - len(b.target.points)) < 0.05 * len(a.target.points)
+    assert draw(small, "uwb", 1) == {} and draw(small, "total_station", 1) == {}
+    assert draw(with_noise(small, sensor_noise=False), "icp", 1) == {}
