@@ -36,23 +36,25 @@ from fabflow.sensors.site_scene import site_scene
 from fabflow.transforms.se3 import inv_T, perturb
 
 
-def site_map(project: Project, seed: int = 0) -> ScanMap:
+def site_map(project: Project, seed: int | None = None) -> ScanMap:
     """The map the project's scans are matched to: its map file's, or the map a
     simulated mapping run of its site builds (:func:`~fabflow.sensors.site_map.simulated_site_map`:
     ground, landmarks and site obstacles, no blocks).
 
-    ``seed`` draws that mapping run's range errors and channel biases (and its
-    registrations, with ``localization.icp.map_drift``); the last few maps are
-    kept per process. A file map ignores it.
+    ``seed``: ``None`` gives the project's one simulated map (seed 0, kept per
+    process); a number, a mapping run of its own with its range errors and
+    channel biases (and its registrations, with ``localization.icp.map_drift``),
+    built and not kept (a study draws one per run). A file map ignores it.
     """
     setup = project.localization.icp or IcpSetup()
     if setup.map is not None:
         return _cached_file_map(str(setup.map), setup.map_voxel_size)
     boxes, prisms = site_obstacles(project)
-    return simulated_site_map(
+    build = simulated_site_map if seed is None else simulated_site_map.__wrapped__
+    return build(
         boxes,  # type: ignore[arg-type]
         setup.map_voxel_size,
-        seed,
+        0 if seed is None else seed,
         None,
         prisms,  # type: ignore[arg-type]
         setup.lidar_errors(),

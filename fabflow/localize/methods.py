@@ -94,17 +94,35 @@ def file_inputs(project: Project, method: str) -> dict[str, Any]:
 
 
 def run_inputs(project: Project, method: str, rng: np.random.Generator) -> dict[str, Any]:
-    """Keyword arguments of ``localize_station`` drawn once per simulated construction run.
+    """Keyword arguments of ``localize_station`` drawn once per simulated construction run:
+    what a site's visits share.
 
-    ICP's simulated site map (no map file): each run draws its own mapping run
-    (:func:`fabflow.localize.icp.site_map` seeded from ``rng``). A map's errors
-    are shared by every visit that matches it, and every fix's covariance
-    counts them (the mapping run's channel biases, its drift); a study that kept
-    one map for all its runs would sample that one map's errors, not the spread
-    the covariance predicts. Empty for the other methods, with a map file, and
-    without sensor noise.
+    * UWB: the installation (:func:`fabflow.localize.uwb.draw_installation`):
+      the anchors' range biases and multipath fields, and the calibration
+      fitted on them, are the site's, not a visit's.
+    * ICP with a simulated site map (no map file): each run draws its own
+      mapping run (:func:`fabflow.localize.icp.site_map` seeded from ``rng``).
+
+    Every fix's covariance counts these errors, but a visit shares them with
+    the run's other visits: drawn per visit they would average out of a run,
+    and drawn once per study (one map for every run) the study would sample
+    one draw of them, not the spread the covariance predicts. Empty for the
+    total station (its set-ups are drawn by its own track), with an ICP map
+    file, and without sensor noise.
+
+    They are drawn from a generator spawned off ``rng``, so they leave its own
+    stream as it was (a run draws its first parking error as the same run of
+    another method does).
     """
-    if method != "icp" or not project.simulation.sensor_noise:
+    if not project.simulation.sensor_noise:
+        return {}
+    try:
+        rng = rng.spawn(1)[0]
+    except TypeError:  # a generator without a seed sequence to spawn from
+        rng = np.random.default_rng(rng.integers(2**63))
+    if method == "uwb":
+        return {"installation": uwb.draw_installation(project, rng)}
+    if method != "icp":
         return {}
     setup = project.localization.icp
     if setup is not None and setup.map is not None:

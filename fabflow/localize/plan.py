@@ -17,7 +17,7 @@ import numpy as np
 
 from fabflow.design.elements import Element, structure_timeline
 from fabflow.errors import LocalizationError
-from fabflow.localize.methods import LOCALIZERS, LocalizeStation, localizer_arguments
+from fabflow.localize.methods import LOCALIZERS, LocalizeStation, localizer_arguments, run_inputs
 from fabflow.localize.setups import InstrumentSetup
 from fabflow.localize.site import parking_accuracy
 from fabflow.localize.stationing import track_for
@@ -134,6 +134,7 @@ def localize_plan(
     track = track_for(project, method, plan, elements, setups)
     results: VisitPoses = {}
     previous = None
+    drawn = run_inputs(project, method, rng)  # the site's errors, shared by its visits
     for wp, (built, _) in zip(plan.work_packages, timeline, strict=True):
         if previous is not None and previous.station.id == wp.station.id:
             # Same visit, the lift moved: no new parking, no new measurement.
@@ -151,6 +152,7 @@ def localize_plan(
         else:
             T_planned, T_true = parked_pose(project, wp.station, rng)
             extra: dict[str, Any] = localizer_arguments(project, method, wp.station, built)
+            extra.update(drawn)
             if track is not None:
                 last = None
                 if previous is not None:

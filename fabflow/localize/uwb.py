@@ -30,6 +30,7 @@ from fabflow.positioning.uwb_platform import (
 from fabflow.project import Project, UwbSetup
 from fabflow.robots import platform
 from fabflow.sensors.uwb import (
+    AnchorBias,
     calibration_campaign,
     draw_bias,
     material_excess,
@@ -71,6 +72,61 @@ class StationRanges:
     material_length: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class UwbInstallation:
+    """A site's UWB installation as simulated: what every visit of a run shares.
+
+    Attributes
+    ----------
+    anchor_ids
+        The anchors installed (``localization.uwb.anchors``), in the order of
+        the arrays below.
+    bias
+        Per anchor: the range offset and scale and the position-dependent
+        multipath field (:func:`~fabflow.sensors.uwb.draw_bias`).
+    calibration
+        The ranging calibration fitted on the installation's simulated campaign.
+    """
+
+    anchor_ids: tuple[str, ...]
+    bias: AnchorBias
+    calibration: RangeCalibration
+
+    def of(self, ids: Sequence[str]) -> tuple[AnchorBias, RangeCalibration]:
+        """The bias and calibration of the anchors ``ids``, in that order.
+
+        Raises
+        ------
+        InputError
+            An anchor that was not installed (an installation drawn for another
+            layout).
+        """
+        index = {k: i for i, k in enumerate(self.anchor_ids)}
+        missing = [k for k in ids if k not in index]
+        if missing:
+            raise InputError(
+                f"the UWB installation has no anchor {', '.join(missing)}: it was drawn "
+                "for another anchor layout"
+            )
+        keep = np.array([index[k] for k in ids], dtype=np.intp)
+        return self.bias.take(keep), self.calibration.take(keep)
+
+
+def draw_installation(project: Project, rng: np.random.Generator) -> UwbInstallation:
+    """Install the project's anchors: draw their biases and multipath, run the calibration.
+
+    Anchors are put up and calibrated once per site, so the visits of one
+    construction run share their errors (``fabflow simulate`` draws one per run,
+    :func:`fabflow.localize.methods.run_inputs`).
+    """
+    setup = _setup(project)
+    model = setup.error_model()
+    ids = anchors_world(setup)[0]
+    bias = draw_bias(len(ids), model, rng)
+    cal = RangeCalibration.fit(*calibration_campaign(model, bias, rng))
+    return UwbInstallation(tuple(ids), bias, cal)
+
+
 def localize_station(
     project: Project,
     T_world_base: np.ndarray,
@@ -79,6 +135,7 @@ def localize_station(
     built: Sequence[Element] = (),
     heading_prior: tuple[float, float] | None = None,
     zone: Sequence[Sequence[str]] | None = None,
+    installation: UwbInstallation | None = None,
 ) -> BasePose:
     """Simulate UWB localization of a parked platform and return the estimated base pose.
 
@@ -109,6 +166,10 @@ def localize_station(
     zone
         Per tag, the anchors it ranges with (:func:`~fabflow.localize.anchors.ranging_zone`);
         default every anchor.
+    installation
+        The anchors' biases, multipath and calibration the visit shares with the
+        run's others (:func:`draw_installation`); drawn for this visit alone
+        when ``None``.
 
     Returns
     -------
@@ -117,7 +178,7 @@ def localize_station(
         roll and pitch are not observed (level platform assumed) and carry
         ``UNOBSERVED_VARIANCE``, as ``quality["unobserved"]`` says.
     """
-    data = simulate_station(project, T_world_base, rng, built, zone)
+    data = simulate_station(project, T_world_base, rng, built, zone, installation)
     return estimate_station(project, data, station_id, heading_prior)
 
 
@@ -134,11 +195,15 @@ def simulate_station(
     rng: np.random.Generator,
     built: Sequence[Element] = (),
     zone: Sequence[Sequence[str]] | None = None,
+    installation: UwbInstallation | None = None,
 ) -> StationRanges:
     """The ranges the platform's tags measure at ``T_world_base`` (see :func:`localize_station`):
-    per tag to the anchors of its ``zone`` (default all)."""
+    per tag to the anchors of its ``zone`` (default all), with the ``installation``'s
+    errors (drawn here when ``None``)."""
     setup = _setup(project)
     ids, A = anchors_world(setup)
+    if installation is None:
+        installation = draw_installation(project, rng)
     ranged = None
     if zone is not None:
         if len(zone) != len(setup.tags):
@@ -158,8 +223,7 @@ def simulate_station(
     tags_world = points_in_world(T_world_platform, L)
 
     model = setup.error_model()
-    bias = draw_bias(len(ids), model, rng)
-    cal = RangeCalibration.fit(*calibration_campaign(model, bias, rng))
+    bias, cal = installation.of(ids)
 
     T_boxes, ext = element_boxes(built)
     occluded = material = excess = None

@@ -47,6 +47,12 @@ class RangeCalibration:
         """No correction."""
         return cls(offset=np.zeros(n_anchors), scale=np.ones(n_anchors))
 
+    def take(self, index: np.ndarray) -> RangeCalibration:
+        """The calibration of the anchors ``index`` (integer indices), in that order."""
+        rms = None if self.rms is None else self.rms[index]
+        cov = None if self.cov is None else self.cov[index]
+        return RangeCalibration(self.offset[index], self.scale[index], rms, cov)
+
     @classmethod
     def fit(cls, true_distances: np.ndarray, measured: np.ndarray) -> RangeCalibration:
         """Fit the line per anchor from a calibration campaign.

@@ -132,6 +132,11 @@ class AnchorBias:
         """No bias (offset 0, scale 1)."""
         return cls(offset=np.zeros(n_anchors), scale=np.ones(n_anchors))
 
+    def take(self, index: np.ndarray) -> AnchorBias:
+        """The bias of the anchors ``index`` (integer indices), in that order."""
+        field = None if self.multipath is None else self.multipath.take(index)
+        return AnchorBias(self.offset[index], self.scale[index], field)
+
 
 def draw_bias(n_anchors: int, model: UwbErrorModel, rng: np.random.Generator) -> AnchorBias:
     """Draw the unknown per-anchor bias of one UWB installation."""

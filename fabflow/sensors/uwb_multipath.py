@@ -47,6 +47,10 @@ class MultipathField:
     phases: np.ndarray
     sigma: float
 
+    def take(self, index: np.ndarray) -> MultipathField:
+        """The field of the anchors ``index`` (integer indices), in that order."""
+        return MultipathField(self.frequencies[index], self.phases[index], self.sigma)
+
     def __call__(self, tags: np.ndarray) -> np.ndarray:
         """The error (metres) of the range from each tag position to each anchor.
 

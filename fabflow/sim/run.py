@@ -9,7 +9,7 @@ Physics of a run (all poses 4x4, metres, world frame):
    ``"covariance"`` fidelity the error of the estimate is drawn from the covariance
    calibrated per visit instead (see :func:`prepare_study`). What a real site
    shares between visits is drawn once per run: the total station's set-ups
-   (:func:`study_track`) and ICP's simulated map, each run its own mapping run
+   (:func:`study_track`), the UWB installation and ICP's simulated map
    (:func:`fabflow.localize.methods.run_inputs`).
 3. The robot program is computed in the estimated base frame, so a target
    ``T_world_target`` is commanded as ``inv(T_world_base_est) @ T_world_target`` and

@@ -10,7 +10,7 @@ from helpers import DATA, PROJECTS
 
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
-from fabflow.localize import icp
+from fabflow.localize import icp, uwb
 from fabflow.localize.anchors import layout_anchors
 from fabflow.localize.methods import localizer_arguments, run_inputs
 from fabflow.project import Project, load_project
@@ -253,24 +253,28 @@ def test_unknown_fidelity_is_an_input_error(small: Project) -> None:
 def test_each_icp_run_draws_its_own_mapping_run(small: Project) -> None:
     """A simulated map's errors are shared by the visits that match it; a study that
     kept one map for all its runs would sample that one map's errors only."""
-    seen: list[tuple[int, int]] = []
+    seen: list[tuple[int, object]] = []
 
     def recording(project, T, rng, station_id, built=(), **kw):
-        seen.append((run, id(kw["scan_map"])))
+        seen.append((run, kw["scan_map"]))
         return icp.localize_station(project, T, rng, station_id, built, **kw)
 
     study = prepare_study(small, "icp")
-    maps = {}
     for run in (0, 1):
         result = simulate_run(study, run, 7, localize=recording)
         assert result.localization_error.shape[0] == study.n_visits
-        maps[run] = {m for r, m in seen if r == run}
-    # one map per run, shared by its visits; another for the other run
-    assert len(maps[0]) == len(maps[1]) == 1 and maps[0] != maps[1]
     assert len(seen) == 2 * study.n_visits
+    # one map per run, shared by its visits; another for the other run
+    maps = [[m for r, m in seen if r == run] for run in (0, 1)]
+    assert all(m is maps[0][0] for m in maps[0]) and all(m is maps[1][0] for m in maps[1])
+    a, b = maps[0][0].target.points, maps[1][0].target.points
+    assert a.shape != b.shape or not np.array_equal(a, b)
 
 
-def test_run_inputs_draw_a_map_only_for_a_simulated_icp_site(small: Project) -> None:
+def test_run_inputs_draw_an_icp_map_per_run_for_a_simulated_site(small: Project) -> None:
+    """Each ICP run its own mapping run, the seed fixing it; nothing for the total
+    station (its set-ups are its track's) nor without sensor noise."""
+
     def draw(project: Project, method: str, seed: int) -> dict:
         return run_inputs(project, method, np.random.default_rng(seed))
 
@@ -281,5 +285,62 @@ def test_run_inputs_draw_a_map_only_for_a_simulated_icp_site(small: Project) -> 
     assert not same_size or not np.array_equal(a.target.points, b.target.points)
     # the mapping runs err alike: their maps stand within centimetres of each other
     assert abs(len(a.target.points) - len(b.target.points)) < 0.05 * len(a.target.points)
-    assert draw(small, "uwb", 1) == {} and draw(small, "total_station", 1) == {}
+    assert draw(small, "total_station", 1) == {}
     assert draw(with_noise(small, sensor_noise=False), "icp", 1) == {}
+    assert draw(with_noise(small, sensor_noise=False), "uwb", 1) == {}
+
+
+def test_a_uwb_run_shares_its_installation_between_its_visits(small: Project) -> None:
+    """Anchors are put up and calibrated once per site: every visit of a run ranges
+    with the same biases and calibration, the next run with others; drawn off a
+    spawned generator, they leave the run's own stream (its parking errors) alone."""
+    rng = np.random.default_rng(3)
+    a = run_inputs(small, "uwb", rng)["installation"]
+    assert rng.normal() == np.random.default_rng(3).normal()  # the run's stream untouched
+    again = run_inputs(small, "uwb", np.random.default_rng(3))["installation"]
+    other = run_inputs(small, "uwb", np.random.default_rng(4))["installation"]
+    np.testing.assert_array_equal(a.bias.offset, again.bias.offset)
+    np.testing.assert_array_equal(a.calibration.offset, again.calibration.offset)
+    assert not np.array_equal(a.bias.offset, other.bias.offset)
+    n = len(small.localization.uwb.anchors)
+    assert a.bias.offset.shape == a.calibration.offset.shape == (n,)
+    # the calibration fits the installation's own bias (a few millimetres off)
+    np.testing.assert_allclose(a.calibration.offset, a.bias.offset, atol=0.02)
+
+    seen: list[tuple[int, uwb.UwbInstallation]] = []
+
+    def recording(project, T, rng, station_id, built=(), **kw):
+        seen.append((run, kw["installation"]))
+        return uwb.localize_station(project, T, rng, station_id, built, **kw)
+
+    study = prepare_study(small, "uwb")
+    for run in (0, 1):
+        simulate_run(study, run, 7, localize=recording)
+    per_run = [[i for r, i in seen if r == run] for run in (0, 1)]
+    assert all(i is per_run[0][0] for i in per_run[0]) and per_run[0] and per_run[1]
+    assert all(i is per_run[1][0] for i in per_run[1])
+    assert not np.array_equal(per_run[0][0].bias.offset, per_run[1][0].bias.offset)
+
+
+def test_a_zone_ranges_with_its_anchors_share_of_the_installation(small: Project) -> None:
+    """Tags' ranging zones pick their anchors' biases and calibration out of the site's
+    by name, whatever order the zones list them in; an installation of another
+    layout is refused."""
+    installation = uwb.draw_installation(small, np.random.default_rng(0))
+    ids = list(small.localization.uwb.anchors)
+    n_tags = len(small.localization.uwb.tags)
+    zone = [[ids[3], ids[0]], [ids[2]], *([[ids[1]]] * (n_tags - 2))][:n_tags]
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 1.0, 0.5]
+    data = uwb.simulate_station(small, T, np.random.default_rng(1), zone=zone,
+                                installation=installation)  # fmt: skip
+    ranged = sorted({k for z in zone for k in z}, key=ids.index)
+    assert data.anchor_ids == ranged  # the installation's (the layout's) order
+    pick = [ids.index(k) for k in ranged]
+    np.testing.assert_array_equal(data.calibration.offset, installation.calibration.offset[pick])
+    np.testing.assert_array_equal(data.calibration.scale, installation.calibration.scale[pick])
+    bias, _ = installation.of(ranged)
+    np.testing.assert_array_equal(bias.offset, installation.bias.offset[pick])
+    other = dataclasses.replace(installation, anchor_ids=("X1", *installation.anchor_ids[1:]))
+    with pytest.raises(InputError, match="no anchor A1: it was drawn for another anchor layout"):
+        uwb.simulate_station(small, T, np.random.default_rng(1), installation=other)

@@ -110,13 +110,17 @@ def lift_axis_value(lift: Lift | None) -> float | None:
     return None if lift is None or lift.axis is None else lift.height * 1000.0
 
 
-def split_modules(instructions: list[Instruction], limit: int | None) -> list[list[Instruction]]:
+def split_modules(
+    instructions: list[Instruction], limit: int | None, before: Move | None = None
+) -> list[list[Instruction]]:
     """Cut instructions into modules of at most ``limit`` motions, between elements.
 
     An element's instructions stay in one module unless the element alone holds
-    more than ``limit`` motions; it is then cut where the limit falls, and the
-    next module starts with a PTP to the point the previous one ended at (the
-    robot is there already), so no module starts with a linear move.
+    more than ``limit`` motions; it is then cut where the limit falls. A module
+    whose first motion is linear (a cut inside an element, or an element that
+    starts with one, such as a tucked route's "tuck in") starts with a PTP to
+    the point the previous one ended at (the robot is there already), so no
+    module starts with a linear move.
 
     Parameters
     ----------
@@ -124,6 +128,9 @@ def split_modules(instructions: list[Instruction], limit: int | None) -> list[li
         The instructions of the program's body, in order.
     limit
         Most motions per module (``None``: one module).
+    before
+        The motion the robot stands at before the instructions (the program's
+        HOME), which the first module re-enters if it starts with a linear move.
 
     Returns
     -------
@@ -141,23 +148,23 @@ def split_modules(instructions: list[Instruction], limit: int | None) -> list[li
             groups.append([ins])
     modules: list[list[Instruction]] = [[]]
     count = 0
+    last = before
     for group in groups:
         n = sum(isinstance(i, Move) for i in group)
         if count and count + n > limit:
             modules.append([])
             count = 0
-        last: Move | None = None
         for ins in group:
             if isinstance(ins, Move):
                 if count == limit:
                     modules.append([])
                     count = 0
-                    if ins.kind == "lin" and last is not None:
-                        reentry = dataclasses.replace(
-                            last, kind="ptp", blend=0.0, label=f"{last.label} (module start)"
-                        )
-                        modules[-1].append(reentry)
-                        count += 1
+                if count == 0 and ins.kind == "lin" and last is not None:
+                    reentry = dataclasses.replace(
+                        last, kind="ptp", blend=0.0, label=f"{last.label} (module start)"
+                    )
+                    modules[-1].append(reentry)
+                    count += 1
                 last = ins
                 count += 1
             modules[-1].append(ins)

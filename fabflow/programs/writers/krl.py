@@ -191,7 +191,8 @@ def write_krl(program: Program, max_moves: int | None = None) -> dict[str, str]:
     homes = [k for k, i in enumerate(instructions) if isinstance(i, Move) and i.joint]
     first, last = (homes[0], homes[-1]) if len(homes) >= 2 else (-1, len(instructions))
     body = instructions[first + 1 : last]
-    chunks = split_modules(body, None if limit is None else limit)
+    home = instructions[first] if first >= 0 else None
+    chunks = split_modules(body, limit, home if isinstance(home, Move) else None)
     if len(chunks) == 1:
         src, dat = _module_text(name, program, instructions, True)
         return {f"{name}.src": src, f"{name}.dat": dat}

@@ -290,7 +290,9 @@ def write_rapid(program: Program, max_moves: int | None = None) -> dict[str, str
     instructions = list(program.instructions)
     homes = [k for k, i in enumerate(instructions) if isinstance(i, Move) and i.joint]
     first, last = (homes[0], homes[-1]) if len(homes) >= 2 else (-1, len(instructions))
-    chunks = split_modules(instructions[first + 1 : last], limit)
+    home = instructions[first] if first >= 0 else None
+    body = instructions[first + 1 : last]
+    chunks = split_modules(body, limit, home if isinstance(home, Move) else None)
     files: dict[str, str] = {}
     main: list[Instruction | str] = instructions
     if len(chunks) > 1:

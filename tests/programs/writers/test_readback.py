@@ -22,7 +22,7 @@ from program_readers import ReadProgram, program_files, read_krl, read_rapid
 
 from fabflow.build.context import BuildContext
 from fabflow.programs.ir import Lift, Move, Program, SetPayload
-from fabflow.programs.writers.base import flange_load
+from fabflow.programs.writers.base import flange_load, split_modules
 from fabflow.programs.writers.krl import write_krl
 from fabflow.programs.writers.rapid import confdata, write_rapid
 from fabflow.robots import get_robot, kuka_status_turn
@@ -37,7 +37,11 @@ def _pose_error(T: np.ndarray, T_ref: np.ndarray) -> tuple[float, float]:
 def check_read_back(read: ReadProgram, program: Program, vendor: str) -> None:
     """Assert that a program read back is ``program``."""
     planned = program.moves
-    motions = read.motions
+    # a module that would start with a linear move re-enters with a PTP where the robot stands
+    reentry = [m.comment.endswith("(module start)") for m in read.motions]
+    motions = [m for m, r in zip(read.motions, reentry, strict=True) if not r]
+    # planned motions before each read motion index
+    planned_before = np.cumsum([0, *(not r for r in reentry)])
     assert [m.kind for m in motions] == [m.kind for m in planned]
     assert [m.wrist for m in motions] == [m.wrist_interpolated for m in planned]
     # HOME first and last, as joint targets, stopping exactly
@@ -81,7 +85,7 @@ def check_read_back(read: ReadProgram, program: Program, vendor: str) -> None:
             changes.append((before, mass, cog))
     assert len(read.load_changes) == len(changes)
     for (n, mass, cog), (n_ref, mass_ref, cog_ref) in zip(read.load_changes, changes, strict=True):
-        assert n == n_ref and mass == pytest.approx(mass_ref, abs=1e-3)
+        assert planned_before[n] == n_ref and mass == pytest.approx(mass_ref, abs=1e-3)
         np.testing.assert_allclose(cog, cog_ref, atol=1e-6)
     # the lift: an external axis in every target, or an operator stop before any motion
     lift = program.lift
@@ -104,7 +108,7 @@ def check_read_back(read: ReadProgram, program: Program, vendor: str) -> None:
     # module structure: limits, exact ends, no LIN first, elements whole
     if program.module_motions is not None:
         assert max(read.modules.values()) <= program.module_motions
-    for motion in motions:
+    for motion in read.motions:
         if motion.first:
             assert motion.kind == "ptp", motion.module
         if motion.last:
@@ -167,3 +171,35 @@ def test_an_element_longer_than_a_module_is_cut_with_a_ptp() -> None:
     assert max(read.modules.values()) <= 3
     planned = [m for m in read.motions if not m.comment.endswith("(module start)")]
     assert [m.kind for m in planned] == [m.kind for m in program.moves]
+
+
+@pytest.mark.parametrize("limit", range(3, 13))
+def test_no_module_starts_with_a_linear_move_wherever_the_cut_falls(limit: int) -> None:
+    """A cut between elements may fall before an element whose first motion is linear
+    (a tucked route's "tuck in"): that module starts with a PTP to the point where
+    the robot stands, as a cut inside an element does."""
+    program = sample_program()
+    firsts, seen = set(), set()
+    for k, ins in enumerate(program.instructions):
+        if isinstance(ins, Move) and ins.element is not None and ins.element not in seen:
+            seen.add(ins.element)
+            firsts.add(k)
+    body = [
+        dataclasses.replace(ins, kind="lin") if k in firsts else ins
+        for k, ins in enumerate(program.instructions)
+    ]
+    modules = split_modules(body, limit)
+    assert all(sum(isinstance(i, Move) for i in m) <= limit for m in modules)
+    for m in modules:
+        assert next(i for i in m if isinstance(i, Move)).kind == "ptp"
+    # the re-entries aside, the instructions are the program's, in order
+    kept = [
+        i
+        for m in modules
+        for i in m
+        if not (isinstance(i, Move) and i.label.endswith("(module start)"))
+    ]
+    assert kept == body
+    lin_program = dataclasses.replace(program, instructions=tuple(body), module_motions=limit)
+    read = read_krl(write_krl(lin_program))
+    assert all(m.kind == "ptp" for m in read.motions if m.first)
