@@ -21,7 +21,12 @@ from fabflow.positioning.boxes import Boxes, segments_inside
 from fabflow.positioning.medians import nanmedian
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Method
-from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outliers_static
+from fabflow.positioning.uwb_calibration import (
+    RangeCalibration,
+    kept_moments,
+    reject_outliers_static,
+    static_window,
+)
 from fabflow.positioning.uwb_platform import (
     locate_platform,
     platform_to_base_covariance,
@@ -31,6 +36,7 @@ from fabflow.project import Project, UwbSetup
 from fabflow.robots import platform
 from fabflow.sensors.uwb import (
     AnchorBias,
+    UwbErrorModel,
     calibration_campaign,
     draw_bias,
     material_excess,
@@ -310,11 +316,12 @@ def estimate_station(
             model.material_delay_spread * predicted,
         )
     rej = reject_outliers_static(ranges, model.sigma(ranges))
+    kept, link_sigma = _without_nlos_leak(model, rej.ranges, data.occluded, link_sigma)
     method: Method = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
     first_guess = nanmedian(ranges, (0, 1))
     fix = locate_platform(
         A,
-        rej.ranges,
+        kept,
         L,
         model.sigma,
         method=method,
@@ -367,3 +374,37 @@ def estimate_station(
         if fix.integrity is None
         else fix.integrity.with_checks(rejected_ranges=rejected_ranges(rej.rejected, ids)),
     )
+
+
+def _without_nlos_leak(
+    model: UwbErrorModel, kept: np.ndarray, occluded: np.ndarray | None, link_sigma: Any
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ranges the rejection kept, less the bias that what it kept leaves in each
+    link's mean, and each link's shared sigma with the spread of the NLOS part added
+    (metres; :func:`~fabflow.positioning.uwb_calibration.kept_moments`: an NLOS
+    range with a small excess falls within the rejection's window now and then).
+
+    A link whose line of sight the built structure blocks (``occluded``, from
+    the design) carries an NLOS excess with ``nlos_prob_occluded``, the others
+    with ``nlos_prob``. ``link_sigma``: the shared sigma so far, a function of the
+    range or one value per link.
+    """
+    centre = nanmedian(kept, 0)
+    d = np.where(np.isfinite(centre), centre, 1.0)
+    p = np.full(d.shape, model.nlos_prob)
+    if occluded is not None:
+        p = np.where(occluded, model.nlos_prob_occluded, p)
+    # the window's half-widths: a multiple of the sigma at the range measured
+    upper = lower = static_window(model.sigma(d))
+    for _ in range(3):
+        upper = static_window(model.sigma(d + upper))
+        lower = static_window(model.sigma(np.maximum(d - lower, 0.0)))
+    share, first, nlos_first, nlos_second = kept_moments(
+        p, model.nlos_excess, model.sigma(d), lower, upper
+    )
+    n_kept = np.isfinite(kept).sum(axis=0)
+    n = n_kept / np.maximum(share, 1e-12)  # the epochs the link ranged
+    bias = first / np.maximum(share, 1e-12)
+    spread = np.sqrt(np.maximum(n * (nlos_second - nlos_first**2), 0.0)) / np.maximum(n_kept, 1)
+    shared = link_sigma(d) if callable(link_sigma) else np.asarray(link_sigma, dtype=float)
+    return kept - bias[None], np.hypot(np.broadcast_to(shared, d.shape), spread)

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
+from scipy import special
 
 from fabflow.errors import InputError
 from fabflow.positioning.medians import nanmedian
@@ -263,6 +264,75 @@ def shortest_half_center(series: np.ndarray, fraction: float = 0.25) -> np.ndarr
     return out.reshape(x.shape[1:])
 
 
+def static_window(sigma: np.ndarray | float, k: float = 3.0, floor: float = 0.1) -> np.ndarray:
+    """Half-width (metres) of the window :func:`reject_outliers_static` keeps around a
+    link's line-of-sight centre: ``k`` range sigmas, at least ``floor``."""
+    return np.maximum(k * np.asarray(sigma, dtype=float), floor)
+
+
+def kept_moments(
+    p: np.ndarray | float,
+    excess: tuple[float, float],
+    sigma: np.ndarray | float,
+    lower: np.ndarray | float,
+    upper: np.ndarray | float,
+    grid: int = 64,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What of a link's ranges :func:`reject_outliers_static` keeps, in expectation.
+
+    A range errs by its Gaussian noise (``sigma``) and, with probability ``p``,
+    an NLOS excess ``e`` (uniform over ``excess``, metres); the rejection keeps
+    it when its error lies within ``[-lower, upper]`` of the line-of-sight
+    distance. An NLOS range with a small excess is kept now and then, and
+    always on the long side: the link's mean is biased long, whatever the
+    number of epochs. (The window is not quite symmetric: its half-width is a
+    multiple of the sigma at the range measured, which grows with the range.)
+
+    Parameters
+    ----------
+    p
+        Probability that a range of the link carries an NLOS excess.
+    excess
+        ``(low, high)`` of the uniform excess (metres).
+    sigma
+        The range noise standard deviation (metres).
+    lower, upper
+        How far below and above the distance a range is kept (metres).
+    grid
+        Points of the midpoint rule over the excess.
+
+    Returns
+    -------
+    kept, first, nlos_first, nlos_second
+        Per range, broadcast over the inputs: the probability that it is kept,
+        ``E[x 1_kept]`` of its error ``x`` (metres), and ``E[x 1_kept]``,
+        ``E[x^2 1_kept]`` of the NLOS ranges alone (metres, square metres;
+        weighted by ``p``).
+    """
+
+    def truncated(e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """P(kept), E[x 1_kept], E[x^2 1_kept] of x = e + noise."""
+        s = np.asarray(sigma, dtype=float)[..., None]
+        a = (-np.asarray(lower, dtype=float)[..., None] - e) / s
+        b = (np.asarray(upper, dtype=float)[..., None] - e) / s
+        pdf_a = np.exp(-0.5 * a * a) / np.sqrt(2.0 * np.pi)
+        pdf_b = np.exp(-0.5 * b * b) / np.sqrt(2.0 * np.pi)
+        kept = special.ndtr(b) - special.ndtr(a)
+        first = e * kept + s * (pdf_a - pdf_b)
+        second = (e * e + s * s) * kept + 2.0 * e * s * (pdf_a - pdf_b)
+        second = second + s * s * (a * pdf_a - b * pdf_b)
+        return kept, first, second
+
+    lo, hi = excess
+    e = lo + (np.arange(grid) + 0.5) / grid * (hi - lo)
+    los = truncated(np.zeros(1))
+    nlos = truncated(e)
+    p = np.asarray(p, dtype=float)
+    kept = (1.0 - p) * los[0][..., 0] + p * nlos[0].mean(-1)
+    first = (1.0 - p) * los[1][..., 0] + p * nlos[1].mean(-1)
+    return kept, first, p * nlos[1].mean(-1), p * nlos[2].mean(-1)
+
+
 def reject_outliers_static(
     ranges: np.ndarray,
     sigma: np.ndarray | float,
@@ -283,7 +353,7 @@ def reject_outliers_static(
     finite = np.isfinite(y)
     oob = finite & ((y < min_range) | (y > max_range))
     clean = np.where(oob, np.nan, y)
-    thr = np.maximum(k * np.asarray(sigma, dtype=float), floor)
+    thr = static_window(sigma, k, floor)
     center = shortest_half_center(clean)
     # the densest quarter finds the line-of-sight cluster but not its middle: re-centre
     # twice on the samples within the threshold

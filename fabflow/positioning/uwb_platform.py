@@ -266,7 +266,7 @@ def link_means(
 
     Returns the per-link fields of
     :class:`~fabflow.positioning.uwb_platform_adjustment.PlatformAdjustment`
-    (``d, s, tag_idx, anc_idx, count, scatter, raw_mean, raw_sq_dev``) from ranges
+    (``d, s, tag_idx, anc_idx, count, raw_mean, raw_sq_dev``) from ranges
     ``d`` with standard deviations ``s`` (metres) of the tags ``tag_idx`` to the
     anchors ``anc_idx``, and ``link``: the link of each range (index into them).
     """
@@ -283,7 +283,6 @@ def link_means(
         "tag_idx": links // n_anchors,
         "anc_idx": links % n_anchors,
         "count": count,
-        "scatter": np.bincount(link, weights=w * (d - mean[link]) ** 2),
         "raw_mean": raw_mean,
         "raw_sq_dev": np.bincount(link, weights=(d - raw_mean[link]) ** 2),
         "link": link,
