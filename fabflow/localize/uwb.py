@@ -23,6 +23,7 @@ from fabflow.positioning.result import BasePose
 from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Method
 from fabflow.positioning.uwb_calibration import (
     RangeCalibration,
+    kept_centre,
     kept_moments,
     reject_outliers_static,
     static_window,
@@ -316,7 +317,7 @@ def estimate_station(
             model.material_delay_spread * predicted,
         )
     rej = reject_outliers_static(ranges, model.sigma(ranges))
-    kept, link_sigma = _without_nlos_leak(model, rej.ranges, data.occluded, link_sigma)
+    kept, link_sigma = _without_nlos_leak(model, ranges, rej.ranges, link_sigma)
     method: Method = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
     first_guess = nanmedian(ranges, (0, 1))
     fix = locate_platform(
@@ -377,34 +378,44 @@ def estimate_station(
 
 
 def _without_nlos_leak(
-    model: UwbErrorModel, kept: np.ndarray, occluded: np.ndarray | None, link_sigma: Any
+    model: UwbErrorModel, ranges: np.ndarray, kept: np.ndarray, link_sigma: Any
 ) -> tuple[np.ndarray, np.ndarray]:
     """The ranges the rejection kept, less the bias that what it kept leaves in each
-    link's mean, and each link's shared sigma with the spread of the NLOS part added
-    (metres; :func:`~fabflow.positioning.uwb_calibration.kept_moments`: an NLOS
-    range with a small excess falls within the rejection's window now and then).
+    link's mean, and each link's shared sigma with what that adds to the mean's
+    spread (metres; :func:`~fabflow.positioning.uwb_calibration.kept_moments`: an
+    NLOS range with a small excess falls within the rejection's window now and
+    then, and moves the window's centre too).
 
-    A link whose line of sight the built structure blocks (``occluded``, from
-    the design) carries an NLOS excess with ``nlos_prob_occluded``, the others
-    with ``nlos_prob``. ``link_sigma``: the shared sigma so far, a function of the
+    Each link's share of NLOS ranges is estimated from the share the rejection
+    left out (``ranges`` before it, ``kept`` after): a line of sight the
+    structure blocks shows about half, a clear one the error model's
+    ``nlos_prob``. ``link_sigma``: the shared sigma so far, a function of the
     range or one value per link.
     """
     centre = nanmedian(kept, 0)
     d = np.where(np.isfinite(centre), centre, 1.0)
-    p = np.full(d.shape, model.nlos_prob)
-    if occluded is not None:
-        p = np.where(occluded, model.nlos_prob_occluded, p)
+    sigma = model.sigma(d)
     # the window's half-widths: a multiple of the sigma at the range measured
-    upper = lower = static_window(model.sigma(d))
+    upper = lower = static_window(sigma)
     for _ in range(3):
         upper = static_window(model.sigma(d + upper))
         lower = static_window(model.sigma(np.maximum(d - lower, 0.0)))
-    share, first, nlos_first, nlos_second = kept_moments(
-        p, model.nlos_excess, model.sigma(d), lower, upper
-    )
+    n = np.isfinite(ranges).sum(axis=0)
     n_kept = np.isfinite(kept).sum(axis=0)
-    n = n_kept / np.maximum(share, 1e-12)  # the epochs the link ranged
-    bias = first / np.maximum(share, 1e-12)
-    spread = np.sqrt(np.maximum(n * (nlos_second - nlos_first**2), 0.0)) / np.maximum(n_kept, 1)
+    observed = n_kept / np.maximum(n, 1)
+    p, shift = np.full(d.shape, model.nlos_prob), np.zeros(d.shape)
+    for _ in range(3):  # the NLOS share and the window's centre, each given the other
+        share_los, *_ = kept_moments(0.0, model.nlos_excess, sigma, lower - shift, upper + shift)
+        *_, share_nlos = kept_moments(1.0, model.nlos_excess, sigma, lower - shift, upper + shift)
+        p = np.clip((share_los - observed) / np.maximum(share_los - share_nlos, 1e-12), 0.0, 1.0)
+        shift = kept_centre(p, model.nlos_excess, sigma, lower, upper)
+    share, first, second, _ = kept_moments(
+        p, model.nlos_excess, sigma, lower - shift, upper + shift
+    )
+    share = np.maximum(share, 1e-12)
+    bias = first / share
+    # the kept mean's variance over n epochs, less the noise's that the fit counts
+    variance = n * (second - first**2 / share) / np.maximum(n_kept, 1) ** 2
+    spread = np.sqrt(np.maximum(variance - sigma**2 / np.maximum(n_kept, 1), 0.0))
     shared = link_sigma(d) if callable(link_sigma) else np.asarray(link_sigma, dtype=float)
     return kept - bias[None], np.hypot(np.broadcast_to(shared, d.shape), spread)

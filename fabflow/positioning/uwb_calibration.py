@@ -282,11 +282,10 @@ def kept_moments(
 
     A range errs by its Gaussian noise (``sigma``) and, with probability ``p``,
     an NLOS excess ``e`` (uniform over ``excess``, metres); the rejection keeps
-    it when its error lies within ``[-lower, upper]`` of the line-of-sight
-    distance. An NLOS range with a small excess is kept now and then, and
-    always on the long side: the link's mean is biased long, whatever the
-    number of epochs. (The window is not quite symmetric: its half-width is a
-    multiple of the sigma at the range measured, which grows with the range.)
+    it when its error lies within ``[-lower, upper]`` (metres, about the
+    line-of-sight distance). An NLOS range with a small excess is kept now and
+    then, and always on the long side: the link's mean is biased long, whatever
+    the number of epochs.
 
     Parameters
     ----------
@@ -303,34 +302,65 @@ def kept_moments(
 
     Returns
     -------
-    kept, first, nlos_first, nlos_second
+    kept, first, second, nlos_kept
         Per range, broadcast over the inputs: the probability that it is kept,
-        ``E[x 1_kept]`` of its error ``x`` (metres), and ``E[x 1_kept]``,
-        ``E[x^2 1_kept]`` of the NLOS ranges alone (metres, square metres;
-        weighted by ``p``).
+        ``E[x 1_kept]`` and ``E[x^2 1_kept]`` of its error ``x`` (metres,
+        square metres), and the probability that an NLOS range is kept.
     """
+    s = np.asarray(sigma, dtype=float)[..., None]
+    lo, hi = excess
+    e = np.r_[0.0, lo + (np.arange(grid) + 0.5) / grid * (hi - lo)]
+    a = (-np.asarray(lower, dtype=float)[..., None] - e) / s
+    b = (np.asarray(upper, dtype=float)[..., None] - e) / s
+    pdf_a = np.exp(-0.5 * a * a) / np.sqrt(2.0 * np.pi)
+    pdf_b = np.exp(-0.5 * b * b) / np.sqrt(2.0 * np.pi)
+    # per excess (0: line of sight): P(kept), E[x 1_kept], E[x^2 1_kept] of x = e + noise
+    kept = special.ndtr(b) - special.ndtr(a)
+    first = e * kept + s * (pdf_a - pdf_b)
+    second = (e * e + s * s) * kept + 2.0 * e * s * (pdf_a - pdf_b)
+    second = second + s * s * (a * pdf_a - b * pdf_b)
+    p = np.asarray(p, dtype=float)
 
-    def truncated(e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """P(kept), E[x 1_kept], E[x^2 1_kept] of x = e + noise."""
-        s = np.asarray(sigma, dtype=float)[..., None]
-        a = (-np.asarray(lower, dtype=float)[..., None] - e) / s
-        b = (np.asarray(upper, dtype=float)[..., None] - e) / s
-        pdf_a = np.exp(-0.5 * a * a) / np.sqrt(2.0 * np.pi)
-        pdf_b = np.exp(-0.5 * b * b) / np.sqrt(2.0 * np.pi)
-        kept = special.ndtr(b) - special.ndtr(a)
-        first = e * kept + s * (pdf_a - pdf_b)
-        second = (e * e + s * s) * kept + 2.0 * e * s * (pdf_a - pdf_b)
-        second = second + s * s * (a * pdf_a - b * pdf_b)
-        return kept, first, second
+    def mix(m: np.ndarray) -> np.ndarray:
+        return (1.0 - p) * m[..., 0] + p * m[..., 1:].mean(-1)
 
+    return mix(kept), mix(first), mix(second), kept[..., 1:].mean(-1)
+
+
+def kept_centre(
+    p: np.ndarray | float,
+    excess: tuple[float, float],
+    sigma: np.ndarray | float,
+    lower: np.ndarray | float,
+    upper: np.ndarray | float,
+    steps: int = 3,
+    grid: int = 64,
+) -> np.ndarray:
+    """Where :func:`reject_outliers_static` centres its window, in expectation: the
+    median of the ranges within the window, re-centred ``steps`` times from the
+    line-of-sight distance (metres above it; the NLOS ranges within the window pull
+    it long). The parameters are :func:`kept_moments`'."""
+    s = np.asarray(sigma, dtype=float)[..., None]
     lo, hi = excess
     e = lo + (np.arange(grid) + 0.5) / grid * (hi - lo)
-    los = truncated(np.zeros(1))
-    nlos = truncated(e)
     p = np.asarray(p, dtype=float)
-    kept = (1.0 - p) * los[0][..., 0] + p * nlos[0].mean(-1)
-    first = (1.0 - p) * los[1][..., 0] + p * nlos[1].mean(-1)
-    return kept, first, p * nlos[1].mean(-1), p * nlos[2].mean(-1)
+
+    def cdf(x: np.ndarray) -> np.ndarray:
+        los = special.ndtr(x / s[..., 0])
+        return (1.0 - p) * los + p * special.ndtr((x[..., None] - e) / s).mean(-1)
+
+    lower = np.asarray(lower, dtype=float)
+    upper = np.asarray(upper, dtype=float)
+    centre = np.zeros(np.broadcast_shapes(p.shape, s.shape[:-1], lower.shape, upper.shape))
+    for _ in range(steps):
+        lo_x, hi_x = centre - lower, centre + upper
+        half = 0.5 * (cdf(lo_x) + cdf(hi_x))
+        for _ in range(40):  # bisection for the median of the kept mixture
+            mid = 0.5 * (lo_x + hi_x)
+            below = cdf(mid) < half
+            lo_x, hi_x = np.where(below, mid, lo_x), np.where(below, hi_x, mid)
+        centre = 0.5 * (lo_x + hi_x)
+    return centre
 
 
 def reject_outliers_static(

