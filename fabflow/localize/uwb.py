@@ -404,9 +404,10 @@ def _without_nlos_leak(
     n_kept = np.isfinite(kept).sum(axis=0)
     observed = n_kept / np.maximum(n, 1)
     p, shift = np.full(d.shape, model.nlos_prob), np.zeros(d.shape)
-    for _ in range(3):  # the NLOS share and the window's centre, each given the other
-        share_los, *_ = kept_moments(0.0, model.nlos_excess, sigma, lower - shift, upper + shift)
-        *_, share_nlos = kept_moments(1.0, model.nlos_excess, sigma, lower - shift, upper + shift)
+    for _ in range(2):  # the NLOS share and the window's centre, each given the other
+        share_los, *_, share_nlos = kept_moments(
+            0.0, model.nlos_excess, sigma, lower - shift, upper + shift
+        )
         p = np.clip((share_los - observed) / np.maximum(share_los - share_nlos, 1e-12), 0.0, 1.0)
         shift = kept_centre(p, model.nlos_excess, sigma, lower, upper)
     share, first, second, _ = kept_moments(

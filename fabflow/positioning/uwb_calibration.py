@@ -333,13 +333,13 @@ def kept_centre(
     sigma: np.ndarray | float,
     lower: np.ndarray | float,
     upper: np.ndarray | float,
-    steps: int = 3,
-    grid: int = 64,
+    steps: int = 2,
+    grid: int = 32,
 ) -> np.ndarray:
     """Where :func:`reject_outliers_static` centres its window, in expectation: the
     median of the ranges within the window, re-centred ``steps`` times from the
     line-of-sight distance (metres above it; the NLOS ranges within the window pull
-    it long). The parameters are :func:`kept_moments`'."""
+    it long), to a micrometre. The parameters are :func:`kept_moments`'."""
     s = np.asarray(sigma, dtype=float)[..., None]
     lo, hi = excess
     e = lo + (np.arange(grid) + 0.5) / grid * (hi - lo)
@@ -355,7 +355,7 @@ def kept_centre(
     for _ in range(steps):
         lo_x, hi_x = centre - lower, centre + upper
         half = 0.5 * (cdf(lo_x) + cdf(hi_x))
-        for _ in range(40):  # bisection for the median of the kept mixture
+        for _ in range(20):  # bisection for the median of the kept mixture
             mid = 0.5 * (lo_x + hi_x)
             below = cdf(mid) < half
             lo_x, hi_x = np.where(below, mid, lo_x), np.where(below, hi_x, mid)
