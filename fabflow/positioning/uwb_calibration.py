@@ -270,6 +270,12 @@ def static_window(sigma: np.ndarray | float, k: float = 3.0, floor: float = 0.1)
     return np.maximum(k * np.asarray(sigma, dtype=float), floor)
 
 
+def _excess_points(excess: tuple[float, float], grid: int) -> np.ndarray:
+    """``(grid,)`` midpoints of a uniform NLOS excess's range (metres)."""
+    lo, hi = excess
+    return lo + (np.arange(grid) + 0.5) / grid * (hi - lo)
+
+
 def kept_moments(
     p: np.ndarray | float,
     excess: tuple[float, float],
@@ -308,8 +314,7 @@ def kept_moments(
         square metres), and the probability that an NLOS range is kept.
     """
     s = np.asarray(sigma, dtype=float)[..., None]
-    lo, hi = excess
-    e = np.r_[0.0, lo + (np.arange(grid) + 0.5) / grid * (hi - lo)]
+    e = np.r_[0.0, _excess_points(excess, grid)]
     a = (-np.asarray(lower, dtype=float)[..., None] - e) / s
     b = (np.asarray(upper, dtype=float)[..., None] - e) / s
     pdf_a = np.exp(-0.5 * a * a) / np.sqrt(2.0 * np.pi)
@@ -341,8 +346,7 @@ def kept_centre(
     line-of-sight distance (metres above it; the NLOS ranges within the window pull
     it long), to a micrometre. The parameters are :func:`kept_moments`'."""
     s = np.asarray(sigma, dtype=float)[..., None]
-    lo, hi = excess
-    e = lo + (np.arange(grid) + 0.5) / grid * (hi - lo)
+    e = _excess_points(excess, grid)
     p = np.asarray(p, dtype=float)
 
     def cdf(x: np.ndarray) -> np.ndarray:

@@ -250,22 +250,27 @@ def test_unknown_fidelity_is_an_input_error(small: Project) -> None:
         prepare_study(small, fidelity="fast")  # type: ignore[arg-type]
 
 
-def test_each_icp_run_draws_its_own_mapping_run(small: Project) -> None:
-    """A simulated map's errors are shared by the visits that match it; a study that
-    kept one map for all its runs would sample that one map's errors only."""
+def _drawn_per_run(study: Study, key: str, localize) -> list[list]:
+    """Runs 0 and 1 of ``study``: per run, the keyword argument ``key`` each of its
+    visits' localizations got (``localize``: the method's ``localize_station``)."""
     seen: list[tuple[int, object]] = []
 
     def recording(project, T, rng, station_id, built=(), **kw):
-        seen.append((run, kw["scan_map"]))
-        return icp.localize_station(project, T, rng, station_id, built, **kw)
+        seen.append((run, kw[key]))
+        return localize(project, T, rng, station_id, built, **kw)
 
-    study = prepare_study(small, "icp")
     for run in (0, 1):
         result = simulate_run(study, run, 7, localize=recording)
         assert result.localization_error.shape[0] == study.n_visits
     assert len(seen) == 2 * study.n_visits
+    return [[x for r, x in seen if r == run] for run in (0, 1)]
+
+
+def test_each_icp_run_draws_its_own_mapping_run(small: Project) -> None:
+    """A simulated map's errors are shared by the visits that match it; a study that
+    kept one map for all its runs would sample that one map's errors only."""
+    maps = _drawn_per_run(prepare_study(small, "icp"), "scan_map", icp.localize_station)
     # one map per run, shared by its visits; another for the other run
-    maps = [[m for r, m in seen if r == run] for run in (0, 1)]
     assert all(m is maps[0][0] for m in maps[0]) and all(m is maps[1][0] for m in maps[1])
     a, b = maps[0][0].target.points, maps[1][0].target.points
     assert a.shape != b.shape or not np.array_equal(a, b)
@@ -307,16 +312,8 @@ def test_a_uwb_run_shares_its_installation_between_its_visits(small: Project) ->
     # the calibration fits the installation's own bias (a few millimetres off)
     np.testing.assert_allclose(a.calibration.offset, a.bias.offset, atol=0.02)
 
-    seen: list[tuple[int, uwb.UwbInstallation]] = []
-
-    def recording(project, T, rng, station_id, built=(), **kw):
-        seen.append((run, kw["installation"]))
-        return uwb.localize_station(project, T, rng, station_id, built, **kw)
-
     study = prepare_study(small, "uwb")
-    for run in (0, 1):
-        simulate_run(study, run, 7, localize=recording)
-    per_run = [[i for r, i in seen if r == run] for run in (0, 1)]
+    per_run = _drawn_per_run(study, "installation", uwb.localize_station)
     assert all(i is per_run[0][0] for i in per_run[0]) and per_run[0] and per_run[1]
     assert all(i is per_run[1][0] for i in per_run[1])
     assert not np.array_equal(per_run[0][0].bias.offset, per_run[1][0].bias.offset)
