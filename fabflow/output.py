@@ -29,9 +29,6 @@ import contextlib
 import ctypes
 import ctypes.util
 import errno
-import functools
-import json
-import math
 import os
 import secrets
 import shutil
@@ -42,9 +39,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from fabflow.errors import InputError
+from fabflow.json_format import json_text
 
 try:
     import fcntl
@@ -513,60 +509,6 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
                 tmp.unlink(missing_ok=True)
     finally:
         signals.restore()
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"cannot serialise {type(obj).__name__} to JSON")
-
-
-def json_safe(data: Any) -> Any:
-    """``data`` with numpy arrays and scalars as lists and numbers, NaN and infinity as None.
-
-    JSON has no NaN or infinity (Python's ``json`` would write the invalid
-    tokens ``NaN`` and ``Infinity``); a number that is not available or not
-    bounded is written as ``null``.
-    """
-    if isinstance(data, dict):
-        return {k: json_safe(v) for k, v in data.items()}
-    if isinstance(data, list | tuple):
-        return [json_safe(v) for v in data]
-    if isinstance(data, np.ndarray):
-        return json_safe(data.tolist())
-    if isinstance(data, np.generic):
-        data = data.item()
-    if isinstance(data, float) and not math.isfinite(data):
-        return None
-    return data
-
-
-def json_text(data: Any, indent: int | None = 2) -> str:
-    """JSON text of ``data`` (see :func:`json_safe`), with a final newline.
-
-    Parameters
-    ----------
-    data
-        JSON-compatible data, possibly holding numpy arrays, NaN or infinity.
-    indent
-        Spaces per level (``None``: one line).
-    """
-    encoder = _encoder(indent)
-    try:  # most data holds only finite numbers: written as is, without a converted copy
-        text = encoder.encode(data)
-    except ValueError:
-        text = encoder.encode(json_safe(data))
-    return text + "\n"
-
-
-@functools.cache
-def _encoder(indent: int | None) -> json.JSONEncoder:
-    """One encoder per indent, reused (a program's stream writes thousands of lines)."""
-    return json.JSONEncoder(indent=indent, default=_json_default, allow_nan=False)
 
 
 def write_json(path: str | Path, data: Any) -> Path:

@@ -33,6 +33,7 @@ def test_every_area_has_a_benchmark() -> None:
         "tracking",
         "link",
         "startup",
+        "build",
     } <= names
 
 

@@ -18,7 +18,8 @@ from helpers import DATA, PROJECTS, ROOT
 
 import fabflow.output as output
 from fabflow.errors import InputError
-from fabflow.output import MARKER, atomic_output_dir, json_text
+from fabflow.json_format import json_text
+from fabflow.output import MARKER, atomic_output_dir
 
 
 def write_output(out: Path, name: str, text: str) -> None:
@@ -307,11 +308,11 @@ def test_every_json_goes_through_json_text() -> None:
     offenders = [
         f"{path.relative_to(ROOT)}:{k}"
         for path in sorted((ROOT / "fabflow").rglob("*.py"))
-        if path.name != "output.py"
+        if path.name != "json_format.py"
         for k, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
         if "json.dump" in line
     ]
-    assert not offenders, "write JSON with fabflow.output.json_text: " + ", ".join(offenders)
+    assert not offenders, "write JSON with fabflow.json_format.json_text: " + ", ".join(offenders)
 
 
 def test_a_link_loop_above_the_output_is_refused(tmp_path: Path) -> None:

@@ -36,7 +36,8 @@ from fabflow.design import exchange
 from fabflow.design.elements import Element
 from fabflow.design.export_data import StationRecord, export_content, world_polyline
 from fabflow.errors import InputError, UnsupportedError
-from fabflow.output import atomic_file, json_safe
+from fabflow.json_format import json_safe
+from fabflow.output import atomic_file
 
 
 def _compas() -> Any:

@@ -24,7 +24,7 @@ from fabflow.design import exchange
 from fabflow.design.elements import Element
 from fabflow.errors import InputError
 from fabflow.files import strict_json
-from fabflow.output import json_text
+from fabflow.json_format import json_text
 
 RIGID_TOLERANCE = 1e-6
 """Largest entry of ``|R^T R - I|`` (and of ``|det R - 1|``) in a pose that is written."""

@@ -27,7 +27,7 @@ from typing import Literal
 
 from fabflow.errors import FabflowError
 from fabflow.files import strict_json
-from fabflow.output import json_text
+from fabflow.json_format import json_text
 
 VERSION = 1
 """The message format's version; a message of another version is refused."""

@@ -56,7 +56,7 @@ from typing import Any, Literal
 import numpy as np
 from scipy import optimize, special
 
-from fabflow.output import json_safe
+from fabflow.json_format import json_safe
 from fabflow.positioning.observation_covariance import Covariance
 
 ALPHA = 1e-3

@@ -11,7 +11,7 @@ import numpy as np
 import viser
 
 from fabflow.errors import FabflowError
-from fabflow.output import json_text
+from fabflow.json_format import json_text
 from fabflow.positioning.result import BasePose
 from fabflow.preview.model import PreviewModel
 from fabflow.preview.scene import PreviewScene

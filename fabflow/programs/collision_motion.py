@@ -176,16 +176,15 @@ def move_keys(motion: CheckMotion, parts: Mapping[str, str]) -> list[tuple[objec
     # fixed samples come in move order: split them where the move changes
     cut = np.flatnonzero(np.diff(motion.fixed_move)) + 1
     of_move = motion.fixed_move[np.r_[0, cut]].tolist() if len(motion.fixed_move) else []
-    samples = dict(zip(of_move, np.split(motion.fixed_q, cut), strict=True))
-    ends = dict(
-        zip(motion.ptp_move.tolist(), zip(motion.ptp_q0, motion.ptp_q1, strict=True), strict=True)
-    )
+    samples = dict(zip(of_move, (s.tobytes() for s in np.split(motion.fixed_q, cut)), strict=True))
+    # a PTP move's two ends, (2, dof) in C order: the row of both
+    both = np.concatenate([motion.ptp_q0, motion.ptp_q1], axis=1)
+    ends = dict(zip(motion.ptp_move.tolist(), (e.tobytes() for e in both), strict=True))
     for i, move in enumerate(motion.moves):
-        path = np.vstack(ends[i] if i in ends else samples[i])
         keys.append(
             (
                 i in ends,
-                path.tobytes(),
+                ends[i] if i in ends else samples[i],
                 motion.held[i],
                 bool(motion.seat[i]),
                 int(motion.stage[i]),

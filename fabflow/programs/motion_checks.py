@@ -197,11 +197,16 @@ def program_checks(
     config = configuration_of(robot, q)
     targets = config[cartesian]
     changes = int((targets[1:] != targets[:-1]).sum()) if len(targets) > 1 else 0
-    inside = []
-    for k in np.flatnonzero(~ptp[1:]) + 1:
-        path = q[k - 1 : k + 1] if via_q[k] is None else np.vstack([q[k - 1], via_q[k], q[k]])
-        if wrist_flips(path) or config[k] != config[k - 1]:
-            inside.append(int(k))
+    # linear moves whose wrist flips (A5 changes sign) or whose configuration changes;
+    # the ends of all at once (28,000 moves on a print wall), the few with samples each
+    lin = np.flatnonzero(~ptp[1:]) + 1
+    a5 = q[:, 4]
+    ends_high, ends_low = np.maximum(a5[lin - 1], a5[lin]), np.minimum(a5[lin - 1], a5[lin])
+    flips = (ends_high >= A5_ZERO) & (ends_low <= -A5_ZERO)
+    for j, k in enumerate(lin.tolist()):
+        if via_q[k] is not None:
+            flips[j] = wrist_flips(np.vstack([q[k - 1], via_q[k], q[k]]))
+    inside = lin[flips | (config[lin] != config[lin - 1])].tolist()
     return {
         "moves": n,
         "ptp_moves": int(ptp.sum()),

@@ -37,6 +37,10 @@ SAFE_WIDTH = 0.5
 """Plan distance from the line magazine - place within which the structure sets the
 safe height of a re-planned block (metres): the arm's forearm and wrist pass there."""
 
+CompileMemo = dict[tuple[tuple[str, int], ...], tuple[Program, dict[str, int]] | None]
+"""A package's compiled programs by the route levels asked for (sorted ``(id, level)``):
+the program and the levels it used, None where no program was found."""
+
 
 def with_contacts(program: Program, contacts: Sequence[Contact], clearance: float) -> Program:
     """The program with its remaining collisions in its checks (``collision_moves``) and,
@@ -136,6 +140,7 @@ def replanned_program(
     """
     obstacles = environment(project, T_world_base, built, elements, coming)
     memo: CheckMemo = {}  # the rounds' programs share most moves: each is checked once
+    programs: CompileMemo = {}  # and the rounds and the final choice often compile one twice
     placed = placements(obstacles, elements, project)
     steps = work_package_motion(elements, project, T_world_base, placements=placed)
     program = compile_program(name, steps, project, T_world_base, header, **options)
@@ -169,7 +174,16 @@ def replanned_program(
         if trial == level:
             break
         compiled = _compile_routes(
-            name, elements, project, T_world_base, header, candidates, trial, placed, options
+            name,
+            elements,
+            project,
+            T_world_base,
+            header,
+            candidates,
+            trial,
+            placed,
+            options,
+            programs,
         )
         if compiled is None:
             break
@@ -184,7 +198,7 @@ def replanned_program(
     choice = {e: min(t, key=lambda k: (t[k], k)) for e, t in tried.items()}
     choice = {e: k for e, k in choice.items() if k >= 0}
     compiled = _compile_routes(
-        name, elements, project, T_world_base, header, candidates, choice, placed, options
+        name, elements, project, T_world_base, header, candidates, choice, placed, options, programs
     )
     if compiled is not None:
         program = compiled[0]
@@ -301,19 +315,35 @@ def _compile_routes(
     level: dict[str, int],
     placed: dict[str, Placement],
     options: dict[str, Any],
+    memo: CompileMemo,
 ) -> tuple[Program, dict[str, int]] | None:
     """Compile with each block's route ``candidates[id][level[id]]`` (none where the level
     is past its routes); a block whose route the arm cannot follow moves on to its next.
 
     Returns the program and the levels used, or None when an infeasible target
-    belongs to no re-planned block."""
+    belongs to no re-planned block. ``memo`` holds the outcome of every set of
+    levels tried before for this package (the rounds and the final choice often
+    ask for the same one again): compiling is deterministic, so it is reused."""
     level = dict(level)
+    tried: list[tuple[tuple[str, int], ...]] = []
+    outcome: tuple[Program, dict[str, int]] | None = None
     while True:  # each pass moves one block on: at most sum(len(c)) passes
+        key = tuple(sorted(level.items()))
+        if key in memo:
+            outcome = memo[key]
+            break
+        tried.append(key)
         routes = {e: candidates[e][k] for e, k in level.items() if k < len(candidates[e])}
         steps = work_package_motion(elements, project, T_world_base, routes, placed)
         try:
-            return compile_program(name, steps, project, T_world_base, header, **options), level
+            program = compile_program(name, steps, project, T_world_base, header, **options)
         except InfeasibleError as error:
             if error.element not in routes:
-                return None
+                break
             level[error.element] += 1
+            continue
+        outcome = program, level
+        break
+    for key in tried:  # each of them leads to this outcome
+        memo[key] = outcome
+    return None if outcome is None else (outcome[0], dict(outcome[1]))

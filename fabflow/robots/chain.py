@@ -40,6 +40,8 @@ AnalyticIK = Callable[..., tuple[FloatArray, NDArray[np.bool_]]]
 branches; ``q_ref`` ((dof,) or (N, dof)) only settles joints a singularity leaves free."""
 
 TWO_PI = 2.0 * np.pi
+_TURNS = np.array([0.0, -1.0, 1.0, -2.0, 2.0])[:, None]
+"""Turns tried from the nearest one, in order of preference (:meth:`RobotModel.nearest_turn`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -434,20 +436,16 @@ class RobotModel:
         best = np.array(np.broadcast_to(best, shape))
         if settled.all():
             return best
+        # the rest: of the turns k0, k0 - 1, k0 + 1, k0 - 2, k0 + 2 within limits the
+        # first nearest the reference, k0 where none is (one pass over all five)
         rest = ~settled
-        qa_r = np.broadcast_to(qa, shape)[rest]
-        ref_r = np.broadcast_to(ref, shape)[rest]
-        lo_r, hi_r = np.broadcast_to(lo, shape)[rest], np.broadcast_to(hi, shape)[rest]
-        k_r, best_r = np.broadcast_to(k0, shape)[rest], best[rest]
-        best_ok = (best_r >= lo_r - 1e-9) & (best_r <= hi_r + 1e-9)
-        for dk in (-1.0, 1.0, -2.0, 2.0):
-            cand = qa_r + (k_r + dk) * TWO_PI
-            ok = (cand >= lo_r - 1e-9) & (cand <= hi_r + 1e-9)
-            closer = np.abs(cand - ref_r) < np.abs(best_r - ref_r)
-            take = ok & (~best_ok | closer)
-            best_r = np.where(take, cand, best_r)
-            best_ok = best_ok | ok
-        best[rest] = best_r
+        qa_r, ref_r, lo_r, hi_r, k_r = (
+            a[rest] for a in np.broadcast_arrays(qa, ref, lo, hi, k0, subok=False)
+        )
+        cand = qa_r + (k_r + _TURNS) * TWO_PI
+        within = (cand >= lo_r - 1e-9) & (cand <= hi_r + 1e-9)
+        first = np.argmin(np.where(within, np.abs(cand - ref_r), np.inf), axis=0)
+        best[rest] = cand[first, np.arange(cand.shape[1])]
         return best
 
     def _turn_variants(self, sols: FloatArray) -> FloatArray:

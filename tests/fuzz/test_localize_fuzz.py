@@ -31,10 +31,10 @@ from reader_mutations import (
 )
 
 from fabflow.errors import FabflowError
+from fabflow.json_format import json_safe
 from fabflow.localize.icp import localize_files as localize_icp
 from fabflow.localize.total_station import localize_files as localize_ts
 from fabflow.localize.uwb_files import localize_from_files
-from fabflow.output import json_safe
 from fabflow.positioning.pointcloud_io import write_point_cloud
 from fabflow.transforms.se3 import apply_T, inv_T, make_T
 from fabflow.transforms.so3 import exp_so3

@@ -13,6 +13,7 @@ from program_readers import read_krl, read_rapid
 
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError
+from fabflow.programs import replan
 from fabflow.programs.assemble import compile_program
 from fabflow.programs.collision import check_package
 from fabflow.programs.collision_model import (
@@ -369,6 +370,45 @@ def test_a_memo_of_earlier_checks_gives_the_contacts_of_a_fresh_check(project) -
         if not which:
             assert fresh  # the wall is in the way: contacts to carry over
     assert checked >= 3 and reused > 0
+
+
+def test_routes_asked_for_again_are_not_compiled_again(project, monkeypatch) -> None:
+    """The rounds and the final choice often ask for the same route levels: the
+    program compiled for them is reused, equal to one compiled afresh, and so is
+    the outcome of levels that moved a block on to its next route."""
+    wall, package = _wall(1.0), _package()
+    obstacles = environment(project, T_WORLD_BASE, wall, package)
+    candidates = candidate_routes(package, project, T_WORLD_BASE, obstacles)
+    placed = placements(obstacles, package, project)
+    compiled: list[str] = []
+
+    def counted(name, *args, **kwargs):
+        compiled.append(name)
+        return compile_program(name, *args, **kwargs)
+
+    monkeypatch.setattr(replan, "compile_program", counted)
+
+    def routes(level: dict[str, int], memo: dict):
+        return replan._compile_routes(
+            "t", package, project, T_WORLD_BASE, {}, candidates, level, placed, {}, memo
+        )
+
+    memo: dict = {}
+    asked = [{}, {"B1": 0}, {"B1": 0, "B2": 1}, {"B2": len(candidates["B2"])}]
+    first = [routes(level, memo) for level in asked]
+    count = len(compiled)
+    assert count >= len(asked)
+    again = [routes(level, memo) for level in asked]
+    assert len(compiled) == count
+    for a, b, level in zip(first, again, asked, strict=True):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert b[0] is a[0] and b[1] == a[1]
+            b[1]["B1"] = -5  # the caller's copy: the memo keeps its own
+            fresh = routes(level, {})
+            assert fresh is not None and fresh[1] == a[1]
+            assert write_json_stream(fresh[0]) == write_json_stream(a[0])
+    assert all(v is None or -5 not in v[1].values() for v in memo.values())
 
 
 @pytest.mark.parametrize("length", [0.4, 1.0, 2.0])

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from fabflow.output import json_text
+from fabflow.json_format import json_text
 from fabflow.programs.ir import Comment, Move, Program, SetOutput, SetPayload, Wait
 from fabflow.programs.ir import sanitize_identifier as _sanitize
 from fabflow.programs.writers.base import Writer, lift_message

@@ -22,6 +22,9 @@ split between elements into modules ``NAME_M01``, ... each holding a procedure
 
 from __future__ import annotations
 
+import functools
+import re
+
 import numpy as np
 
 from fabflow.errors import UnsupportedError
@@ -137,15 +140,23 @@ def confdata_batch(q: np.ndarray, T_base_flange: np.ndarray, arm: OPWParameters)
     return np.c_[quadrant, cfx].astype(np.int64)
 
 
+_POSE = "[[%.3f,%.3f,%.3f],[%.9f,%.9f,%.9f,%.9f]]"
+_NEGATIVE_ZERO = re.compile(r"(?<=[\[,])-(0\.0+)(?=[,\]])")
+"""A number written as negative zero (``-0.000``), which :func:`fixed` writes ``0.000``."""
+
+
 def _pose_text(p: np.ndarray, q: np.ndarray) -> str:
-    """``[[x,y,z],[q1,q2,q3,q4]]`` of one ABB position (mm) and quaternion."""
-    return "[[" + ",".join(fixed(v, 3) for v in p) + "],[" + ",".join(fixed(v, 9) for v in q) + "]]"
+    """``[[x,y,z],[q1,q2,q3,q4]]`` of one ABB position (mm) and quaternion, as
+    :func:`fixed` writes each number (one format for all seven: 28,000 poses a print wall)."""
+    text = _POSE % (*p, *q)
+    return _NEGATIVE_ZERO.sub(r"\1", text) if "-0.0" in text else text
 
 
 def _pose(T: np.ndarray) -> str:
     return _pose_text(*to_abb_pose(T))
 
 
+@functools.lru_cache(maxsize=1024)
 def _speed(speed: float) -> str:
     """The fastest predefined ``speeddata`` not above ``speed`` (m/s): never faster
     than the inverse kinematics check allowed."""
@@ -153,6 +164,7 @@ def _speed(speed: float) -> str:
     return "v" + str(max((v for v in SPEEDS_MM_S if v <= mm_s), default=SPEEDS_MM_S[0]))
 
 
+@functools.lru_cache(maxsize=1024)
 def _zone(blend: float) -> str:
     if blend <= 0:
         return "fine"

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from fabflow.errors import LocalizationError
-from fabflow.output import json_safe
+from fabflow.json_format import json_safe
 from fabflow.positioning.polar import INSTRUMENTS, cartesian_to_polar, polar_covariance
 from fabflow.positioning.registration import Registration, register_points
 from fabflow.positioning.three_point import localize_three_point, three_point_base_points

@@ -15,12 +15,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from program_cases import CASES, GOLDEN, golden, sample_program
 from program_readers import read_krl, read_rapid, read_urscript
 
 from fabflow.errors import InputError, UnsupportedError
 from fabflow.programs.ir import Move, Program, sanitize_identifier
 from fabflow.programs.writers import WRITERS, rapid, writer_for
+from fabflow.programs.writers.base import fixed
 from fabflow.programs.writers.krl import write_krl
 from fabflow.programs.writers.rapid import write_rapid
 from fabflow.programs.writers.urscript import write_urscript
@@ -56,7 +59,7 @@ def test_krl_targets_parse_back(kuka_program: Program) -> None:
     planned = kuka_program.moves
     assert [kind for kind, _, _, _ in read.moves] == [m.kind for m in planned]
     T_flange_tool = kuka_program.T_flange_tool
-    for (_, T, st, _), move, T_base_ref in zip(
+    for (_, T, status_turn, _), move, T_base_ref in zip(
         read.moves[1:-1], planned[1:-1], _base_targets(kuka_program)[1:-1], strict=True
     ):
         _assert_pose_close(read.base @ T, T_base_ref)
@@ -65,7 +68,7 @@ def test_krl_targets_parse_back(kuka_program: Program) -> None:
         if move.kind == "ptp":
             from fabflow.robots import kuka_status_turn
 
-            assert st == kuka_status_turn(move.q)
+            assert status_turn == kuka_status_turn(move.q)
 
 
 def test_rapid_targets_parse_back() -> None:
@@ -98,6 +101,21 @@ def test_rapid_one_call_conversion_writes_the_same_bytes(monkeypatch, max_moves)
 
     monkeypatch.setattr(rapid, "to_abb_pose", per_pose)
     assert write_rapid(program, max_moves) == batched
+
+
+_NEAR_ZERO = st.sampled_from([0.0, -0.0, -1e-4, -4.9999e-4, -5e-4, -5.0001e-4, -5e-10, -6e-10])
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    p=st.lists(st.floats(-1e5, 1e5) | _NEAR_ZERO, min_size=3, max_size=3),
+    q=st.lists(st.floats(-1.0, 1.0) | _NEAR_ZERO, min_size=4, max_size=4),
+)
+def test_rapid_pose_text_writes_each_number_as_fixed_does(p: list[float], q: list[float]) -> None:
+    # one format for the seven numbers of a robtarget, never a negative zero
+    expected = "[[" + ",".join(fixed(v, 3) for v in p) + "],["
+    expected += ",".join(fixed(v, 9) for v in q) + "]]"
+    assert rapid._pose_text(np.array(p), np.array(q)) == expected
 
 
 def test_urscript_targets_parse_back() -> None:
