@@ -81,6 +81,33 @@ def _curvature(
     return out
 
 
+def _weighted_curvature(
+    Rl: np.ndarray,
+    diff: np.ndarray,
+    dist: np.ndarray,
+    tag_idx: np.ndarray,
+    weight: np.ndarray,
+    J: np.ndarray,
+) -> np.ndarray:
+    """``sum_m weight_m`` times :func:`range_curvature` of link ``m`` (4, 4), in closed form.
+
+    With ``G = [I | g]`` (``g = dp/dyaw``) and ``J = G^T u`` the Jacobian's rows:
+    ``sum a G^T G = [[sum a I, sum a g], [sum a g^T, sum a |g|^2]]`` and
+    ``sum a (G^T u)(G^T u)^T = J^T diag(a) J`` with ``a = weight / range``; no
+    (m, 4, 4) stack (a platform's Newton solve makes thousands of these a run).
+    """
+    a = weight / np.maximum(dist, 1e-9)
+    dyaw = np.column_stack([-Rl[:, 1], Rl[:, 0]])[tag_idx]
+    out = np.zeros((4, 4))
+    out[[0, 1, 2], [0, 1, 2]] = a.sum()
+    out[:2, 3] = out[3, :2] = a @ dyaw
+    out[3, 3] = a @ np.einsum("mi,mi->m", dyaw, dyaw)
+    out -= J.T @ (J * a[:, None])
+    u_xy = diff[:, :2] / np.maximum(dist, 1e-9)[:, None]
+    out[3, 3] -= weight @ np.einsum("mi,mi->m", u_xy, Rl[tag_idx, :2])
+    return out
+
+
 def platform_information(
     A: np.ndarray,
     L: np.ndarray,
@@ -121,22 +148,25 @@ def platform_newton(
         The normal matrix is singular (the geometry does not determine the pose).
     """
     state = np.array(state, dtype=float)
+    weight = 1.0 / s**2
 
-    def cost_of(x: np.ndarray) -> float:
-        r = (d - platform_ranges(A, L, x, tag_idx, anc_idx)) / s
+    def evaluate(x: np.ndarray) -> tuple[float, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The cost at ``x`` and the links there (the next iteration starts from them)."""
+        links = _links(A, L, x, tag_idx, anc_idx)
+        r = (d - links[2]) / s
         c = float(r @ r)
         if heading_prior is not None:
             c += (
                 float(np.angle(np.exp(1j * (heading_prior[0] - x[3])))) ** 2 / heading_prior[1] ** 2
             )
-        return c
+        return c, links
 
-    cost = cost_of(state)
+    cost, links = evaluate(state)
     for iteration in range(1, max_iter + 1):
-        Rl, diff, dist = _links(A, L, state, tag_idx, anc_idx)
+        Rl, diff, dist = links
         J = _jacobian(Rl, diff, dist, tag_idx)
         r = d - dist
-        Wj = J / s[:, None] ** 2
+        Wj = J * weight[:, None]
         M = J.T @ Wj
         g = Wj.T @ r
         if heading_prior is not None:
@@ -146,7 +176,7 @@ def platform_newton(
         # Newton's Hessian adds the ranges' curvature, which Gauss-Newton drops: with
         # residuals not small against it (height over anchors near one plane) Gauss-
         # Newton only creeps, as the per-tag fixes of positioning.uwb also find.
-        H = M - np.einsum("m,mij->ij", r / s**2, _curvature(Rl, diff, dist, tag_idx))
+        H = M - _weighted_curvature(Rl, diff, dist, tag_idx, r * weight, J)
         if np.linalg.eigvalsh(H)[0] <= 1e-9 * np.trace(M):
             H = M
         try:
@@ -159,9 +189,9 @@ def platform_newton(
             return state, iteration, True
         for scale in 0.5 ** np.arange(8):
             trial = state + scale * step
-            new = cost_of(trial)
+            new, trial_links = evaluate(trial)
             if new <= cost:
-                state, cost = trial, new
+                state, cost, links = trial, new, trial_links
                 break
         else:
             return state, iteration, False

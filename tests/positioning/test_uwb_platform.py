@@ -13,7 +13,14 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from fabflow.positioning.uwb_platform import locate_platform
-from fabflow.positioning.uwb_platform_model import rotz
+from fabflow.positioning.uwb_platform_model import (
+    _jacobian,
+    _links,
+    _weighted_curvature,
+    platform_jacobian,
+    range_curvature,
+    rotz,
+)
 from fabflow.sensors.uwb import PAPER_ANCHORS_3D
 
 ANCHORS_5 = np.vstack([PAPER_ANCHORS_3D, [2.4, 3.0, 3.2]])
@@ -243,3 +250,34 @@ def test_the_wls_t_fix_is_the_least_squares_minimum_whatever_its_start(seed: int
         gtol=1e-15,
     )
     np.testing.assert_allclose(fix.state, ref.x, atol=1e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_the_newton_solve_sums_the_curvature_of_every_link(seed: int) -> None:
+    # the solve's closed-form weighted sum is that of the per-link curvatures, and
+    # those are the derivative of the Jacobian (central differences)
+    rng = np.random.default_rng(seed)
+    A = rng.uniform(-10.0, 10.0, (6, 3))
+    tags = rng.uniform(-1.0, 1.0, (2, 3))
+    x = np.r_[rng.uniform(-5.0, 5.0, 3), rng.uniform(-np.pi, np.pi)]
+    tag_idx, anc_idx = np.repeat([0, 1], 6), np.tile(np.arange(6), 2)
+    weight = rng.normal(0.0, 100.0, 12)
+    Rl, diff, dist = _links(A, tags, x, tag_idx, anc_idx)
+    J = _jacobian(Rl, diff, dist, tag_idx)
+    each = range_curvature(A, tags, x, tag_idx, anc_idx)
+    np.testing.assert_allclose(
+        _weighted_curvature(Rl, diff, dist, tag_idx, weight, J),
+        np.einsum("m,mij->ij", weight, each),
+        rtol=1e-10,
+        atol=1e-8,
+    )
+    h = 1e-6
+    for k in range(4):
+        dx = np.zeros(4)
+        dx[k] = h
+        numeric = (
+            platform_jacobian(A, tags, x + dx, tag_idx, anc_idx)
+            - platform_jacobian(A, tags, x - dx, tag_idx, anc_idx)
+        ) / (2 * h)
+        np.testing.assert_allclose(each[:, :, k], numeric, rtol=1e-5, atol=1e-6)
