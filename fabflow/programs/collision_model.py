@@ -182,16 +182,27 @@ def part_of(element: Element) -> str:
 
 def structure_boxes(elements: Sequence[Element], since: Sequence[int]) -> Obstacles:
     """The boxes of built elements (blocks and printed layers), each with its ``since``."""
-    parts = []
+    parts: list[Obstacles] = []
+    run: list[tuple[Element, int]] = []  # box-shaped elements in a row: one box each, at once
+
+    def flush() -> None:
+        if run:
+            T, ext = element_boxes([e for e, _ in run])
+            ids, owners = [e.id for e, _ in run], [part_of(e) for e, _ in run]
+            parts.append(_boxes(T, ext, ids, "structure", owners, [s for _, s in run]))
+            run.clear()
+
     for e, s in zip(elements, since, strict=True):
         if e.extents is not None:
-            T, ext = element_boxes([e])
+            run.append((e, s))
         elif e.type == "print_path":
+            flush()
             T, ext = print_path_boxes(e)
-        else:
-            continue
-        part = part_of(e)
-        parts.append(_boxes(T, ext, [e.id] * len(T), "structure", [part] * len(T), [s] * len(T)))
+            part = part_of(e)
+            parts.append(
+                _boxes(T, ext, [e.id] * len(T), "structure", [part] * len(T), [s] * len(T))
+            )
+    flush()
     return Obstacles.join(parts)
 
 
