@@ -17,27 +17,17 @@ import numpy as np
 from fabflow.design.elements import Element, element_boxes
 from fabflow.errors import InputError
 from fabflow.localize.site import anchors_world, points_in_world
+from fabflow.localize.uwb_static import static_fix
 from fabflow.positioning.boxes import Boxes, segments_inside
 from fabflow.positioning.medians import nanmedian
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Method
-from fabflow.positioning.uwb_calibration import (
-    RangeCalibration,
-    kept_centre,
-    kept_moments,
-    reject_outliers_static,
-    static_window,
-)
-from fabflow.positioning.uwb_platform import (
-    locate_platform,
-    platform_to_base_covariance,
-    rejected_ranges,
-)
+from fabflow.positioning.uwb_calibration import RangeCalibration
+from fabflow.positioning.uwb_platform import platform_to_base_covariance, rejected_ranges
 from fabflow.project import Project, UwbSetup
 from fabflow.robots import platform
 from fabflow.sensors.uwb import (
     AnchorBias,
-    UwbErrorModel,
     calibration_campaign,
     draw_bias,
     material_excess,
@@ -316,19 +306,17 @@ def estimate_station(
             model.field_sigma(np.where(np.isfinite(per_link), per_link, 0.0)),
             model.material_delay_spread * predicted,
         )
-    rej = reject_outliers_static(ranges, model.sigma(ranges))
-    kept, link_sigma = _without_nlos_leak(model, ranges, rej.ranges, link_sigma)
     method: Method = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
     first_guess = nanmedian(ranges, (0, 1))
-    fix = locate_platform(
+    fix, rej = static_fix(
+        model,
         A,
-        kept,
+        ranges,
         L,
-        model.sigma,
+        link_sigma,
+        cal.bias_sigma(np.where(np.isfinite(first_guess), first_guess, 0.0)),
         method=method,
         heading_prior=heading_prior,
-        anchor_bias_sigma=cal.bias_sigma(np.where(np.isfinite(first_guess), first_guess, 0.0)),
-        link_sigma=link_sigma,
         alpha=project.localization.integrity.alpha,
         anchor_ids=ids,
         base_lever=T_platform_base[:3, 3],
@@ -375,48 +363,3 @@ def estimate_station(
         if fix.integrity is None
         else fix.integrity.with_checks(rejected_ranges=rejected_ranges(rej.rejected, ids)),
     )
-
-
-def _without_nlos_leak(
-    model: UwbErrorModel, ranges: np.ndarray, kept: np.ndarray, link_sigma: Any
-) -> tuple[np.ndarray, np.ndarray]:
-    """The ranges the rejection kept, less the bias that what it kept leaves in each
-    link's mean, and each link's shared sigma with what that adds to the mean's
-    spread (metres; :func:`~fabflow.positioning.uwb_calibration.kept_moments`: an
-    NLOS range with a small excess falls within the rejection's window now and
-    then, and moves the window's centre too).
-
-    Each link's share of NLOS ranges is estimated from the share the rejection
-    left out (``ranges`` before it, ``kept`` after): a line of sight the
-    structure blocks shows about half, a clear one the error model's
-    ``nlos_prob``. ``link_sigma``: the shared sigma so far, a function of the
-    range or one value per link.
-    """
-    centre = nanmedian(kept, 0)
-    d = np.where(np.isfinite(centre), centre, 1.0)
-    sigma = model.sigma(d)
-    # the window's half-widths: a multiple of the sigma at the range measured
-    upper = lower = static_window(sigma)
-    for _ in range(3):
-        upper = static_window(model.sigma(d + upper))
-        lower = static_window(model.sigma(np.maximum(d - lower, 0.0)))
-    n = np.isfinite(ranges).sum(axis=0)
-    n_kept = np.isfinite(kept).sum(axis=0)
-    observed = n_kept / np.maximum(n, 1)
-    p, shift = np.full(d.shape, model.nlos_prob), np.zeros(d.shape)
-    for _ in range(2):  # the NLOS share and the window's centre, each given the other
-        share_los, *_, share_nlos = kept_moments(
-            0.0, model.nlos_excess, sigma, lower - shift, upper + shift
-        )
-        p = np.clip((share_los - observed) / np.maximum(share_los - share_nlos, 1e-12), 0.0, 1.0)
-        shift = kept_centre(p, model.nlos_excess, sigma, lower, upper)
-    share, first, second, _ = kept_moments(
-        p, model.nlos_excess, sigma, lower - shift, upper + shift
-    )
-    share = np.maximum(share, 1e-12)
-    bias = first / share
-    # the kept mean's variance over n epochs, less the noise's that the fit counts
-    variance = n * (second - first**2 / share) / np.maximum(n_kept, 1) ** 2
-    spread = np.sqrt(np.maximum(variance - sigma**2 / np.maximum(n_kept, 1), 0.0))
-    shared = link_sigma(d) if callable(link_sigma) else np.asarray(link_sigma, dtype=float)
-    return kept - bias[None], np.hypot(np.broadcast_to(shared, d.shape), spread)

@@ -19,6 +19,7 @@ from pydantic import ValidationError
 
 from fabflow.errors import FabflowError, InputError, LocalizationError
 from fabflow.localize.site import anchors_world
+from fabflow.localize.uwb_static import static_fix
 from fabflow.positioning.eskf import (
     Eskf,
     EskfParams,
@@ -40,7 +41,6 @@ from fabflow.positioning.uwb import (
 from fabflow.positioning.uwb_calibration import (
     RangeCalibration,
     reject_outliers,
-    reject_outliers_static,
 )
 from fabflow.positioning.uwb_io import RangeLog, read_imu_csv, read_ranges_csv
 from fabflow.positioning.uwb_platform import (
@@ -275,9 +275,8 @@ def _localize(
     }
     integrity: Integrity | None = None
     if imu_csv is None:
-        rej = reject_outliers_static(epochs, sigma(epochs))
         T_world_platform, cov, residuals, more = _static_pose(
-            setup, A, L, rej, sigma, T_platform_base, ids
+            setup, A, L, epochs, T_platform_base, ids
         )
         integrity = more.pop("integrity")
     else:
@@ -304,23 +303,25 @@ def _static_pose(
     setup: UwbSetup,
     A: np.ndarray,
     L: np.ndarray,
-    rej: Any,
-    sigma: Sigma,
+    epochs: np.ndarray,
     T_platform_base: np.ndarray,
     anchor_ids: list[str],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-    """Platform pose, base covariance, residuals and quality (with the integrity record)."""
+    """Platform pose, base covariance, residuals and quality (with the integrity record)
+    of the calibrated ranges ``epochs``: the estimate of a simulated station
+    (:func:`~fabflow.localize.uwb_static.static_fix`)."""
     estimator = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
-    fix = locate_platform(
+    model = setup.error_model()
+    fix, rej = static_fix(
+        model,
         A,
-        rej.ranges,
+        epochs,
         L,
-        sigma,
+        model.field_sigma,
+        np.full(len(A), setup.calibration_sigma),
         method=estimator,
-        anchor_bias_sigma=np.full(len(A), setup.calibration_sigma),
         anchor_ids=anchor_ids,
         base_lever=T_platform_base[:3, 3],
-        link_sigma=setup.error_model().field_sigma,
     )
     cov = platform_to_base_covariance(fix.T, T_platform_base, fix.covariance)
     quality = {

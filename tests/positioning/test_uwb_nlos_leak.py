@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fabflow.localize.uwb import _without_nlos_leak
+from fabflow.localize.uwb_static import without_nlos_leak
 from fabflow.positioning.uwb_calibration import kept_moments, reject_outliers_static
 from fabflow.sensors.uwb import UwbErrorModel
 
@@ -49,7 +49,7 @@ def _links(p: float, d: float, seed: int, links: int = 400) -> tuple:
     excess = np.where(nlos, rng.uniform(*model.nlos_excess, nlos.shape), 0.0)
     y = d + sigma * rng.standard_normal(nlos.shape) + excess
     kept = reject_outliers_static(y, model.sigma(y)).ranges
-    corrected, link_sigma = _without_nlos_leak(model, y, kept, lambda r: 0.0 * r)
+    corrected, link_sigma = without_nlos_leak(model, y, kept, lambda r: 0.0 * r)
     n_kept = np.isfinite(kept).sum(axis=0)
     return sigma, kept, corrected, link_sigma, n_kept
 

@@ -1,0 +1,129 @@
+"""The UWB estimate of a standing platform from its ranges, for simulated and measured ones.
+
+One estimator for both: the ranges of every tag-anchor link are cleaned around
+the link's robust centre
+(:func:`~fabflow.positioning.uwb_calibration.reject_outliers_static`), the bias
+the NLOS ranges the cleaning keeps leave in each link's mean is taken off with
+its spread (:func:`without_nlos_leak`), and
+:func:`~fabflow.positioning.uwb_platform.locate_platform` gives the pose with
+its tests. :func:`fabflow.localize.uwb.estimate_station` feeds it simulated
+ranges, :mod:`fabflow.localize.uwb_files` measured ones.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from fabflow.positioning.medians import nanmedian
+from fabflow.positioning.uwb import Method
+from fabflow.positioning.uwb_calibration import (
+    Rejection,
+    kept_centre,
+    kept_moments,
+    reject_outliers_static,
+    static_window,
+)
+from fabflow.positioning.uwb_platform import PlatformFix, locate_platform
+from fabflow.sensors.uwb import UwbErrorModel
+
+
+def static_fix(
+    model: UwbErrorModel,
+    A: np.ndarray,
+    ranges: np.ndarray,
+    L: np.ndarray,
+    link_sigma: Any,
+    anchor_bias_sigma: np.ndarray,
+    method: Method = "wls-t",
+    heading_prior: tuple[float, float] | None = None,
+    alpha: float | None = None,
+    anchor_ids: Sequence[str] | None = None,
+    base_lever: np.ndarray | None = None,
+) -> tuple[PlatformFix, Rejection]:
+    """The platform fix of a standing platform's calibrated ranges, and what was rejected.
+
+    Parameters
+    ----------
+    model
+        The ranging error model: the noise ``sigma(d)`` that weighs the ranges
+        and sets the cleaning's window, and the NLOS excess it may keep.
+    A
+        (n, 3) anchor positions (metres, the frame of the fix).
+    ranges
+        (rounds, tags, anchors) calibrated ranges (metres; NaN where none).
+    L
+        (tags, 3) the tags in the platform frame (metres).
+    link_sigma
+        The error every range of one link shares (multipath, material): a
+        function of the range or one value per link (metres).
+    anchor_bias_sigma
+        (n,) the error every range to one anchor shares (the calibration's).
+    method, heading_prior, alpha, anchor_ids, base_lever
+        As :func:`~fabflow.positioning.uwb_platform.locate_platform` takes them
+        (``alpha`` None: its default).
+    """
+    rej = reject_outliers_static(ranges, model.sigma(ranges))
+    kept, link_sigma = without_nlos_leak(model, ranges, rej.ranges, link_sigma)
+    options: dict[str, Any] = {} if alpha is None else {"alpha": alpha}
+    fix = locate_platform(
+        A,
+        kept,
+        L,
+        model.sigma,
+        method=method,
+        heading_prior=heading_prior,
+        anchor_bias_sigma=anchor_bias_sigma,
+        link_sigma=link_sigma,
+        anchor_ids=anchor_ids,
+        base_lever=base_lever,
+        **options,
+    )
+    return fix, rej
+
+
+def without_nlos_leak(
+    model: UwbErrorModel, ranges: np.ndarray, kept: np.ndarray, link_sigma: Any
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ranges the rejection kept, less the bias that what it kept leaves in each
+    link's mean, and each link's shared sigma with what that adds to the mean's
+    spread (metres; :func:`~fabflow.positioning.uwb_calibration.kept_moments`: an
+    NLOS range with a small excess falls within the rejection's window now and
+    then, and moves the window's centre too).
+
+    Each link's share of NLOS ranges is estimated from the share the rejection
+    left out (``ranges`` before it, ``kept`` after): a line of sight the
+    structure blocks shows about half, a clear one the error model's
+    ``nlos_prob``. ``link_sigma``: the shared sigma so far, a function of the
+    range or one value per link.
+    """
+    centre = nanmedian(kept, 0)
+    d = np.where(np.isfinite(centre), centre, 1.0)
+    sigma = model.sigma(d)
+    # the window's half-widths: a multiple of the sigma at the range measured
+    upper = lower = static_window(sigma)
+    for _ in range(3):
+        upper = static_window(model.sigma(d + upper))
+        lower = static_window(model.sigma(np.maximum(d - lower, 0.0)))
+    n = np.isfinite(ranges).sum(axis=0)
+    n_kept = np.isfinite(kept).sum(axis=0)
+    observed = n_kept / np.maximum(n, 1)
+    p, shift = np.full(d.shape, model.nlos_prob), np.zeros(d.shape)
+    for _ in range(2):  # the NLOS share and the window's centre, each given the other
+        share_los, *_, share_nlos = kept_moments(
+            0.0, model.nlos_excess, sigma, lower - shift, upper + shift
+        )
+        p = np.clip((share_los - observed) / np.maximum(share_los - share_nlos, 1e-12), 0.0, 1.0)
+        shift = kept_centre(p, model.nlos_excess, sigma, lower, upper)
+    share, first, second, _ = kept_moments(
+        p, model.nlos_excess, sigma, lower - shift, upper + shift
+    )
+    share = np.maximum(share, 1e-12)
+    bias = first / share
+    # the kept mean's variance over n epochs, less the noise's that the fit counts
+    variance = n * (second - first**2 / share) / np.maximum(n_kept, 1) ** 2
+    spread = np.sqrt(np.maximum(variance - sigma**2 / np.maximum(n_kept, 1), 0.0))
+    shared = link_sigma(d) if callable(link_sigma) else np.asarray(link_sigma, dtype=float)
+    return kept - bias[None], np.hypot(np.broadcast_to(shared, d.shape), spread)
