@@ -9,7 +9,6 @@ when it runs, so that ``fabflow --help`` and a mistyped command answer at once
 from __future__ import annotations
 
 import functools
-import gc
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -92,11 +91,6 @@ def main(
     ] = False,
 ) -> None:
     """From an architectural design to a mobile construction robot."""
-    # A command allocates its objects in long-lived batches (the libraries it
-    # imports, a program's moves): the default young-generation threshold (700)
-    # ran some 600 collections a cabin build, 0.19 of its 7 CPU s; at 50,000 they
-    # take 0.06. Garbage with cycles is still collected, later.
-    gc.set_threshold(50_000, 20, 20)
 
 
 @app.command()
