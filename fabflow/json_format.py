@@ -113,8 +113,8 @@ def _rows(value: list | tuple, inner: str) -> str | None:
     would make one per row; the text is the same.
     """
     text = _encoder().encode(value)
-    if '"' in text or text.count("[") != len(value) + 1:
-        return None  # a string (which may hold brackets) or a row holding lists
+    if '"' in text or "{" in text or text.count("[") != len(value) + 1:
+        return None  # a string (which may hold brackets), a row holding lists or dicts
     if not all(isinstance(row, list | tuple) for row in value):
         return None
     return "[" + inner + text[1:-1].replace("], [", "]," + inner + "[")

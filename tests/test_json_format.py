@@ -6,7 +6,7 @@ import json
 import math
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from fabflow.json_format import json_safe, json_text
@@ -43,6 +43,8 @@ def test_reads_back_as_json_writes_it(data) -> None:
 
 @settings(max_examples=200, deadline=None)
 @given(DATA)
+@example([[{}], [1]])  # an empty dict has no bracket to count
+@example([[[]], [1, 2]])
 def test_a_line_holds_one_plain_list_or_one_key_or_item(data) -> None:
     # every line is a bracket, or one value (a key with it), never two containers
     for line in json_text(data).splitlines():

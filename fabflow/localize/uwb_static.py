@@ -94,8 +94,9 @@ def without_nlos_leak(
     then, and moves the window's centre too).
 
     Each link's share of NLOS ranges is estimated from the share the rejection
-    left out (``ranges`` before it, ``kept`` after): a line of sight the
-    structure blocks shows about half, a clear one the error model's
+    left out (``ranges`` before it, ``kept`` after) of the ranges the error model
+    explains (within the window below, within the NLOS excess above): a line of
+    sight the structure blocks shows about half, a clear one the error model's
     ``nlos_prob``. ``link_sigma``: the shared sigma so far, a function of the
     range or one value per link.
     """
@@ -107,7 +108,14 @@ def without_nlos_leak(
     for _ in range(3):
         upper = static_window(model.sigma(d + upper))
         lower = static_window(model.sigma(np.maximum(d - lower, 0.0)))
-    n = np.isfinite(ranges).sum(axis=0)
+    # Only ranges the error model can explain count: the noise about the link's
+    # distance and its NLOS excess. One rejected for what the model does not hold
+    # (a dropout's zero, a spike metres long, as measured files have) says nothing
+    # of the NLOS share, and counted as NLOS it would pull the link short.
+    explained = (ranges >= d - lower - 3.0 * sigma) & (
+        ranges <= d + model.nlos_excess[1] + upper + 3.0 * sigma
+    )
+    n = explained.sum(axis=0)
     n_kept = np.isfinite(kept).sum(axis=0)
     observed = n_kept / np.maximum(n, 1)
     p, shift = np.full(d.shape, model.nlos_prob), np.zeros(d.shape)

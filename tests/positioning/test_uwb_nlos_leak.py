@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from fabflow.localize.uwb_static import without_nlos_leak
@@ -14,6 +14,7 @@ from fabflow.sensors.uwb import UwbErrorModel
 
 
 @settings(max_examples=25, deadline=None)
+@example(p=0.5, sigma=0.125, lower=2.0, upper=4.0, low=0.125, width=0.125, seed=0)
 @given(
     p=st.floats(0.01, 1.0),
     sigma=st.floats(0.02, 0.15),
@@ -30,10 +31,12 @@ def test_kept_moments_match_a_monte_carlo(p, sigma, lower, upper, low, width, se
     x = np.where(nlos, rng.uniform(low, low + width, n), 0.0) + sigma * rng.standard_normal(n)
     kept = (x >= -lower * sigma) & (x <= upper * sigma)
     predicted = kept_moments(p, (low, low + width), sigma, lower * sigma, upper * sigma)
-    samples = (kept, kept * x, kept * x * x, (kept & nlos).astype(float) / max(p, 1e-12))
+    # the last: a probability of the NLOS ranges alone, over those drawn (their number
+    # varies about p n; dividing by p n instead made a 7-sigma miss at p = 0.5)
+    samples = (kept, kept * x, kept * x * x, kept[nlos].astype(float))
     for k, (value, drawn) in enumerate(zip(predicted, samples, strict=True)):
-        if k == 3:  # a probability of the NLOS ranges alone: binomial over p n of them
-            tol = 5 * np.sqrt(value * (1 - value) / (p * n)) + 1e-4
+        if k == 3:  # binomial over the NLOS ranges drawn
+            tol = 5 * np.sqrt(value * (1 - value) / max(nlos.sum(), 1)) + 1e-4
         else:
             tol = 5 * drawn.std() / np.sqrt(n) + 1e-6
         assert abs(drawn.mean() - value) <= tol
@@ -79,3 +82,23 @@ def test_the_corrected_means_spread_as_predicted_up_to_6_m_blocked(p: float, d: 
     after = np.nanmean(corrected, axis=0) - d
     predicted = np.sqrt(np.mean(sigma**2 / n_kept + link_sigma**2))
     assert 0.85 < after.std() / predicted < 1.3
+
+
+def test_ranges_the_model_does_not_explain_do_not_count_as_nlos() -> None:
+    """A measured link that loses ranges to spikes metres long and to dropouts (zeros):
+    the cleaning rejects them, and they are no NLOS share, so the correction leaves the
+    link as it would without them, instead of pulling it short."""
+    model = UwbErrorModel()
+    d = 10.0
+    rng = np.random.default_rng(3)
+    y = d + float(model.sigma(d)) * rng.standard_normal((300, 1, 1))
+    clean = without_nlos_leak(model, y, reject_outliers_static(y, model.sigma(y)).ranges, 0.0)
+    spiked = y.copy()
+    spiked[:150] = rng.uniform(2.0, 50.0, (150, 1, 1)) + d  # half the ranges far off
+    spiked[150:180] = 0.0  # dropouts
+    kept = reject_outliers_static(spiked, model.sigma(spiked)).ranges
+    assert np.isfinite(kept).sum() <= 120
+    corrected, link_sigma = without_nlos_leak(model, spiked, kept, 0.0)
+    assert abs(np.nanmean(corrected) - np.nanmean(kept)) < 0.002  # as on the clean link
+    assert abs(np.nanmean(clean[0]) - np.nanmean(y)) < 0.002
+    assert link_sigma.max() < 0.01

@@ -71,7 +71,7 @@ class Writer:
         moves = [i for i in program.instructions if isinstance(i, Move)]
         values = [program.T_base_world, program.T_flange_tool]
         if moves:  # every move's frame and joints in one array each (28,000 on a print wall)
-            values.append(np.stack([m.T_world_tool for m in moves]))
+            values.append(np.concatenate([np.ravel(m.T_world_tool) for m in moves]))
             values.append(np.concatenate([np.ravel(m.q) for m in moves]))
         values.append(np.array([[m.speed, m.blend] for m in moves], dtype=float))
         values += [np.array([program.load.mass]), program.load.cog]

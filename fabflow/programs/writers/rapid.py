@@ -254,8 +254,8 @@ def _body(
             lines.append(f"    WaitTime {fixed(ins.seconds, 3)};")
         else:
             assert isinstance(ins, Move)
-            zone = "fine" if ins is last_move else _zone(ins.blend)
-            speed = _speed(PTP_TCP_SPEED * ins.speed if ins.kind == "ptp" else ins.speed)
+            zone = "fine" if ins is last_move else _zone(float(ins.blend))
+            speed = _speed(float(PTP_TCP_SPEED * ins.speed if ins.kind == "ptp" else ins.speed))
             if ins.joint:
                 lines.append(
                     f"    MoveAbsJ {HOME}\\NoEOffs, {speed}, {zone}, {tool}\\WObj:=wobj_world;"
