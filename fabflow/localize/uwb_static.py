@@ -22,6 +22,7 @@ from fabflow.positioning.uwb import Method
 from fabflow.positioning.uwb_calibration import (
     Rejection,
     kept_centre,
+    kept_mean_variance,
     kept_moments,
     reject_outliers_static,
     static_window,
@@ -125,13 +126,20 @@ def without_nlos_leak(
         )
         p = np.clip((share_los - observed) / np.maximum(share_los - share_nlos, 1e-12), 0.0, 1.0)
         shift = kept_centre(p, model.nlos_excess, sigma, lower, upper)
-    share, first, second, _ = kept_moments(
-        p, model.nlos_excess, sigma, lower - shift, upper + shift
-    )
-    share = np.maximum(share, 1e-12)
-    bias = first / share
-    # the kept mean's variance over n epochs, less the noise's that the fit counts
-    variance = n * (second - first**2 / share) / np.maximum(n_kept, 1) ** 2
+    window = (sigma, lower - shift, upper + shift)
+    share, first, *_ = kept_moments(p, model.nlos_excess, *window)
+    bias = first / np.maximum(share, 1e-12)
+    # how the bias follows the share kept (through the NLOS share, the window held)
+    step = np.where(p + 1e-4 <= 1.0, 1e-4, -1e-4)
+    share_by, first_by, *_ = kept_moments(p + step, model.nlos_excess, *window)
+    gap = np.maximum(share_los - share_nlos, 1e-12)
+    slope = -(first_by / np.maximum(share_by, 1e-12) - bias) / step / gap
+    slope = np.where((p > 0.0) & (p < 1.0), slope, 0.0)  # a clipped share does not move
+    # the corrected mean's variance over n epochs (the window's wander and the share's
+    # in it too), less the noise's that the fit counts
+    variance = kept_mean_variance(
+        p, model.nlos_excess, sigma, lower, upper, shift, slope
+    ) / np.maximum(n, 1)
     spread = np.sqrt(np.maximum(variance - sigma**2 / np.maximum(n_kept, 1), 0.0))
     shared = link_sigma(d) if callable(link_sigma) else np.asarray(link_sigma, dtype=float)
     return kept - bias[None], np.hypot(np.broadcast_to(shared, d.shape), spread)

