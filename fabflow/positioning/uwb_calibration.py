@@ -374,6 +374,8 @@ def kept_mean_variance(
     p, sigma, lower, upper, centre, slope = (
         np.asarray(a, dtype=float)[..., None] for a in (p, sigma, lower, upper, centre, slope)
     )
+    # at least two points per sigma: a window at its 0.1 m floor may be many sigmas wide
+    grid = int(np.clip(np.ceil(2.0 * np.max((lower + upper) / sigma, initial=0.0)) + 1, grid, 4001))
     t = np.linspace(0.0, 1.0, grid)
     x = centre - lower + (lower + upper) * t
     w = np.full(grid, 1.0 / (grid - 1))  # the trapezoid rule over the window
@@ -391,7 +393,8 @@ def kept_mean_variance(
     side = np.sign(x - centre) / D
     influence = (x - mean) / kept + mean_by_centre * side
     influence = influence - slope * (1.0 - kept + (f_u - f_l) * side)
-    outside = (slope * kept) ** 2 * (1.0 - kept)  # a range left out moves the share kept only
+    # a range left out moves the share kept only
+    outside = (slope * kept) ** 2 * np.maximum(1.0 - kept, 0.0)
     return (influence**2 * f * w).sum(-1) + outside[..., 0]
 
 
