@@ -44,16 +44,16 @@ def canonical_frames(axes: np.ndarray, extents: np.ndarray) -> tuple[np.ndarray,
     extents = np.asarray(extents, dtype=float)
     m = len(axes)
     rows = np.arange(m)
-    up = np.abs(axes[:, 2, :])  # |z component| of each axis
-    k_z = np.argmax(up, axis=1)
-    others = np.array([[1, 2], [0, 2], [0, 1]])[k_z]
-    e_other = np.take_along_axis(extents, others, axis=1)
+    # each axis signed the way the frame will point it, for the tie-breaks below
+    # (two axes equally vertical, or two equal sides equally along world x)
+    up = _signed(axes, (2, 0, 1))
+    k_z = _first_best(np.abs(axes[:, 2, :]), up[:, 0, :], up[:, 1, :], np.ones((m, 3), bool))
     # the longer horizontal axis is x; on a tie, the one nearer world x
-    ax_other = axes[rows[:, None], :, others]  # (M, 2, 3): the two candidate axes as rows
-    near_x = np.abs(ax_other[:, :, 0])
-    tie = np.isclose(e_other[:, 0], e_other[:, 1], rtol=0.0, atol=_EPS)
-    pick = np.where(tie, np.argmax(near_x, axis=1), np.argmax(e_other, axis=1))
-    k_x = others[rows, pick]
+    along = _signed(axes, (0, 1, 2))
+    allowed = np.arange(3)[None, :] != k_z[:, None]
+    length = np.where(allowed, extents, -np.inf)
+    tied = allowed & (length >= length.max(axis=1, keepdims=True) - _EPS)
+    k_x = _first_best(np.abs(axes[:, 0, :]), along[:, 1, :], along[:, 2, :], tied)
     z = axes[rows, :, k_z]
     z = z * np.where(z[:, 2] < 0.0, -1.0, 1.0)[:, None]
     x = axes[rows, :, k_x]
@@ -64,6 +64,27 @@ def canonical_frames(axes: np.ndarray, extents: np.ndarray) -> tuple[np.ndarray,
     k_y = 3 - k_x - k_z
     ext = np.stack([extents[rows, k_x], extents[rows, k_y], extents[rows, k_z]], axis=1)
     return R, ext
+
+
+def _signed(axes: np.ndarray, order: tuple[int, int, int]) -> np.ndarray:
+    """(M, 3, 3) the axes (columns) flipped so that the first of their world
+    components in ``order`` that is not zero is positive, components in that order."""
+    comps = axes[:, list(order), :]
+    lead = np.where(np.abs(comps[:, 0]) > _EPS, comps[:, 0], comps[:, 1])
+    lead = np.where(np.abs(lead) > _EPS, lead, comps[:, 2])
+    return comps * np.where(lead < 0.0, -1.0, 1.0)[:, None, :]
+
+
+def _first_best(
+    first: np.ndarray, second: np.ndarray, third: np.ndarray, allowed: np.ndarray
+) -> np.ndarray:
+    """(M,) the column with the largest ``first`` of those ``allowed`` ((M, 3) each), ties
+    (within 1e-9) broken by ``second``, then ``third``: the same column whoever drew it."""
+    candidates = allowed.copy()
+    for key in (first, second):
+        value = np.where(candidates, key, -np.inf)
+        candidates &= value >= value.max(axis=1, keepdims=True) - _EPS
+    return np.argmax(np.where(candidates, third, -np.inf), axis=1)
 
 
 def box_pose_from_corners(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

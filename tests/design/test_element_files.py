@@ -14,7 +14,7 @@ import rhino3dm
 from compas.datastructures import Mesh
 from compas.geometry import Box, Frame, Polyline
 from helpers import PROJECTS
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
@@ -99,6 +99,10 @@ def test_box_pose_from_corners_gives_the_same_box(box, order) -> None:
 
 @settings(max_examples=40, deadline=None)
 @given(rigid, st.sampled_from([(0, 1, 2), (1, 2, 0), (2, 0, 1)]), st.sampled_from([1, -1]))
+# a cube turned so that two of its axes are equally vertical: ties all the way down
+@example(([0.0, 0.5, 0.25, 0.25], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0]), (0, 1, 2), -1)
+@example(([0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0]), (1, 2, 0), 1)
+@example(([0.0, 0.0, 0.38268343, 0.92387953], [1.0, 2.0, 0.0], [1.0, 1.0, 0.5]), (2, 0, 1), -1)
 def test_box_frame_does_not_depend_on_how_the_box_was_drawn(box, perm, sign) -> None:
     """Another frame of the same box (axes permuted and flipped) gives the same pose."""
     q, t, ext = (np.asarray(v, dtype=float) for v in box)

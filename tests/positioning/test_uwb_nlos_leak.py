@@ -115,7 +115,7 @@ def test_ranges_the_model_does_not_explain_do_not_count_as_nlos() -> None:
 @example(p=0.5, sigma=0.0001, lower=0.1, upper=0.1, centre=0.0, slope=1.0)
 @given(
     p=st.floats(0.0, 1.0),
-    sigma=st.floats(0.0001, 0.3),
+    sigma=st.floats(0.001, 0.3),
     lower=st.floats(0.1, 1.0),
     upper=st.floats(0.1, 1.0),
     centre=st.floats(-0.05, 0.3),
