@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from fabflow.positioning.integrity import ALPHA
 from fabflow.positioning.medians import nanmedian
 from fabflow.positioning.uwb import Method
 from fabflow.positioning.uwb_calibration import (
@@ -40,7 +41,7 @@ def static_fix(
     anchor_bias_sigma: np.ndarray,
     method: Method = "wls-t",
     heading_prior: tuple[float, float] | None = None,
-    alpha: float | None = None,
+    alpha: float = ALPHA,
     anchor_ids: Sequence[str] | None = None,
     base_lever: np.ndarray | None = None,
 ) -> tuple[PlatformFix, Rejection]:
@@ -63,12 +64,10 @@ def static_fix(
     anchor_bias_sigma
         (n,) the error every range to one anchor shares (the calibration's).
     method, heading_prior, alpha, anchor_ids, base_lever
-        As :func:`~fabflow.positioning.uwb_platform.locate_platform` takes them
-        (``alpha`` None: its default).
+        As :func:`~fabflow.positioning.uwb_platform.locate_platform` takes them.
     """
     rej = reject_outliers_static(ranges, model.sigma(ranges))
     kept, link_sigma = without_nlos_leak(model, ranges, rej.ranges, link_sigma)
-    options: dict[str, Any] = {} if alpha is None else {"alpha": alpha}
     fix = locate_platform(
         A,
         kept,
@@ -80,7 +79,7 @@ def static_fix(
         link_sigma=link_sigma,
         anchor_ids=anchor_ids,
         base_lever=base_lever,
-        **options,
+        alpha=alpha,
     )
     return fix, rej
 

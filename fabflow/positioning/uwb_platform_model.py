@@ -82,16 +82,12 @@ def _curvature(
 
 
 def _weighted_curvature(
-    Rl: np.ndarray,
-    diff: np.ndarray,
-    dist: np.ndarray,
-    tag_idx: np.ndarray,
-    weight: np.ndarray,
-    J: np.ndarray,
+    Rl: np.ndarray, dist: np.ndarray, tag_idx: np.ndarray, weight: np.ndarray, J: np.ndarray
 ) -> np.ndarray:
     """``sum_m weight_m`` times :func:`range_curvature` of link ``m`` (4, 4), in closed form.
 
-    With ``G = [I | g]`` (``g = dp/dyaw``) and ``J = G^T u`` the Jacobian's rows:
+    With ``G = [I | g]`` (``g = dp/dyaw``) and ``J = G^T u`` the Jacobian's rows
+    (:func:`_jacobian`; its first three columns are the unit vectors ``u``):
     ``sum a G^T G = [[sum a I, sum a g], [sum a g^T, sum a |g|^2]]`` and
     ``sum a (G^T u)(G^T u)^T = J^T diag(a) J`` with ``a = weight / range``; no
     (m, 4, 4) stack (a platform's Newton solve makes thousands of these a run).
@@ -103,8 +99,7 @@ def _weighted_curvature(
     out[:2, 3] = out[3, :2] = a @ dyaw
     out[3, 3] = a @ np.einsum("mi,mi->m", dyaw, dyaw)
     out -= J.T @ (J * a[:, None])
-    u_xy = diff[:, :2] / np.maximum(dist, 1e-9)[:, None]
-    out[3, 3] -= weight @ np.einsum("mi,mi->m", u_xy, Rl[tag_idx, :2])
+    out[3, 3] -= weight @ np.einsum("mi,mi->m", J[:, :2], Rl[tag_idx, :2])
     return out
 
 
@@ -176,7 +171,7 @@ def platform_newton(
         # Newton's Hessian adds the ranges' curvature, which Gauss-Newton drops: with
         # residuals not small against it (height over anchors near one plane) Gauss-
         # Newton only creeps, as the per-tag fixes of positioning.uwb also find.
-        H = M - _weighted_curvature(Rl, diff, dist, tag_idx, r * weight, J)
+        H = M - _weighted_curvature(Rl, dist, tag_idx, r * weight, J)
         if np.linalg.eigvalsh(H)[0] <= 1e-9 * np.trace(M):
             H = M
         try:

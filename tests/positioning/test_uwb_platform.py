@@ -267,7 +267,7 @@ def test_the_newton_solve_sums_the_curvature_of_every_link(seed: int) -> None:
     J = _jacobian(Rl, diff, dist, tag_idx)
     each = range_curvature(A, tags, x, tag_idx, anc_idx)
     np.testing.assert_allclose(
-        _weighted_curvature(Rl, diff, dist, tag_idx, weight, J),
+        _weighted_curvature(Rl, dist, tag_idx, weight, J),
         np.einsum("m,mij->ij", weight, each),
         rtol=1e-10,
         atol=1e-8,
