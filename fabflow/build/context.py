@@ -48,6 +48,10 @@ class BuildContext:
         The stone wall's run: objects, grasps, releases (``stones``; stone walls only).
     preview
         The exported preview file (``preview``).
+    site_plan
+        Draws ``site_plan.dxf`` (it takes the file's path): set by the last stage
+        that drew it (``design``; ``plan`` adds the stations), drawn once by
+        :meth:`finish`; a build draws the site plan once, not once per stage.
     summary
         Rows ``(stage, item, value)`` for the summary table.
     """
@@ -61,7 +65,13 @@ class BuildContext:
     programs: list[Program] | None = None
     stones: StoneRun | None = None
     preview: ExportResult | None = None
+    site_plan: Callable[[Path], Path] | None = None
     summary: list[tuple[str, str, str]] = field(default_factory=list)
+
+    def finish(self) -> None:
+        """Write what the stages left to the end: the site plan, as the last stage drew it."""
+        if self.site_plan is not None:
+            self.site_plan(self.out / "site_plan.dxf")
 
     def add(self, stage: str, item: str, value: object) -> None:
         """Add one row to the build summary."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections import Counter
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -60,9 +61,9 @@ def design_summary(elements: list[Element]) -> list[tuple[str, Any]]:
 
 
 def stage_design(ctx: BuildContext) -> None:
-    """Generate the elements; write ``elements.json`` and ``site_plan.dxf``.
+    """Generate the elements; write ``elements.json``, and draw the site plan.
 
-    Sets ``ctx.elements`` (world frame).
+    Sets ``ctx.elements`` (world frame) and ``ctx.site_plan``.
     """
     elements = generate_elements(ctx.project.elements, ctx.project.path, ctx.project.limits)
     ctx.elements = elements
@@ -76,6 +77,8 @@ def stage_design(ctx: BuildContext) -> None:
         },
     )
     anchors, instrument = site_sensors(ctx.project)
-    write_site_plan(ctx.out / "site_plan.dxf", elements, anchors=anchors, instrument=instrument)
+    ctx.site_plan = partial(
+        write_site_plan, elements=elements, anchors=anchors, instrument=instrument
+    )
     for item, value in design_summary(elements):
         ctx.add("design", item, value)

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 
 from fabflow.build.context import BuildContext
@@ -46,10 +47,15 @@ def write_plan_outputs(
     elements: Sequence[Element],
     plan: Plan,
     layout: SiteLayout | None = None,
-) -> None:
+    draw: bool = True,
+) -> Callable[[Path], Path]:
     """Write ``plan.json`` and redraw ``site_plan.dxf`` with the stations into ``out``;
     with the localization's ``layout``, its files too (``instrument_setups.json``,
-    ``uwb_anchors.json``) and its set-ups, control points and anchors on the site plan."""
+    ``uwb_anchors.json``) and its set-ups, control points and anchors on the site plan.
+
+    Returns the site plan's drawing (it takes the file's path); ``draw=False``
+    leaves drawing it to the caller.
+    """
     write_json(
         out / "plan.json",
         {"fabflow_version": __version__, "frame": "world", "units": "m", **plan.to_dict()},
@@ -62,19 +68,23 @@ def write_plan_outputs(
     if layout is not None and layout.setups is not None:
         instrument = {s.id: s.T_world_instrument for s in layout.setups}
         controls = control_points(project)
-    write_site_plan(
-        out / "site_plan.dxf",
-        with_pieces(elements, plan.split_elements),
+    drawing = partial(
+        write_site_plan,
+        elements=with_pieces(elements, plan.split_elements),
         stations=plan.stations,
         platform_footprint=tuple(project.robot.platform.footprint),
         anchors=anchors,
         instrument=instrument,
         control_points=controls,
     )
+    if draw:
+        drawing(out / "site_plan.dxf")
+    return drawing
 
 
 def stage_plan(ctx: BuildContext) -> None:
-    """Slice the elements into work packages; write ``plan.json``, redraw the site plan.
+    """Slice the elements into work packages; write ``plan.json``; the site plan is
+    redrawn with the stations (``ctx.site_plan``).
 
     Reads the elements; sets ``ctx.plan``, and the localization's layout
     (:func:`~fabflow.localize.layout.site_layout`): ``ctx.setups`` for the total
@@ -89,6 +99,6 @@ def stage_plan(ctx: BuildContext) -> None:
     layout = site_layout(ctx.project, plan, elements)
     ctx.project = layout.project
     ctx.setups = layout.setups
-    write_plan_outputs(ctx.out, ctx.project, elements, plan, layout)
+    ctx.site_plan = write_plan_outputs(ctx.out, ctx.project, elements, plan, layout, draw=False)
     for item, value in plan_rows(plan) + layout.rows(plan):
         ctx.add("plan", item, value)

@@ -76,6 +76,7 @@ def run_build(
             if on_stage is not None:
                 on_stage(name)
             stage(ctx)
+        ctx.finish()
         write_json(
             staging / "summary.json",
             [{"stage": s, "item": i, "value": v} for s, i, v in ctx.summary],

@@ -300,17 +300,18 @@ def _initial_state(
     """``[x, y, z, yaw]`` from the median per-tag fixes, and whether the heading is observed.
 
     With ``wls-t`` the median pose only starts the Newton solve on all ranges, so
-    each tag's start is the fix of its per-link median ranges, one solve instead
-    of one per epoch; the per-epoch fixes are the fallback when that fails.
+    each tag's start is the fix of its per-link median ranges, one solve for all
+    tags (a tag an epoch) instead of one per epoch; a tag's per-epoch fixes are
+    the fallback when its fails.
     """
     n_tags = L.shape[0]
     tag_pos = np.empty((n_tags, 3))
-    for k in range(n_tags):
-        if method == "wls-t":
-            seed = locate(A, nanmedian(R[:, k, :], 0), method=method, sigma=sigma)
-            if seed.valid[0]:
-                tag_pos[k] = seed.positions[0]
-                continue
+    seeded = np.zeros(n_tags, dtype=bool)
+    if method == "wls-t":  # every tag's median ranges in one call: one epoch per tag
+        seed = locate(A, nanmedian(R, 0), method=method, sigma=sigma)
+        seeded = seed.valid
+        tag_pos[seeded] = seed.positions[seeded]
+    for k in np.flatnonzero(~seeded):
         fix = locate(A, R[:, k, :], method=method, sigma=sigma)
         if not fix.valid.any():
             raise LocalizationError(

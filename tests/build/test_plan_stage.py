@@ -68,6 +68,7 @@ def test_plan_stage_sets_result_and_summary_rows(tmp_path: Path):
     ctx = BuildContext(project=project, out=tmp_path)
     ctx.elements = generate_elements(project.elements, project.path)
     stage_plan(ctx)
+    ctx.finish()
     plan = ctx.plan
     assert isinstance(plan, Plan)
     assert sorted(e for wp in plan.work_packages for e in wp.elements) == ["far_away", "near"]

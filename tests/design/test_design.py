@@ -274,6 +274,7 @@ elements:
 def test_design_stage_writes_elements_and_site_plan(mixed_project, tmp_path) -> None:
     ctx = BuildContext(project=mixed_project, out=tmp_path)
     stage_design(ctx)
+    ctx.finish()
     data = json.loads((tmp_path / "elements.json").read_text())
     assert data["count"] == len(ctx.elements) == len(data["elements"])
     for d in data["elements"][:: max(1, len(data["elements"]) // 50)]:
