@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, Literal
 
 import numpy as np
@@ -188,6 +189,19 @@ def element_poses(elements: Sequence[Element]) -> np.ndarray:
     return np.stack([e.T_world_element for e in elements])
 
 
+class Standing(tuple):
+    """The elements standing at one moment (a tuple of :class:`Element`), their boxes
+    (:func:`element_boxes`) made once however often they are asked for: a simulated
+    construction run asks at every visit, and a Monte Carlo study runs thousands."""
+
+    @cached_property
+    def boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`element_boxes` of the elements (read only)."""
+        T, extents = _boxes(self)
+        T.flags.writeable = extents.flags.writeable = False
+        return T, extents
+
+
 def element_boxes(elements: Sequence[Element]) -> tuple[np.ndarray, np.ndarray]:
     """The box-shaped elements (those with ``extents``) as arrays.
 
@@ -195,8 +209,15 @@ def element_boxes(elements: Sequence[Element]) -> tuple[np.ndarray, np.ndarray]:
     -------
     T_world_box, extents
         ``(k, 4, 4)`` box centre frames (world, metres) and ``(k, 3)`` full side
-        lengths along the box axes (metres).
+        lengths along the box axes (metres); those of a :class:`Standing` are
+        shared by every call (read only).
     """
+    if isinstance(elements, Standing):
+        return elements.boxes
+    return _boxes(elements)
+
+
+def _boxes(elements: Sequence[Element]) -> tuple[np.ndarray, np.ndarray]:
     boxed = [e for e in elements if e.extents is not None]
     if not boxed:
         return np.zeros((0, 4, 4)), np.zeros((0, 3))

@@ -130,6 +130,18 @@ def segments_inside(starts: np.ndarray, ends: np.ndarray, boxes: Boxes) -> np.nd
     return length
 
 
+def _cell_keys(points: np.ndarray) -> np.ndarray:
+    """One integer per :data:`CLUSTER_CELL` cell of each point, ordered as the cells'
+    indices are, lexicographically (``np.unique`` over rows, without its row view)."""
+    cells = np.floor(points / CLUSTER_CELL)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1.0
+    if float(np.prod(span)) >= 2.0**62:  # a site too large for one integer: rows
+        return np.unique(cells, axis=0, return_inverse=True)[1].ravel()
+    c = cells.astype(np.int64)
+    return (c[:, 0] * int(span[1]) + c[:, 1]) * int(span[2]) + c[:, 2]
+
+
 def _slab_spans(
     starts: np.ndarray, ends: np.ndarray, boxes: Boxes
 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -144,11 +156,15 @@ def _slab_spans(
     radius = 0.5 * np.linalg.norm(boxes.extents, axis=1)
     R = boxes.T_base_box[:, :3, :3]
     half = 0.5 * boxes.extents
-    _, group = np.unique(np.floor(centre / CLUSTER_CELL), axis=0, return_inverse=True)
+    _, group = np.unique(_cell_keys(centre), return_inverse=True)
     group = group.ravel()
     order = np.argsort(group, kind="stable")
     first = np.searchsorted(group[order], np.arange(group.max() + 2))
-    g_centre = np.stack([centre[group == g].mean(axis=0) for g in range(group.max() + 1)])
+    # each group's mean centre (any point would do: the radius below encloses the group)
+    n_groups = group.max() + 1
+    g_centre = (
+        np.add.reduceat(centre[order], first[:n_groups], axis=0) / np.diff(first)[:n_groups, None]
+    )
     g_radius = np.zeros(len(g_centre))
     np.maximum.at(g_radius, group, np.linalg.norm(centre - g_centre[group], axis=1) + radius)
     chunk = max(1, 4_000_000 // max(len(g_centre), 1))

@@ -149,7 +149,12 @@ class PlatformAdjustment:
 
     def n_anchors_used(self, use: np.ndarray) -> int:
         """How many anchors the ranges ``use`` reach."""
-        return int(np.unique(self.anc_idx[use]).size)
+        return int(self.anchors_used(use).size)
+
+    def anchors_used(self, use: np.ndarray) -> np.ndarray:
+        """The anchors (indices, ascending) the ranges ``use`` reach; ``np.unique`` of
+        their anchor indices without its sort."""
+        return np.flatnonzero(np.bincount(self.anc_idx[use], minlength=len(self.anchors)))
 
     def hypotheses(self, use: np.ndarray) -> tuple[list[str], list[np.ndarray]]:
         """Labels and links (masks over all links) of the hypotheses on the links ``use``.
@@ -158,7 +163,7 @@ class PlatformAdjustment:
         one tag-anchor link (``anchor A3 from tag 1``; tags numbered from 0 as in
         the ranges file), unless the link is all that is left of its anchor.
         """
-        anchors = np.unique(self.anc_idx[use])
+        anchors = self.anchors_used(use)
         per_anchor = [use & (self.anc_idx == j) for j in anchors]
         labels = [f"anchor {self.ids[j]}" for j in anchors]
         masks = list(per_anchor)
@@ -210,7 +215,7 @@ class PlatformAdjustment:
         J = platform_jacobian(self.anchors, self.lever_arms, state, tg, an)
         if not self.heading_observed:
             J = J[:, :3]
-        anchors = np.unique(an)
+        anchors = self.anchors_used(use)
         U = (an[:, None] == anchors[None, :]).astype(float)
         Q = Covariance(
             diag=self.s[use] ** 2,
@@ -361,7 +366,7 @@ def _reflected(
     (anchors' frame), the heading kept; the second value is the centroid's
     distance from the plane (metres).
     """
-    A = adj.anchors[np.unique(adj.anc_idx[use])]
+    A = adj.anchors[adj.anchors_used(use)]
     c = A.mean(axis=0)
     normal = np.linalg.svd(A - c)[2][-1]
     L_mean = adj.lever_arms.mean(axis=0)
@@ -436,7 +441,7 @@ def hidden_mirrors(
         fix, metres).
     """
     found = []
-    for j in np.unique(adj.anc_idx[use]):
+    for j in adj.anchors_used(use):
         mask = use & (adj.anc_idx == j)
         rest = use & ~mask
         if adj.n_anchors_used(rest) < 3 or not adj.determined(rest, state):

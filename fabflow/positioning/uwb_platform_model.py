@@ -24,11 +24,19 @@ def rotz(yaw: float) -> np.ndarray:
 def _links(
     A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The rotated lever arms ``(n_tags, 3)``, and per link the vector anchor to tag
-    ``(m, 3)`` and its length ``(m,)`` (metres) at ``state``."""
-    Rl = L @ rotz(state[3]).T
-    diff = (state[:3] + Rl)[tag_idx] - A[anc_idx]
-    return Rl, diff, np.linalg.norm(diff, axis=1)
+    """Per link at ``state``: the rotated lever arm of its tag and the vector from its
+    anchor to the tag ``(m, 3)``, and that vector's length ``(m,)`` (metres)."""
+    return _links_at(A[anc_idx], L, state, tag_idx)
+
+
+def _links_at(
+    A_link: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_links` with each link's anchor ``A_link`` (m, 3) given."""
+    lever = (L @ rotz(state[3]).T)[tag_idx]
+    diff = state[:3] + lever - A_link
+    # np.linalg.norm's sum, without its wrapper (a solve makes thousands of these)
+    return lever, diff, np.sqrt(np.add.reduce(diff * diff, axis=1))
 
 
 def platform_ranges(
@@ -42,16 +50,17 @@ def platform_jacobian(
     A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
 ) -> np.ndarray:
     """(m, 4) derivative of the ranges by ``x, y, z`` (1) and ``yaw`` (metres per radian)."""
-    Rl, diff, dist = _links(A, L, state, tag_idx, anc_idx)
-    return _jacobian(Rl, diff, dist, tag_idx)
+    return _jacobian(*_links(A, L, state, tag_idx, anc_idx))
 
 
-def _jacobian(
-    Rl: np.ndarray, diff: np.ndarray, dist: np.ndarray, tag_idx: np.ndarray
-) -> np.ndarray:
-    u = diff / np.maximum(dist, 1e-9)[:, None]
-    dyaw = np.column_stack([-Rl[:, 1], Rl[:, 0]])[tag_idx]
-    return np.column_stack([u, np.sum(u[:, :2] * dyaw, axis=1)])
+def _jacobian(lever: np.ndarray, diff: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(m, 4) the ranges' derivative from :func:`_links`: the unit vectors ``u`` from
+    the anchors, and in yaw ``u . dp/dyaw`` with ``dp/dyaw = (-lever_y, lever_x, 0)``."""
+    J = np.empty((len(diff), 4))
+    u = J[:, :3]
+    np.divide(diff, np.maximum(dist, 1e-9)[:, None], out=u)
+    J[:, 3] = u[:, 1] * lever[:, 0] - u[:, 0] * lever[:, 1]
+    return J
 
 
 def range_curvature(
@@ -63,43 +72,39 @@ def range_curvature(
     With ``G = [I | dp/dyaw]`` the tag's derivative and ``u`` the unit vector to it:
     ``G^T (I - u u^T) G / range``, plus ``u . d2p/dyaw2`` in yaw-yaw.
     """
-    Rl, diff, dist = _links(A, L, state, tag_idx, anc_idx)
-    return _curvature(Rl, diff, dist, tag_idx)
-
-
-def _curvature(
-    Rl: np.ndarray, diff: np.ndarray, dist: np.ndarray, tag_idx: np.ndarray
-) -> np.ndarray:
+    lever, diff, dist = _links(A, L, state, tag_idx, anc_idx)
     dist = np.maximum(dist, 1e-9)
     u = diff / dist[:, None]
     G = np.zeros((len(diff), 3, 4))
     G[:, [0, 1, 2], [0, 1, 2]] = 1.0
-    G[:, 0, 3], G[:, 1, 3] = -Rl[tag_idx, 1], Rl[tag_idx, 0]
+    G[:, 0, 3], G[:, 1, 3] = -lever[:, 1], lever[:, 0]
     Gu = np.einsum("mi,mij->mj", u, G)
     out = (np.einsum("mij,mik->mjk", G, G) - Gu[:, :, None] * Gu[:, None, :]) / dist[:, None, None]
-    out[:, 3, 3] -= np.sum(u[:, :2] * Rl[tag_idx, :2], axis=1)
+    out[:, 3, 3] -= np.sum(u[:, :2] * lever[:, :2], axis=1)
     return out
 
 
 def _weighted_curvature(
-    Rl: np.ndarray, dist: np.ndarray, tag_idx: np.ndarray, weight: np.ndarray, J: np.ndarray
+    lever: np.ndarray, dist: np.ndarray, weight: np.ndarray, J: np.ndarray
 ) -> np.ndarray:
     """``sum_m weight_m`` times :func:`range_curvature` of link ``m`` (4, 4), in closed form.
 
-    With ``G = [I | g]`` (``g = dp/dyaw``) and ``J = G^T u`` the Jacobian's rows
-    (:func:`_jacobian`; its first three columns are the unit vectors ``u``):
+    With ``G = [I | g]`` (``g = dp/dyaw = (-lever_y, lever_x, 0)``, :func:`_links`)
+    and ``J = G^T u`` the Jacobian's rows (:func:`_jacobian`; its first three
+    columns are the unit vectors ``u``):
     ``sum a G^T G = [[sum a I, sum a g], [sum a g^T, sum a |g|^2]]`` and
     ``sum a (G^T u)(G^T u)^T = J^T diag(a) J`` with ``a = weight / range``; no
     (m, 4, 4) stack (a platform's Newton solve makes thousands of these a run).
     """
     a = weight / np.maximum(dist, 1e-9)
-    dyaw = np.column_stack([-Rl[:, 1], Rl[:, 0]])[tag_idx]
+    x, y = lever[:, 0], lever[:, 1]
     out = np.zeros((4, 4))
-    out[[0, 1, 2], [0, 1, 2]] = a.sum()
-    out[:2, 3] = out[3, :2] = a @ dyaw
-    out[3, 3] = a @ np.einsum("mi,mi->m", dyaw, dyaw)
+    out[0, 0] = out[1, 1] = out[2, 2] = a.sum()
+    out[0, 3] = out[3, 0] = -(a @ y)
+    out[1, 3] = out[3, 1] = a @ x
+    out[3, 3] = a @ (y * y + x * x)
     out -= J.T @ (J * a[:, None])
-    out[3, 3] -= weight @ np.einsum("mi,mi->m", J[:, :2], Rl[tag_idx, :2])
+    out[3, 3] -= weight @ (J[:, 0] * x + J[:, 1] * y)
     return out
 
 
@@ -145,9 +150,11 @@ def platform_newton(
     state = np.array(state, dtype=float)
     weight = 1.0 / s**2
 
+    A_link = A[anc_idx]
+
     def evaluate(x: np.ndarray) -> tuple[float, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """The cost at ``x`` and the links there (the next iteration starts from them)."""
-        links = _links(A, L, x, tag_idx, anc_idx)
+        links = _links_at(A_link, L, x, tag_idx)
         r = (d - links[2]) / s
         c = float(r @ r)
         if heading_prior is not None:
@@ -158,8 +165,8 @@ def platform_newton(
 
     cost, links = evaluate(state)
     for iteration in range(1, max_iter + 1):
-        Rl, diff, dist = links
-        J = _jacobian(Rl, diff, dist, tag_idx)
+        lever, diff, dist = links
+        J = _jacobian(lever, diff, dist)
         r = d - dist
         Wj = J * weight[:, None]
         M = J.T @ Wj
@@ -171,7 +178,7 @@ def platform_newton(
         # Newton's Hessian adds the ranges' curvature, which Gauss-Newton drops: with
         # residuals not small against it (height over anchors near one plane) Gauss-
         # Newton only creeps, as the per-tag fixes of positioning.uwb also find.
-        H = M - _weighted_curvature(Rl, dist, tag_idx, r * weight, J)
+        H = M - _weighted_curvature(lever, dist, r * weight, J)
         if np.linalg.eigvalsh(H)[0] <= 1e-9 * np.trace(M):
             H = M
         try:

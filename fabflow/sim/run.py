@@ -33,7 +33,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from fabflow.design.elements import Element, structure_timeline
+from fabflow.design.elements import Element, Standing, structure_timeline
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
 from fabflow.localize.layout import site_layout
@@ -235,7 +235,7 @@ def prepare_study(
     visit_of: list[int] = []
     built_before: list[tuple[Element, ...]] = []
     for v, (wp, (standing, _)) in enumerate(zip(plan.work_packages, timeline, strict=True)):
-        built_before.append(tuple(standing))
+        built_before.append(Standing(standing))
         ids += wp.elements
         visit_of += [v] * len(wp.elements)
     T = np.stack([np.asarray(by_id[i].T_world_element, dtype=float) for i in ids])

@@ -263,11 +263,11 @@ def test_the_newton_solve_sums_the_curvature_of_every_link(seed: int) -> None:
     x = np.r_[rng.uniform(-5.0, 5.0, 3), rng.uniform(-np.pi, np.pi)]
     tag_idx, anc_idx = np.repeat([0, 1], 6), np.tile(np.arange(6), 2)
     weight = rng.normal(0.0, 100.0, 12)
-    Rl, diff, dist = _links(A, tags, x, tag_idx, anc_idx)
-    J = _jacobian(Rl, diff, dist, tag_idx)
+    lever, diff, dist = _links(A, tags, x, tag_idx, anc_idx)
+    J = _jacobian(lever, diff, dist)
     each = range_curvature(A, tags, x, tag_idx, anc_idx)
     np.testing.assert_allclose(
-        _weighted_curvature(Rl, dist, tag_idx, weight, J),
+        _weighted_curvature(lever, dist, weight, J),
         np.einsum("m,mij->ij", weight, each),
         rtol=1e-10,
         atol=1e-8,
