@@ -62,33 +62,9 @@ def match_prisms(
     n = len(P)
     if n < 4:
         return np.arange(n), {}
-    iu, ju = np.triu_indices(n, 1)
-    d_P = np.linalg.norm(P[iu] - P[ju], axis=1)
-    # n points in space have 3n - 6 independent distances: the n(n-1)/2 measured
-    # ones share points, so they are tested with their full (singular) covariance,
-    # over the directions it determines (RCOND)
-    incidence = np.zeros((len(iu), n))
-    incidence[np.arange(len(iu)), iu] = 1.0
-    incidence[np.arange(len(iu)), ju] = -1.0
-
-    def statistic(orders: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The test statistic and its degrees of freedom per order."""
-        Mo = M[orders]
-        diff = Mo[:, iu] - Mo[:, ju]
-        d_M = np.linalg.norm(diff, axis=-1)
-        u = diff / np.maximum(d_M, 1e-12)[..., None]
-        # cov[o, p, q] = sum_k E[p, k] E[q, k] u_p^T C_k u_q over the readings k
-        Cu = np.einsum("okij,oqj->okqi", C[orders], u, optimize=True)
-        cov = np.einsum("pk,qk,opi,okqi->opq", incidence, incidence, u, Cu, optimize=True)
-        e = d_M - d_P
-        w, V = np.linalg.eigh(cov)
-        keep = w > RCOND * w[:, -1:]
-        z = np.einsum("opq,op->oq", V, e)
-        return np.sum(np.where(keep, z**2 / np.where(keep, w, 1.0), 0.0), axis=1), keep.sum(1)
-
     identity = np.arange(n)[None]
-    stat0, dof0 = statistic(identity)
-    t0, dof = float(stat0[0]), int(dof0[0])
+    stat0, dof = order_statistics(P, M, C, identity)
+    t0 = float(stat0[0])
     if dof == 0:  # no spread at all (zero covariances): nothing to test
         return np.arange(n), {
             "distance_test": t0,
@@ -107,8 +83,8 @@ def match_prisms(
         orders = np.tile(np.arange(n), (len(swaps), 1))
         for k, (a, b) in enumerate(swaps):
             orders[k, [a, b]] = orders[k, [b, a]]
-    stats, dofs = statistic(orders)
-    fits = np.flatnonzero(stats <= special.chdtri(dofs, alpha))
+    stats, _ = order_statistics(P, M, C, orders)
+    fits = np.flatnonzero(stats <= threshold)
     if len(fits) > 1:
         raise LocalizationError(
             f"the prism readings do not fit the robot points as given (distance test "
@@ -125,3 +101,55 @@ def match_prisms(
         "reassigned": "readings reassigned by their distances: " + ", ".join(moved),
         "distance_test_after": float(stats[fits[0]]),
     }
+
+
+def order_statistics(
+    P: np.ndarray, M: np.ndarray, C: np.ndarray, orders: np.ndarray
+) -> tuple[np.ndarray, int]:
+    """The distance test of each order of the readings, and its degrees of freedom.
+
+    For the order ``o`` (``M[o]`` read as the points ``P``) the statistic is
+    ``e^T cov^+ e`` of the differences ``e`` between the readings' pairwise
+    distances and the points', ``cov`` their covariance (:data:`RCOND`). An
+    order only permutes the pairs: its distances and their covariance are the
+    readings' own, rows and columns permuted, so one eigendecomposition serves
+    every order (a permuted matrix has the same eigenvalues, and its
+    eigenvectors' rows permuted), and the degrees of freedom are the same for all.
+
+    Parameters
+    ----------
+    P, M, C
+        As :func:`match_prisms` takes them.
+    orders
+        (K, n) orders of the readings.
+
+    Returns
+    -------
+    statistics, dof
+        (K,) and one number.
+    """
+    n = len(P)
+    iu, ju = np.triu_indices(n, 1)
+    d_P = np.linalg.norm(P[iu] - P[ju], axis=1)
+    diff = M[iu] - M[ju]
+    d_M = np.linalg.norm(diff, axis=-1)
+    u = diff / np.maximum(d_M, 1e-12)[..., None]
+    # n points in space have 3n - 6 independent distances: the n(n-1)/2 measured
+    # ones share points, so they are tested with their full (singular) covariance,
+    # over the directions it determines (RCOND).
+    # cov[p, q] = sum_k D_pk^T C_k D_qk over the readings k, D_pk = E[p, k] u_p the
+    # derivative of distance p by reading k (E: +1, -1 at the pair's two points)
+    D = np.zeros((len(iu), n, 3))
+    D[np.arange(len(iu)), iu] = u
+    D[np.arange(len(iu)), ju] = -u
+    cov = np.einsum("pki,kij->pkj", D, C).reshape(len(iu), -1) @ D.reshape(len(iu), -1).T
+    w, V = np.linalg.eigh(cov)
+    keep = w > RCOND * w[-1]
+    # the pair p of an order reads the readings' pair pair_of[o[i_p], o[j_p]]
+    pair_of = np.zeros((n, n), dtype=np.intp)
+    pair_of[iu, ju] = pair_of[ju, iu] = np.arange(len(iu))
+    read = pair_of[orders[:, iu], orders[:, ju]]
+    d_P_at = np.empty(read.shape)
+    d_P_at[np.arange(len(orders))[:, None], read] = d_P[None]
+    z = (d_M[None] - d_P_at) @ V[:, keep]
+    return np.sum(z**2 / w[keep], axis=1), int(keep.sum())

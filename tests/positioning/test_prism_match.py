@@ -69,3 +69,50 @@ def test_a_swap_of_two_readings_is_undone(seed: int, n: int) -> None:
         return
     assert report["assignment"] == "reassigned"
     np.testing.assert_allclose(swapped[order], M)
+
+
+def _direct_statistic(P: np.ndarray, M: np.ndarray, C: np.ndarray) -> tuple[float, int]:
+    """The distance test of readings ``M`` as given, from their own covariance."""
+    n = len(P)
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    e = np.empty(len(pairs))
+    J = np.zeros((len(pairs), 3 * n))  # distances by the readings' coordinates
+    for p, (i, j) in enumerate(pairs):
+        d = M[i] - M[j]
+        e[p] = np.linalg.norm(d) - np.linalg.norm(P[i] - P[j])
+        J[p, 3 * i : 3 * i + 3], J[p, 3 * j : 3 * j + 3] = (
+            d / np.linalg.norm(d),
+            -d / np.linalg.norm(d),
+        )
+    cov = J @ _block_diag(C) @ J.T
+    w, V = np.linalg.eigh(cov)
+    keep = w > 1e-5 * w[-1]
+    z = V[:, keep].T @ e
+    return float(np.sum(z**2 / w[keep])), int(keep.sum())
+
+
+def _block_diag(C: np.ndarray) -> np.ndarray:
+    out = np.zeros((3 * len(C), 3 * len(C)))
+    for k, c in enumerate(C):
+        out[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = c
+    return out
+
+
+@settings(deadline=None, max_examples=40)
+@given(seed=st.integers(0, 2**31), n=st.integers(4, 7))
+def test_every_order_is_tested_with_its_own_covariance(seed: int, n: int) -> None:
+    # the orders share one eigendecomposition (a permuted covariance); each order's
+    # statistic must be the one its permuted readings give from scratch
+    from fabflow.positioning.prism_match import order_statistics
+
+    rng = np.random.default_rng(seed)
+    P = rng.uniform(-1.0, 1.0, (n, 3))
+    roots = rng.normal(0.0, 1e-3, (n, 3, 3))
+    C = roots @ np.swapaxes(roots, 1, 2) + 1e-8 * np.eye(3)
+    M = P + rng.normal(0.0, 2e-3, (n, 3))
+    orders = np.array([np.arange(n)] + [rng.permutation(n) for _ in range(8)])
+    stats, dof = order_statistics(P, M, C, orders)
+    for o, stat in zip(orders, stats, strict=True):
+        ref, ref_dof = _direct_statistic(P, M[o], C[o])
+        assert ref_dof == dof
+        np.testing.assert_allclose(stat, ref, rtol=1e-7, atol=1e-9)
