@@ -37,6 +37,7 @@ from fabflow.positioning.integrity import (
     Hypothesis,
     TestResult,
     adjustment_test,
+    chi2_quantile,
     global_passes,
     global_test,
     noncentrality,
@@ -175,6 +176,16 @@ class PlatformAdjustment:
                         labels.append(f"anchor {self.ids[j]} from tag {k}")
                         masks.append(link)
         return labels, masks
+
+    def n_hypotheses(self, use: np.ndarray) -> int:
+        """How many hypotheses :meth:`hypotheses` makes on the links ``use``, without
+        making them: every anchor reached, and with two or more tags each link to an
+        anchor more than one tag reaches."""
+        reach = np.zeros((len(self.lever_arms), len(self.anchors)), dtype=bool)
+        reach[self.tag_idx[use], self.anc_idx[use]] = True
+        tags = reach.sum(axis=0)
+        shared = int(tags[tags >= 2].sum()) if len(self.lever_arms) >= 2 else 0
+        return int(np.count_nonzero(tags)) + shared
 
     def tests(self, use: np.ndarray, state: np.ndarray) -> tuple[TestResult, list[np.ndarray]]:
         """The adjustment tests over the ranges ``use`` at ``state``, and each hypothesis' ranges.
@@ -497,7 +508,7 @@ def _mirror(
         info = info[:3, :3]
     cov = np.linalg.pinv(info)[:3, :3]
     dp = mirror[:3] - state[:3]
-    distinct = float(dp @ np.linalg.pinv(cov) @ dp) > float(special.chdtri(3, adj.alpha))
+    distinct = float(dp @ np.linalg.pinv(cov) @ dp) > chi2_quantile(3, adj.alpha)
     if decision_only and not (converged and distinct):
         return out, mirror
     # the global tests decide; the w-tests are not needed
@@ -506,7 +517,7 @@ def _mirror(
         main_statistic, n_hypotheses = tests.statistic, len(tests.labels)
     else:
         main_statistic = adj.global_test(use, state)[1]
-        n_hypotheses = len(adj.hypotheses(use)[0])
+        n_hypotheses = adj.n_hypotheses(use)
     worse_by = statistic - main_statistic
     limit = noncentrality(adj.alpha / max(n_hypotheses, 1), POWER, 1)
     global_passed = global_passes(redundancy, statistic, threshold)

@@ -13,6 +13,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from fabflow.positioning.uwb_platform import locate_platform
+from fabflow.positioning.uwb_platform_adjustment import PlatformAdjustment
 from fabflow.positioning.uwb_platform_model import (
     _jacobian,
     _links,
@@ -281,3 +282,23 @@ def test_the_newton_solve_sums_the_curvature_of_every_link(seed: int) -> None:
             - platform_jacobian(A, tags, x - dx, tag_idx, anc_idx)
         ) / (2 * h)
         np.testing.assert_allclose(each[:, :, k], numeric, rtol=1e-5, atol=1e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n_tags=st.integers(1, 3), n_anchors=st.integers(3, 8))
+def test_the_hypotheses_are_counted_as_they_are_made(seed: int, n_tags: int, n_anchors: int):
+    # the mirror check needs only their number (Bonferroni), without making them
+    rng = np.random.default_rng(seed)
+    pairs = np.flatnonzero(rng.random(n_tags * n_anchors) < 0.7)
+    m = len(pairs)
+    adj = PlatformAdjustment(
+        anchors=rng.uniform(-5.0, 5.0, (n_anchors, 3)),
+        lever_arms=rng.uniform(-0.5, 0.5, (n_tags, 3)),
+        d=np.ones(m), s=np.ones(m), tag_idx=pairs // n_anchors, anc_idx=pairs % n_anchors,
+        bias_sigma=np.zeros(n_anchors), ids=tuple(f"A{j}" for j in range(n_anchors)),
+        lever=np.zeros(3), heading_prior=None, heading_observed=n_tags > 1, alpha=1e-3,
+        max_iter=20, count=np.ones(m), raw_mean=np.ones(m), raw_sq_dev=np.zeros(m),
+    )  # fmt: skip
+    for _ in range(5):
+        use = rng.random(m) < rng.uniform(0.3, 1.0)
+        assert adj.n_hypotheses(use) == len(adj.hypotheses(use)[0])
