@@ -194,6 +194,10 @@ class Standing(tuple):
     (:func:`element_boxes`) made once however often they are asked for: a simulated
     construction run asks at every visit, and a Monte Carlo study runs thousands."""
 
+    def __reduce__(self) -> tuple[type[Standing], tuple[tuple[Element, ...]]]:
+        # the elements alone: a copy (a Dask worker's) makes its own boxes, read only
+        return (Standing, (tuple(self),))
+
     @cached_property
     def boxes(self) -> tuple[np.ndarray, np.ndarray]:
         """:func:`element_boxes` of the elements (read only)."""

@@ -134,6 +134,8 @@ def _cell_keys(points: np.ndarray) -> np.ndarray:
     """One integer per :data:`CLUSTER_CELL` cell of each point, ordered as the cells'
     indices are, lexicographically (``np.unique`` over rows, without its row view)."""
     cells = np.floor(points / CLUSTER_CELL)
+    if not np.isfinite(cells).all():  # a box off the map keeps its own group: rows
+        return np.unique(cells, axis=0, return_inverse=True)[1].ravel()
     cells -= cells.min(axis=0)
     span = cells.max(axis=0) + 1.0
     if float(np.prod(span)) >= 2.0**62:  # a site too large for one integer: rows

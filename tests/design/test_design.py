@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import pickle
 import shutil
 import time
 
@@ -18,7 +19,13 @@ from hypothesis import strategies as st
 from fabflow.build.context import BuildContext
 from fabflow.build.design import stage_design
 from fabflow.design.cabin import cabin_block_bound, cabin_blocks, cabin_layer_counts
-from fabflow.design.elements import Element, elements_from_json, elements_to_json
+from fabflow.design.elements import (
+    Element,
+    Standing,
+    element_boxes,
+    elements_from_json,
+    elements_to_json,
+)
 from fabflow.design.generate import generate_elements
 from fabflow.design.specs import BlockSize, CabinSpec, Opening
 from fabflow.design.supports import compute_supports, max_overlap_volume
@@ -285,6 +292,18 @@ def test_design_stage_writes_elements_and_site_plan(mixed_project, tmp_path) -> 
     rows = {item: value for stage, item, value in ctx.summary if stage == "design"}
     assert rows["blocks per part"].startswith("A ")
     assert rows["print path layers"] == "3"
+
+
+def test_standing_elements_make_their_boxes_once_and_travel_without_them(mixed_elements) -> None:
+    standing = Standing(mixed_elements)
+    T, extents = element_boxes(standing)
+    assert element_boxes(standing)[0] is T and not T.flags.writeable
+    np.testing.assert_array_equal(T, element_boxes(list(mixed_elements))[0])
+    np.testing.assert_array_equal(extents, element_boxes(list(mixed_elements))[1])
+    copy = pickle.loads(pickle.dumps(standing))  # as a Dask worker receives a study
+    assert isinstance(copy, Standing) and "boxes" not in vars(copy)
+    assert [e.id for e in copy] == [e.id for e in mixed_elements]
+    assert not element_boxes(copy)[0].flags.writeable
 
 
 def test_element_meshes(mixed_elements) -> None:

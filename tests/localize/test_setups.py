@@ -62,15 +62,37 @@ def _random_scene(seed: int, n_boxes: int) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), n_boxes=st.integers(1, 60))
-def test_segments_clear_matches_a_plain_slab_test(seed: int, n_boxes: int) -> None:
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n_boxes=st.integers(1, 60),
+    offset=st.sampled_from([0.0, -1234.5, 6.0e5]),
+)
+def test_segments_clear_matches_a_plain_slab_test(seed: int, n_boxes: int, offset: float) -> None:
+    # the boxes are grouped by the grid cells of their centres: negative and far
+    # coordinates (a site in a national grid) group as near ones do
     T, extents, starts, ends = _random_scene(seed, n_boxes)
+    T[:, :3, 3] += offset
+    starts, ends = starts + offset, ends + offset
     clear = segments_clear(starts, ends, Boxes(T, extents))
     reference = [
         not any(_slab_hit(s, e, T[k], extents[k]) for k in range(n_boxes))
         for s, e in zip(starts, ends, strict=True)
     ]
     assert clear.tolist() == reference
+
+
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")
+def test_a_box_off_the_map_does_not_hide_the_others() -> None:
+    # a box at NaN takes part in nothing (numpy warns of it); the box the segment
+    # crosses still blocks it
+    T = np.repeat(np.eye(4)[None], 2, axis=0)
+    T[0, :3, 3] = (1.0, 0.0, 0.0)
+    T[1, :3, 3] = np.nan
+    extents = np.full((2, 3), 0.5)
+    clear = segments_clear(
+        np.array([[0.0, 0.0, 0.0]]), np.array([[2.0, 0.0, 0.0]]), Boxes(T, extents)
+    )
+    assert clear.tolist() == [False]
 
 
 def _slab_length(p0: np.ndarray, p1: np.ndarray, T: np.ndarray, extents: np.ndarray) -> float:
