@@ -3,17 +3,22 @@
 Prints, for each localization method, the CPU time of one run (median), runs per
 second serially (in this process) and on a local Dask cluster of 2 single-threaded
 worker processes, and the projected time of 1,000 runs; then (full mode) times
-1,000 UWB runs of the cabin on the cluster against the 60 s target. The elements
-and the plan are computed once (not timed), as ``fabflow simulate`` does.
+1,000 UWB runs of the cabin on the cluster against the 30 s target (issue 25).
+The elements and the plan are computed once (not timed), as ``fabflow simulate``
+does. ``--breakdown N`` first times the parts of a UWB run (the simulated
+ranging, the cleaning, the NLOS correction, the platform fix and, within it,
+its start, mirror check and hidden-mirror search) over N serial runs.
 
-Run: ``.venv/bin/python benchmarks/simulate.py [--quick] [--methods uwb,total_station,icp]``.
-``--quick`` (CI smoke run) simulates a few UWB runs of the small test project
-(``tests/data/sim``: four task points, one station) serially and on 2 workers.
+Run: ``.venv/bin/python benchmarks/simulate.py [--quick] [--methods uwb,total_station,icp]
+[--breakdown N]``. ``--quick`` (CI smoke run) simulates a few UWB runs of the
+small test project (``tests/data/sim``: four task points, one station) serially
+and on 2 workers, with a breakdown of 2 runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import statistics
 import time
 from pathlib import Path
@@ -31,7 +36,18 @@ from fabflow.tasks.planner import plan_project
 ROOT = Path(__file__).resolve().parents[1]
 CABIN = ROOT / "projects" / "cabin" / "project.yaml"
 SMALL = ROOT / "tests" / "data" / "sim" / "project.yaml"
-TARGET_RUNS, TARGET_S = 1000, 60.0
+TARGET_RUNS, TARGET_S = 1000, 30.0
+BREAKDOWN = (
+    ("fabflow.localize.uwb", "simulate_station", "ranging simulated (anchors, occlusion, noise)"),
+    ("fabflow.localize.uwb_static", "reject_outliers_static", "cleaning of each link"),
+    ("fabflow.localize.uwb_static", "without_nlos_leak", "the kept NLOS ranges' bias and spread"),
+    ("fabflow.localize.uwb_static", "locate_platform", "the platform fix with its tests"),
+    ("fabflow.positioning.uwb_platform", "_initial_state", "  its start: per-tag fixes"),
+    ("fabflow.positioning.uwb_platform", "mirror_check", "  its mirror check"),
+    ("fabflow.positioning.uwb_platform", "hidden_mirrors", "  mirrors one anchor's bias selects"),
+)
+"""Parts of a UWB run timed by ``--breakdown``: (module, function, what it does); the
+indented ones are within the fix."""
 
 
 def serial_rate(study: Study, n: int) -> tuple[float, float, int]:
@@ -49,6 +65,38 @@ def serial_rate(study: Study, n: int) -> tuple[float, float, int]:
     return statistics.median(cpu), n / (time.perf_counter() - t0), failed
 
 
+def breakdown(study: Study, n: int) -> list[tuple[str, float]]:
+    """Wall seconds per run of each part of :data:`BREAKDOWN` (and of the whole run),
+    over ``n`` serial runs: each function is wrapped in a timer while they run."""
+    spent = {name: 0.0 for _, name, _ in BREAKDOWN}
+    originals = []
+    for module_name, name, _ in BREAKDOWN:
+        module = importlib.import_module(module_name)
+        original = getattr(module, name)
+        originals.append((module, name, original))
+
+        def timed(*a: object, _f=original, _n=name, **k: object) -> object:
+            t0 = time.perf_counter()
+            try:
+                return _f(*a, **k)
+            finally:
+                spent[_n] += time.perf_counter() - t0
+
+        setattr(module, name, timed)
+    try:
+        simulate_run(study, 0, 0)
+        for v in spent:
+            spent[v] = 0.0
+        t0 = time.perf_counter()
+        for run in range(n):
+            simulate_run(study, run, 0)
+        total = time.perf_counter() - t0
+    finally:
+        for module, name, original in originals:
+            setattr(module, name, original)
+    return [("whole run", total / n)] + [(what, spent[name] / n) for _, name, what in BREAKDOWN]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small CI smoke run")
@@ -62,6 +110,13 @@ def main() -> None:
     )
     parser.add_argument(
         "--fidelity", default="sensors,covariance", help="comma-separated: sensors, covariance"
+    )
+    parser.add_argument(
+        "--breakdown",
+        type=int,
+        default=0,
+        metavar="N",
+        help="time the parts of a UWB run (sensors fidelity) over N serial runs",
     )
     args = parser.parse_args()
     fidelities = args.fidelity.split(",")
@@ -92,6 +147,15 @@ def main() -> None:
         f"{project.name}: {base.n_elements} robot-built elements, {base.n_visits} visits; "
         f"elements + plan once: {prep_s:.1f} s"
     )
+    n_breakdown = args.breakdown or (2 if args.quick else 0)
+    if n_breakdown and "uwb" in studies:
+        parts = breakdown(studies["uwb"], n_breakdown)
+        table = Table(title=f"where a UWB run of {project.name} goes ({n_breakdown} runs)")
+        for col in ("part", "ms / run", "share"):
+            table.add_column(col, justify="left" if col == "part" else "right")
+        for what, seconds in parts:
+            table.add_row(what, f"{1e3 * seconds:.1f}", f"{100 * seconds / parts[0][1]:.0f} %")
+        console.print(table)
     for study in studies.values():  # warm caches (site scene, imports) outside the timing
         try:
             simulate_run(study, 0, 0)
