@@ -8,7 +8,7 @@ the measured files the project names.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 import numpy as np
@@ -40,6 +40,23 @@ LOCALIZERS: dict[str, LocalizeStation] = {
     "icp": icp.localize_station,
 }
 """Method name (``localization.method``) to its ``localize_station`` function."""
+
+
+MeasureStation = Callable[..., Any]
+"""A localizer's measuring half: called as its ``localize_station`` is, it draws every
+random number of a station and returns what its estimating half takes."""
+
+EstimateStations = Callable[[Project, Sequence[Any]], list[BasePose]]
+"""A localizer's estimating half: the base poses of what its measuring half measured."""
+
+PHASED: dict[str, tuple[MeasureStation, EstimateStations]] = {
+    "uwb": (uwb.measure_station, uwb.estimate_measured),
+}
+"""Methods whose ``localize_station`` is a measuring half that draws every random
+number, then an estimating half that draws none: a simulated run measures its
+visits in order and estimates them together, in less time and with the numbers
+one visit at a time gives (:func:`fabflow.localize.uwb.estimate_stations` says
+where they may differ in the last digits)."""
 
 NEEDS_LIFT = frozenset({"icp"})
 """Methods whose sensor does not ride the lift, so the station's lift height places it."""

@@ -17,17 +17,22 @@ import numpy as np
 from fabflow.design.elements import Element, element_boxes
 from fabflow.errors import InputError
 from fabflow.localize.site import anchors_world, points_in_world
-from fabflow.localize.uwb_static import static_fix
+from fabflow.localize.uwb_static import static_fixes
 from fabflow.positioning.boxes import Boxes, segments_inside
 from fabflow.positioning.medians import nanmedian
 from fabflow.positioning.result import BasePose
 from fabflow.positioning.uwb import UNOBSERVED_VARIANCE, Method
-from fabflow.positioning.uwb_calibration import RangeCalibration
-from fabflow.positioning.uwb_platform import platform_to_base_covariance, rejected_ranges
+from fabflow.positioning.uwb_calibration import RangeCalibration, Rejection
+from fabflow.positioning.uwb_platform import (
+    PlatformFix,
+    platform_to_base_covariance,
+    rejected_ranges,
+)
 from fabflow.project import Project, UwbSetup
 from fabflow.robots import platform
 from fabflow.sensors.uwb import (
     AnchorBias,
+    UwbErrorModel,
     calibration_campaign,
     draw_bias,
     material_excess,
@@ -175,8 +180,46 @@ def localize_station(
         roll and pitch are not observed (level platform assumed) and carry
         ``UNOBSERVED_VARIANCE``, as ``quality["unobserved"]`` says.
     """
+    measured = measure_station(
+        project, T_world_base, rng, station_id, built, heading_prior, zone, installation
+    )
+    return estimate_measured(project, [measured])[0]
+
+
+@dataclass(frozen=True)
+class MeasuredStation:
+    """:func:`localize_station`'s measuring half done: what the tags measured, and
+    what the estimate of it needs besides (every random number is drawn)."""
+
+    data: StationRanges
+    station_id: str | None
+    heading_prior: tuple[float, float] | None
+
+
+def measure_station(
+    project: Project,
+    T_world_base: np.ndarray,
+    rng: np.random.Generator,
+    station_id: str | None = None,
+    built: Sequence[Element] = (),
+    heading_prior: tuple[float, float] | None = None,
+    zone: Sequence[Sequence[str]] | None = None,
+    installation: UwbInstallation | None = None,
+) -> MeasuredStation:
+    """:func:`localize_station`'s measuring half (its parameters): the simulated ranging."""
     data = simulate_station(project, T_world_base, rng, built, zone, installation)
-    return estimate_station(project, data, station_id, heading_prior)
+    return MeasuredStation(data, station_id, heading_prior)
+
+
+def estimate_measured(project: Project, measured: Sequence[MeasuredStation]) -> list[BasePose]:
+    """:func:`localize_station`'s estimating half, of many stations at once
+    (:func:`estimate_stations`); it draws no random number."""
+    return estimate_stations(
+        project,
+        [m.data for m in measured],
+        [m.station_id for m in measured],
+        [m.heading_prior for m in measured],
+    )
 
 
 def _setup(project: Project) -> UwbSetup:
@@ -287,12 +330,67 @@ def estimate_station(
         (n, 3) the anchor positions the estimate uses (world, metres): the
         surveyed ones; default where they really are.
     """
+    return estimate_stations(project, [data], [station_id], [heading_prior], anchors)[0]
+
+
+def estimate_stations(
+    project: Project,
+    stations: Sequence[StationRanges],
+    station_ids: Sequence[str | None],
+    heading_priors: Sequence[tuple[float, float] | None] | None = None,
+    anchors: np.ndarray | None = None,
+) -> list[BasePose]:
+    """:func:`estimate_station` of many stations (a simulated run's visits), in order.
+
+    The stations that range with the same anchors for as many rounds are
+    cleaned and corrected together, and their tags' start fixes made in one
+    call (:func:`~fabflow.localize.uwb_static.static_fixes`: one call for
+    their links where there was one a station), then located one by one. A
+    station's pose is the one :func:`estimate_station` gives it alone (to the
+    bit with the error model's default noise; with a noise so small that a
+    station's NLOS correction integrates on a finer grid, the stations batched
+    with it share that grid).
+    """
     setup = _setup(project)
-    ids = data.anchor_ids
-    A = data.anchors_true if anchors is None else np.asarray(anchors, dtype=float)
-    T_platform_base = project.robot.platform.T_platform_base.matrix()
-    L = np.asarray(setup.tags, dtype=float)
     model = setup.error_model()
+    priors = [None] * len(stations) if heading_priors is None else list(heading_priors)
+    calibrated = [_calibrated(model, data) for data in stations]
+    groups: dict[tuple[Any, ...], list[int]] = {}
+    for i, (data, (ranges, link_sigma, _)) in enumerate(zip(stations, calibrated, strict=True)):
+        A = data.anchors_true if anchors is None else np.asarray(anchors, dtype=float)
+        key = (tuple(data.anchor_ids), A.tobytes(), ranges.shape, callable(link_sigma))
+        groups.setdefault(key, []).append(i)
+    out: list[BasePose | None] = [None] * len(stations)
+    for members in groups.values():
+        first = stations[members[0]]
+        link_sigma = calibrated[members[0]][1]
+        fixes = static_fixes(
+            model,
+            first.anchors_true if anchors is None else np.asarray(anchors, dtype=float),
+            np.stack([calibrated[i][0] for i in members], axis=1),
+            np.asarray(setup.tags, dtype=float),
+            link_sigma if callable(link_sigma) else np.stack([calibrated[i][1] for i in members]),
+            np.stack([calibrated[i][2] for i in members]),
+            method=_method(setup),
+            heading_priors=[priors[i] for i in members],
+            alpha=project.localization.integrity.alpha,
+            anchor_ids=first.anchor_ids,
+            base_lever=project.robot.platform.T_platform_base.matrix()[:3, 3],
+        )
+        for i, (fix, rej) in zip(members, fixes, strict=True):
+            out[i] = _base_pose(project, stations[i], fix, rej, station_ids[i])
+    return [pose for pose in out if pose is not None]
+
+
+def _method(setup: UwbSetup) -> Method:
+    """The static estimator of the setup's (the ESKF's stations are static fixes too)."""
+    return "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
+
+
+def _calibrated(model: UwbErrorModel, data: StationRanges) -> tuple[np.ndarray, Any, np.ndarray]:
+    """A station's calibrated ranges (metres), the error its links share (a function of
+    the range, or per link with the material's delay taken off) and each anchor's
+    remaining calibration error (metres)."""
     cal = data.calibration
     ranges = cal.apply(data.ranges)
     link_sigma: Any = model.field_sigma
@@ -306,21 +404,24 @@ def estimate_station(
             model.field_sigma(np.where(np.isfinite(per_link), per_link, 0.0)),
             model.material_delay_spread * predicted,
         )
-    method: Method = "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
     first_guess = nanmedian(ranges, (0, 1))
-    fix, rej = static_fix(
-        model,
-        A,
-        ranges,
-        L,
-        link_sigma,
-        cal.bias_sigma(np.where(np.isfinite(first_guess), first_guess, 0.0)),
-        method=method,
-        heading_prior=heading_prior,
-        alpha=project.localization.integrity.alpha,
-        anchor_ids=ids,
-        base_lever=T_platform_base[:3, 3],
-    )
+    return ranges, link_sigma, cal.bias_sigma(np.where(np.isfinite(first_guess), first_guess, 0.0))
+
+
+def _base_pose(
+    project: Project,
+    data: StationRanges,
+    fix: PlatformFix,
+    rej: Rejection,
+    station_id: str | None,
+) -> BasePose:
+    """The arm base pose of a station's platform fix, with its quality and integrity."""
+    setup = _setup(project)
+    ids = data.anchor_ids
+    T_platform_base = project.robot.platform.T_platform_base.matrix()
+    L = np.asarray(setup.tags, dtype=float)
+    cal = data.calibration
+    method = _method(setup)
     T_world_platform_est = fix.T
     T_world_base_est = platform.T_world_base(T_world_platform_est, 0.0, T_platform_base)
     cov = platform_to_base_covariance(T_world_platform_est, T_platform_base, fix.covariance)

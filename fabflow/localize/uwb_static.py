@@ -28,7 +28,7 @@ from fabflow.positioning.uwb_calibration import (
     reject_outliers_static,
     static_window,
 )
-from fabflow.positioning.uwb_platform import PlatformFix, locate_platform
+from fabflow.positioning.uwb_platform import PlatformFix, locate_platform, median_seeds
 from fabflow.sensors.uwb import UwbErrorModel
 
 
@@ -66,22 +66,74 @@ def static_fix(
     method, heading_prior, alpha, anchor_ids, base_lever
         As :func:`~fabflow.positioning.uwb_platform.locate_platform` takes them.
     """
+    per_link = link_sigma if callable(link_sigma) else np.asarray(link_sigma, dtype=float)[None]
+    return static_fixes(
+        model, A, np.asarray(ranges, dtype=float)[:, None], L, per_link,
+        np.asarray(anchor_bias_sigma, dtype=float)[None], method, [heading_prior], alpha,
+        anchor_ids, base_lever,
+    )[0]  # fmt: skip
+
+
+def static_fixes(
+    model: UwbErrorModel,
+    A: np.ndarray,
+    ranges: np.ndarray,
+    L: np.ndarray,
+    link_sigma: Any,
+    anchor_bias_sigma: np.ndarray,
+    method: Method = "wls-t",
+    heading_priors: Sequence[tuple[float, float] | None] | None = None,
+    alpha: float = ALPHA,
+    anchor_ids: Sequence[str] | None = None,
+    base_lever: np.ndarray | None = None,
+) -> list[tuple[PlatformFix, Rejection]]:
+    """:func:`static_fix` of several standing platforms that range with the same anchors.
+
+    The cleaning and the NLOS correction treat every link on its own, so they
+    run on all the stations' links at once (a simulated run's visits: one call
+    where there were as many calls as visits); then each station's fix. A
+    station's numbers are those :func:`static_fix` gives it alone, except that
+    the correction's integration grid is the finest any of the stations needs
+    (:func:`~fabflow.positioning.uwb_calibration.kept_mean_variance`: the same
+    with the error model's default noise).
+
+    Parameters
+    ----------
+    ranges
+        (rounds, stations, tags, anchors) calibrated ranges (metres; NaN where none).
+    link_sigma
+        A function of the range, or (stations, tags, anchors) values (metres).
+    anchor_bias_sigma
+        (stations, n) per station.
+    heading_priors
+        Per station, as ``heading_prior`` (default: none).
+    model, A, L, method, alpha, anchor_ids, base_lever
+        As :func:`static_fix` takes them.
+    """
+    n_stations = ranges.shape[1]
+    priors = [None] * n_stations if heading_priors is None else list(heading_priors)
     rej = reject_outliers_static(ranges, model.sigma(ranges))
-    kept, link_sigma = without_nlos_leak(model, ranges, rej.ranges, link_sigma)
-    fix = locate_platform(
-        A,
-        kept,
-        L,
-        model.sigma,
-        method=method,
-        heading_prior=heading_prior,
-        anchor_bias_sigma=anchor_bias_sigma,
-        link_sigma=link_sigma,
-        anchor_ids=anchor_ids,
-        base_lever=base_lever,
-        alpha=alpha,
-    )
-    return fix, rej
+    kept, per_link = without_nlos_leak(model, ranges, rej.ranges, link_sigma)
+    seeds = median_seeds(A, kept, model.sigma) if method == "wls-t" else [None] * n_stations
+    out = []
+    for v in range(n_stations):
+        fix = locate_platform(
+            A,
+            kept[:, v],
+            L,
+            model.sigma,
+            method=method,
+            heading_prior=priors[v],
+            anchor_bias_sigma=anchor_bias_sigma[v],
+            link_sigma=per_link[v],
+            anchor_ids=anchor_ids,
+            base_lever=base_lever,
+            alpha=alpha,
+            seeds=seeds[v],
+        )
+        mine = Rejection(rej.ranges[:, v], rej.rejected[:, v], rej.out_of_bounds[:, v])
+        out.append((fix, mine))
+    return out
 
 
 def without_nlos_leak(

@@ -105,6 +105,7 @@ def locate_platform(
     anchor_ids: Sequence[str] | None = None,
     base_lever: np.ndarray | None = None,
     link_sigma: Sigma | np.ndarray | None = None,
+    seeds: np.ndarray | None = None,
 ) -> PlatformFix:
     """Estimate a standing platform's ``x, y, z, yaw`` from the ranges of its tags, and test it.
 
@@ -175,6 +176,9 @@ def locate_platform(
         added to each link mean's variance, since averaging over epochs does not
         reduce it. Links are taken as independent (tags farther apart than the
         multipath's correlation length).
+    seeds
+        (n_tags, 3) with ``wls-t``: :func:`median_seeds` of these ranges, when the
+        caller solved them for many stations at once; computed here when None.
 
     Raises
     ------
@@ -196,7 +200,7 @@ def locate_platform(
             "one UWB tag cannot observe the heading of a standing platform; add a second "
             "tag or give a heading prior (from the motion or the IMU)"
         )
-    state, heading_observed = _initial_state(A, R, L, sigma, method, heading_prior)
+    state, heading_observed = _initial_state(A, R, L, sigma, method, heading_prior, seeds)
     finite = np.isfinite(R)
     d = R[finite]
     links = link_means(
@@ -296,21 +300,21 @@ def _initial_state(
     sigma: Sigma,
     method: Method,
     heading_prior: tuple[float, float] | None,
+    seeds: np.ndarray | None = None,
 ) -> tuple[np.ndarray, bool]:
     """``[x, y, z, yaw]`` from the median per-tag fixes, and whether the heading is observed.
 
     With ``wls-t`` the median pose only starts the Newton solve on all ranges, so
-    each tag's start is the fix of its per-link median ranges, one solve for all
-    tags (a tag an epoch) instead of one per epoch; a tag's per-epoch fixes are
-    the fallback when its fails.
+    each tag's start is the fix of its per-link median ranges (:func:`median_seeds`,
+    or ``seeds`` given); a tag's per-epoch fixes are the fallback when its fails.
     """
     n_tags = L.shape[0]
     tag_pos = np.empty((n_tags, 3))
     seeded = np.zeros(n_tags, dtype=bool)
-    if method == "wls-t":  # every tag's median ranges in one call: one epoch per tag
-        seed = locate(A, nanmedian(R, 0), method=method, sigma=sigma)
-        seeded = seed.valid
-        tag_pos[seeded] = seed.positions[seeded]
+    if method == "wls-t":
+        seed = median_seeds(A, R, sigma) if seeds is None else np.asarray(seeds, dtype=float)
+        seeded = np.isfinite(seed).all(axis=-1)
+        tag_pos[seeded] = seed[seeded]
     for k in np.flatnonzero(~seeded):
         fix = locate(A, R[:, k, :], method=method, sigma=sigma)
         if not fix.valid.any():
@@ -333,6 +337,16 @@ def _initial_state(
             yaw0 = heading_prior[0]
     p0 = tag_pos.mean(axis=0) - _rotz(yaw0) @ L.mean(axis=0)
     return np.array([*p0, yaw0]), heading_observed
+
+
+def median_seeds(A: np.ndarray, R: np.ndarray, sigma: Sigma) -> np.ndarray:
+    """Each tag's ``wls-t`` fix of its per-link median ranges, ``(..., tags, 3)``
+    (metres; NaN where it fails), for ranges ``(rounds, ..., tags, anchors)``: one
+    :func:`~fabflow.positioning.uwb.locate` call for every tag of every station
+    (one epoch each), where there were as many as tags and stations."""
+    medians = nanmedian(R, 0)
+    seed = locate(A, medians.reshape(-1, A.shape[0]), method="wls-t", sigma=sigma)
+    return seed.positions.reshape(*medians.shape[:-1], 3)
 
 
 def _finish(

@@ -37,7 +37,14 @@ from fabflow.design.elements import Element, Standing, structure_timeline
 from fabflow.design.generate import generate_elements
 from fabflow.errors import InputError
 from fabflow.localize.layout import site_layout
-from fabflow.localize.methods import file_inputs, localizer_arguments, run_inputs
+from fabflow.localize.methods import (
+    PHASED,
+    EstimateStations,
+    MeasureStation,
+    file_inputs,
+    localizer_arguments,
+    run_inputs,
+)
 from fabflow.localize.plan import LocalizeStation, check_visit, parked_pose, station_localizer
 from fabflow.localize.setups import InstrumentSetup
 from fabflow.localize.stationing import InstrumentTrack
@@ -392,6 +399,18 @@ def _localizer_extra(
     return extra
 
 
+def study_phases(study: Study) -> tuple[MeasureStation, EstimateStations] | None:
+    """The method's measuring and estimating halves (:data:`~fabflow.localize.methods.PHASED`)
+    where a run may measure its visits first and estimate them together: sensors
+    simulated, and no visit's measurement depending on an earlier visit's estimate
+    (a total station tracked from set-up to set-up does)."""
+    if not study.project.simulation.sensor_noise or study.visit_covariance is not None:
+        return None
+    if study_track(study) is not None:
+        return None
+    return PHASED.get(study.method)
+
+
 def study_localizer(study: Study) -> LocalizeStation:
     """The method's ``localize_station``, or an exact one without sensor noise."""
     return station_localizer(study.project, study.method)
@@ -425,6 +444,7 @@ def simulate_run(
     """
     rng = np.random.default_rng(run_seed(seed, run))
     sim = study.project.simulation
+    phased = None if localize is not None else study_phases(study)
     localize = localize or study_localizer(study)
     V = study.n_visits
     T_true = np.empty((V, 4, 4))
@@ -436,26 +456,39 @@ def simulate_run(
     drawn = (
         {} if study.visit_covariance is not None else run_inputs(study.project, study.method, rng)
     )
-    for v, station in enumerate(study.stations):
-        T_planned, T_true[v] = parked_pose(study.project, station, rng)
-        if study.visit_covariance is not None:
-            continue
-        previous = None if v == 0 else (T_true[v - 1], T_est[v - 1], cov[v - 1])
-        estimate = localize(
-            study.project,
-            T_true[v],
-            rng,
-            station.id,
-            built=study.built_before[v],
-            **_localizer_extra(study, v, rng, track, previous, drawn),
-        )
-        estimate = check_visit(study.project, estimate, T_planned)
+    T_planned = np.empty((V, 4, 4))
+
+    def take(v: int, estimate: BasePose) -> None:
+        estimate = check_visit(study.project, estimate, T_planned[v])
         assert estimate.integrity is not None
         status[v] = STATUSES.index(estimate.integrity.status)
         T_est[v] = estimate.T_world_base
         cov[v] = estimate.covariance
         if keep_poses:
             estimates.append(estimate)
+
+    measured = []
+    for v, station in enumerate(study.stations):
+        T_planned[v], T_true[v] = parked_pose(study.project, station, rng)
+        if study.visit_covariance is not None:
+            continue
+        previous = None if v == 0 else (T_true[v - 1], T_est[v - 1], cov[v - 1])
+        extra = _localizer_extra(study, v, rng, track, previous, drawn)
+        if phased is not None:  # measured in order now, estimated together below
+            measure = phased[0]
+            measured.append(
+                measure(study.project, T_true[v], rng, station.id, study.built_before[v], **extra)
+            )
+            continue
+        take(
+            v,
+            localize(
+                study.project, T_true[v], rng, station.id, built=study.built_before[v], **extra
+            ),
+        )
+    if phased is not None and measured:
+        for v, estimate in enumerate(phased[1](study.project, measured)):
+            take(v, estimate)
     if study.visit_covariance is not None:
         cov[:] = study.visit_covariance
         error = np.einsum("vij,vj->vi", _cholesky(cov), rng.normal(0.0, 1.0, (V, 6)))

@@ -15,7 +15,7 @@ from fabflow.localize.anchors import layout_anchors
 from fabflow.localize.methods import localizer_arguments, run_inputs
 from fabflow.project import Project, load_project
 from fabflow.sim.monte_carlo import run_study
-from fabflow.sim.run import Study, prepare_study, run_seed, simulate_run
+from fabflow.sim.run import Study, prepare_study, run_seed, simulate_run, study_localizer
 from fabflow.tasks.planner import plan_project
 from fabflow.transforms import FrameGraph, Pose
 from fabflow.transforms.se3 import inv_T, perturb
@@ -341,3 +341,23 @@ def test_a_zone_ranges_with_its_anchors_share_of_the_installation(small: Project
     other = dataclasses.replace(installation, anchor_ids=("X1", *installation.anchor_ids[1:]))
     with pytest.raises(InputError, match="no anchor A1: it was drawn for another anchor layout"):
         uwb.simulate_station(small, T, np.random.default_rng(1), installation=other)
+
+
+def test_a_run_estimates_its_uwb_visits_together_as_one_at_a_time(cabin_study: Study) -> None:
+    # the visits are measured in order (every random number), then estimated
+    # together: one cleaning, NLOS correction and start for all of them. The poses,
+    # covariances and tests must be those of estimating each visit on its own.
+    assert cabin_study.method == "uwb"
+    one_at_a_time = study_localizer(cabin_study)
+    for run in (0, 1):
+        together = simulate_run(cabin_study, run, 3, keep_poses=True)
+        alone = simulate_run(cabin_study, run, 3, keep_poses=True, localize=one_at_a_time)
+        assert any(p.quality["n_occluded_links"] > 0 for p in together.base_poses)
+        np.testing.assert_array_equal(together.localization_error, alone.localization_error)
+        np.testing.assert_array_equal(
+            together.localization_covariance, alone.localization_covariance
+        )
+        np.testing.assert_array_equal(together.integrity, alone.integrity)
+        np.testing.assert_array_equal(together.deviation_xyz, alone.deviation_xyz)
+        for a, b in zip(together.base_poses, alone.base_poses, strict=True):
+            assert a.quality == b.quality
