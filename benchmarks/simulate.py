@@ -6,8 +6,9 @@ worker processes, and the projected time of 1,000 runs; then (full mode) times
 1,000 UWB runs of the cabin on the cluster against the 30 s target (issue 25).
 The elements and the plan are computed once (not timed), as ``fabflow simulate``
 does. ``--breakdown N`` first times the parts of a UWB run (the simulated
-ranging, the cleaning, the NLOS correction, the platform fix and, within it,
-its start, mirror check and hidden-mirror search) over N serial runs.
+ranging; the cleaning, the NLOS correction and the start fixes, each one call
+for all the visits; the platform fixes and, within them, the mirror checks and
+the hidden-mirror search) over N serial runs.
 
 Run: ``.venv/bin/python benchmarks/simulate.py [--quick] [--methods uwb,total_station,icp]
 [--breakdown N]``. ``--quick`` (CI smoke run) simulates a few UWB runs of the
@@ -39,11 +40,11 @@ SMALL = ROOT / "tests" / "data" / "sim" / "project.yaml"
 TARGET_RUNS, TARGET_S = 1000, 30.0
 BREAKDOWN = (
     ("fabflow.localize.uwb", "simulate_station", "ranging simulated (anchors, occlusion, noise)"),
-    ("fabflow.localize.uwb_static", "reject_outliers_static", "cleaning of each link"),
-    ("fabflow.localize.uwb_static", "without_nlos_leak", "the kept NLOS ranges' bias and spread"),
-    ("fabflow.localize.uwb_static", "locate_platform", "the platform fix with its tests"),
-    ("fabflow.positioning.uwb_platform", "_initial_state", "  its start: per-tag fixes"),
-    ("fabflow.positioning.uwb_platform", "mirror_check", "  its mirror check"),
+    ("fabflow.localize.uwb_static", "reject_outliers_static", "cleaning of each link (all visits)"),
+    ("fabflow.localize.uwb_static", "without_nlos_leak", "the kept NLOS ranges' bias (all visits)"),
+    ("fabflow.localize.uwb_static", "median_seeds", "the tags' start fixes (all visits)"),
+    ("fabflow.localize.uwb_static", "locate_platform", "the platform fixes with their tests"),
+    ("fabflow.positioning.uwb_platform", "mirror_check", "  their mirror checks"),
     ("fabflow.positioning.uwb_platform", "hidden_mirrors", "  mirrors one anchor's bias selects"),
 )
 """Parts of a UWB run timed by ``--breakdown``: (module, function, what it does); the
