@@ -355,10 +355,13 @@ def estimate_stations(
     model = setup.error_model()
     priors = [None] * len(stations) if heading_priors is None else list(heading_priors)
     calibrated = [_calibrated(model, data) for data in stations]
+    surveyed = [
+        data.anchors_true if anchors is None else np.asarray(anchors, dtype=float)
+        for data in stations
+    ]
     groups: dict[tuple[Any, ...], list[int]] = {}
     for i, (data, (ranges, link_sigma, _)) in enumerate(zip(stations, calibrated, strict=True)):
-        A = data.anchors_true if anchors is None else np.asarray(anchors, dtype=float)
-        key = (tuple(data.anchor_ids), A.tobytes(), ranges.shape, callable(link_sigma))
+        key = (tuple(data.anchor_ids), surveyed[i].tobytes(), ranges.shape, callable(link_sigma))
         groups.setdefault(key, []).append(i)
     out: list[BasePose | None] = [None] * len(stations)
     for members in groups.values():
@@ -366,7 +369,7 @@ def estimate_stations(
         link_sigma = calibrated[members[0]][1]
         fixes = static_fixes(
             model,
-            first.anchors_true if anchors is None else np.asarray(anchors, dtype=float),
+            surveyed[members[0]],
             np.stack([calibrated[i][0] for i in members], axis=1),
             np.asarray(setup.tags, dtype=float),
             link_sigma if callable(link_sigma) else np.stack([calibrated[i][1] for i in members]),

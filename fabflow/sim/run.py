@@ -399,14 +399,16 @@ def _localizer_extra(
     return extra
 
 
-def study_phases(study: Study) -> tuple[MeasureStation, EstimateStations] | None:
+def study_phases(
+    study: Study, track: InstrumentTrack | None
+) -> tuple[MeasureStation, EstimateStations] | None:
     """The method's measuring and estimating halves (:data:`~fabflow.localize.methods.PHASED`)
     where a run may measure its visits first and estimate them together: sensors
     simulated, and no visit's measurement depending on an earlier visit's estimate
-    (a total station tracked from set-up to set-up does)."""
+    (a total station tracked from set-up to set-up, the run's ``track``, does)."""
     if not study.project.simulation.sensor_noise or study.visit_covariance is not None:
         return None
-    if study_track(study) is not None:
+    if track is not None:
         return None
     return PHASED.get(study.method)
 
@@ -444,7 +446,8 @@ def simulate_run(
     """
     rng = np.random.default_rng(run_seed(seed, run))
     sim = study.project.simulation
-    phased = None if localize is not None else study_phases(study)
+    track = study_track(study)
+    phased = None if localize is not None else study_phases(study, track)
     localize = localize or study_localizer(study)
     V = study.n_visits
     T_true = np.empty((V, 4, 4))
@@ -452,7 +455,6 @@ def simulate_run(
     cov = np.empty((V, 6, 6))
     estimates: list[BasePose] = []
     status = np.full(V, STATUSES.index("untested"), dtype=np.int8)
-    track = study_track(study)
     drawn = (
         {} if study.visit_covariance is not None else run_inputs(study.project, study.method, rng)
     )
@@ -475,9 +477,8 @@ def simulate_run(
         previous = None if v == 0 else (T_true[v - 1], T_est[v - 1], cov[v - 1])
         extra = _localizer_extra(study, v, rng, track, previous, drawn)
         if phased is not None:  # measured in order now, estimated together below
-            measure = phased[0]
             measured.append(
-                measure(study.project, T_true[v], rng, station.id, study.built_before[v], **extra)
+                phased[0](study.project, T_true[v], rng, station.id, study.built_before[v], **extra)
             )
             continue
         take(
