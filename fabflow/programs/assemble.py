@@ -13,6 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from fabflow.programs.chain_memo import ChainMemo
 from fabflow.programs.feasibility import TOOL_ROTATION_SPEED, move_lengths, solve_moves
 from fabflow.programs.ir import (
     Bead,
@@ -88,6 +89,7 @@ def compile_program(
     lift: float | None = None,
     payloads: dict[str, Load] | None = None,
     beads: dict[str, Bead] | None = None,
+    memo: ChainMemo | None = None,
 ) -> Program:
     """Turn motion steps into a checked, timed :class:`Program` from HOME back to HOME.
 
@@ -110,6 +112,9 @@ def compile_program(
         in when the gripper closes on it and out when it opens.
     beads
         Print path element id to its bead cross-section (what G-code extrudes).
+    memo
+        Chains solved by earlier compiles of the same work package, reused and
+        added to (:mod:`fabflow.programs.chain_memo`).
     """
     robot = get_robot(project.robot.name)
     T_base_world = np.linalg.inv(T_world_base)
@@ -119,7 +124,7 @@ def compile_program(
     steps = _drop_unreachable_optional(steps, robot, T_base_world, T_flange_tool)
     waypoints = [s for s in steps if isinstance(s, Waypoint)]
     q, via_q, via_T, slowdown, wrist, joint = solve_moves(
-        waypoints, robot.name, T_base_world, T_flange_tool, q_start=q_home, q_end=q_home
+        waypoints, robot.name, T_base_world, T_flange_tool, q_start=q_home, q_end=q_home, memo=memo
     )
     # A change of configuration between two targets goes through HOME: a
     # joint-space swing between configurations sweeps through unknown space.

@@ -26,6 +26,7 @@ from fabflow.programs.branch_follow import (
     follow_branch,
     follow_branch_chain,
 )
+from fabflow.programs.chain_memo import ChainMemo, chain_key, frozen
 from fabflow.programs.motion_checks import configuration_of, wrap_angle, wrist_flips
 from fabflow.programs.motions import Waypoint
 from fabflow.programs.wrist_lin import (
@@ -136,6 +137,7 @@ def solve_moves(
     T_flange_tool: np.ndarray,
     q_start: np.ndarray | None = None,
     q_end: np.ndarray | None = None,
+    memo: ChainMemo | None = None,
 ) -> tuple[
     np.ndarray, list[np.ndarray | None], list[np.ndarray | None], np.ndarray, np.ndarray, np.ndarray
 ]:
@@ -156,6 +158,10 @@ def solve_moves(
     q_end
         Joint target after the last move (HOME), which the last PTP target looks
         ahead to as each looks to the next.
+    memo
+        Chains solved by earlier calls for the same work package
+        (:mod:`fabflow.programs.chain_memo`): a chain found there is not solved
+        again, and the chains solved here are added.
 
     Returns
     -------
@@ -348,6 +354,8 @@ def solve_moves(
 
     # A PTP target and the linear moves after it form a chain: the PTP takes the
     # cheapest configuration from which the whole chain can be followed.
+    fixed = np.stack([T_base_world, T_tool_flange])
+    home = None if q_end is None else ("home", q_end)
     i = 0
     while i < n:
         end = i + 1
@@ -355,53 +363,66 @@ def solve_moves(
             end += 1
         later = ptp_index[ptp_index > i]
         nxt = stops[later[0]] - 1 if len(later) else None
-        options = _ptp_options(
-            robot,
-            q_all[stops[i] - 1],
-            valid[stops[i] - 1],
-            q_prev,
-            current,
-            whole[owner.ravel()[i]],
-            None if nxt is None else (q_all[nxt], valid[nxt]),
-            q_end,
-        )
-        if not options:
-            raise _fail(
-                waypoints[i],
-                "no inverse kinematics solution within the joint limits",
-                T_base_tool[stops[i] - 1],
+        key = None
+        if memo is not None:
+            ahead = ("ptp", flat[nxt]) if nxt is not None else home
+            key = chain_key(
+                robot.name, fixed, q_prev, current, flat[starts[i] : stops[end - 1]],
+                stops[i:end] - starts[i:end], waypoints[i:end], whole[owner.ravel()[i]], ahead,
+            )  # fmt: skip
+        solved = None if key is None else memo.get(key)
+        if solved is None:
+            options = _ptp_options(
+                robot,
+                q_all[stops[i] - 1],
+                valid[stops[i] - 1],
+                q_prev,
+                current,
+                whole[owner.ravel()[i]],
+                None if nxt is None else (q_all[nxt], valid[nxt]),
+                q_end,
             )
-        first_error: InfeasibleError | None = None
-        chosen = flipping = None
-        # First a chain on which no linear move takes A5 through 0; failing that,
-        # one whose flipping moves can keep their status with the wrist axes
-        # interpolated (:mod:`fabflow.programs.wrist_lin`) or be made joint moves
-        # (:func:`_as_joint_move`); failing that too, the cheapest chain, its
-        # flips counted by the program's checks.
-        for wrist_ok in (False, True):
-            for q_i, branch in options:
-                try:
-                    chain, flips = follow_chain(i, end, q_i, branch, wrist_ok)
-                except InfeasibleError as error:
-                    first_error = first_error or error
-                    continue
-                if not flips:
-                    chosen = (q_i, branch, chain)
+            if not options:
+                raise _fail(
+                    waypoints[i],
+                    "no inverse kinematics solution within the joint limits",
+                    T_base_tool[stops[i] - 1],
+                )
+            first_error: InfeasibleError | None = None
+            chosen = flipping = None
+            # First a chain on which no linear move takes A5 through 0; failing that,
+            # one whose flipping moves can keep their status with the wrist axes
+            # interpolated (:mod:`fabflow.programs.wrist_lin`) or be made joint moves
+            # (:func:`_as_joint_move`); failing that too, the cheapest chain, its
+            # flips counted by the program's checks.
+            for wrist_ok in (False, True):
+                for q_i, branch in options:
+                    try:
+                        chain, flips = follow_chain(i, end, q_i, branch, wrist_ok)
+                    except InfeasibleError as error:
+                        first_error = first_error or error
+                        continue
+                    if not flips:
+                        chosen = (q_i, branch, chain)
+                        break
+                    flipping = flipping or (q_i, branch, chain)
+                if chosen is not None or robot.dof != 6:
                     break
-                flipping = flipping or (q_i, branch, chain)
-            if chosen is not None or robot.dof != 6:
-                break
-        if chosen is None:
-            if flipping is None:
-                assert first_error is not None
-                raise first_error
-            chosen = flipping
-        q_i, current, chain = chosen
-        if chain:  # the configuration the chain ends in, which the next one keeps
-            end_row = stops[end - 1] - 1
-            same = _same_branch(q_all[end_row], chain[-1][0][-1])
-            if same.any():
-                current = int(np.argmax(same))
+            if chosen is None:
+                if flipping is None:
+                    assert first_error is not None
+                    raise first_error
+                chosen = flipping
+            q_i, current, chain = chosen
+            if chain:  # the configuration the chain ends in, which the next one keeps
+                end_row = stops[end - 1] - 1
+                same = _same_branch(q_all[end_row], chain[-1][0][-1])
+                if same.any():
+                    current = int(np.argmax(same))
+            solved = frozen(q_i, current, chain)
+            if key is not None:
+                memo[key] = solved
+        q_i, current, chain = solved
         q_out[i] = q_prev = q_i
         for k, (path, slow, samples, as_joint) in zip(range(i + 1, end), chain, strict=True):
             q_out[k] = q_prev = path[-1]

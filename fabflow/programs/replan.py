@@ -19,6 +19,7 @@ import numpy as np
 from fabflow.design.elements import Element
 from fabflow.errors import InfeasibleError
 from fabflow.programs.assemble import compile_program
+from fabflow.programs.chain_memo import ChainMemo
 from fabflow.programs.collision import Contact, check_package
 from fabflow.programs.collision_model import (
     Obstacles,
@@ -143,7 +144,8 @@ def replanned_program(
     programs: CompileMemo = {}  # and the rounds and the final choice often compile one twice
     placed = placements(obstacles, elements, project)
     steps = work_package_motion(elements, project, T_world_base, placements=placed)
-    program = compile_program(name, steps, project, T_world_base, header, **options)
+    chains: ChainMemo = {}  # and most of their chains are solved once
+    program = compile_program(name, steps, project, T_world_base, header, memo=chains, **options)
     contacts = check_package(program, project, obstacles, elements, memo=memo)
     if not contacts and not _swings(program):
         return program, contacts
@@ -153,6 +155,13 @@ def replanned_program(
     defects = _defects(program, contacts)
     tried = {e: {-1: d} for e, d in defects.items() if e in candidates}
     best = (_total(program, contacts), program, contacts)
+
+    def compile_routes(levels: dict[str, int]) -> tuple[Program, dict[str, int]] | None:
+        return _compile_routes(
+            name, elements, project, T_world_base, header, candidates, levels, placed, options,
+            programs, chains,
+        )  # fmt: skip
+
     for _ in range(REPLAN_ROUNDS):
         # a route's own linear moves through A5 = 0 send its block on to the next route
         routed = [c for c in _flips(program) if _owner(program, c) in level]
@@ -173,18 +182,7 @@ def replanned_program(
             trial[eid] = min(k, len(routes))
         if trial == level:
             break
-        compiled = _compile_routes(
-            name,
-            elements,
-            project,
-            T_world_base,
-            header,
-            candidates,
-            trial,
-            placed,
-            options,
-            programs,
-        )
+        compiled = compile_routes(trial)
         if compiled is None:
             break
         program, level = compiled
@@ -197,9 +195,7 @@ def replanned_program(
     # each block on the route where its own moves fared best, checked as a whole
     choice = {e: min(t, key=lambda k: (t[k], k)) for e, t in tried.items()}
     choice = {e: k for e, k in choice.items() if k >= 0}
-    compiled = _compile_routes(
-        name, elements, project, T_world_base, header, candidates, choice, placed, options, programs
-    )
+    compiled = compile_routes(choice)
     if compiled is not None:
         program = compiled[0]
         contacts = check_package(program, project, obstacles, elements, memo=memo)
@@ -316,6 +312,7 @@ def _compile_routes(
     placed: dict[str, Placement],
     options: dict[str, Any],
     memo: CompileMemo,
+    chains: ChainMemo,
 ) -> tuple[Program, dict[str, int]] | None:
     """Compile with each block's route ``candidates[id][level[id]]`` (none where the level
     is past its routes); a block whose route the arm cannot follow moves on to its next.
@@ -323,7 +320,8 @@ def _compile_routes(
     Returns the program and the levels used, or None when an infeasible target
     belongs to no re-planned block. ``memo`` holds the outcome of every set of
     levels tried before for this package (the rounds and the final choice often
-    ask for the same one again): compiling is deterministic, so it is reused."""
+    ask for the same one again): compiling is deterministic, so it is reused; ``chains``
+    the chains solved so far (:mod:`fabflow.programs.chain_memo`)."""
     level = dict(level)
     tried: list[tuple[tuple[str, int], ...]] = []
     outcome: tuple[Program, dict[str, int]] | None = None
@@ -336,7 +334,9 @@ def _compile_routes(
         routes = {e: candidates[e][k] for e, k in level.items() if k < len(candidates[e])}
         steps = work_package_motion(elements, project, T_world_base, routes, placed)
         try:
-            program = compile_program(name, steps, project, T_world_base, header, **options)
+            program = compile_program(
+                name, steps, project, T_world_base, header, memo=chains, **options
+            )
         except InfeasibleError as error:
             if error.element not in routes:
                 break

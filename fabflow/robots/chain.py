@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from fabflow.errors import InputError, UnsupportedError
 from fabflow.robots.joint_chain import JointChain
 from fabflow.robots.numeric_ik import solve_seeds
-from fabflow.robots.opw import OPWParameters
+from fabflow.robots.opw import OPWParameters, solved_branches
 
 if TYPE_CHECKING:
     from fabflow.robots.geometry import LinkCapsule
@@ -397,15 +397,19 @@ class RobotModel:
         if self.analytic_ik is None:
             raise UnsupportedError(f"{self.name} has no closed-form IK; use ik()")
         T = np.asarray(T_base_flange, dtype=float)
-        if arms is not None and self.opw is not None:
-            q, exists = self.analytic_ik(T, q_ref, arms=arms)
-        else:
-            q, exists = self.analytic_ik(T, q_ref)
         ref = np.zeros(self.dof) if q_ref is None else np.asarray(q_ref, dtype=float)
         if ref.ndim == 2:
             ref = ref[:, None, :]
-        q = self.nearest_turn(q, ref)
-        valid = exists & self.within_limits(q)
+        if arms is None or self.opw is None:
+            q, exists = self.analytic_ik(T, q_ref)
+            q = self.nearest_turn(q, ref)
+            return q, exists & self.within_limits(q)
+        # the branches not asked for are NaN and do not exist: only the others are turned
+        q, exists = self.analytic_ik(T, q_ref, arms=arms)
+        solved = solved_branches(arms)
+        q[:, solved] = turned = self.nearest_turn(q[:, solved], ref)
+        valid = np.zeros_like(exists)
+        valid[:, solved] = exists[:, solved] & self.within_limits(turned)
         return q, valid
 
     def nearest_turn(self, q: ArrayLike, q_ref: ArrayLike) -> FloatArray:
@@ -419,34 +423,47 @@ class RobotModel:
         q, q_ref
             Broadcastable arrays ``(..., dof)`` (radians).
         """
-        qa = np.asarray(q, dtype=float)
+        # one value is one per joint, as the limits broadcast it: an array, so that the
+        # arithmetic below can work in place on this call's own arrays
+        qa = np.asarray(q, dtype=float).reshape(np.shape(q) or (1,))
         ref = np.asarray(q_ref, dtype=float)
-        lo, hi = self.joint_limits[:, 0], self.joint_limits[:, 1]
-        k0 = np.round((ref - qa) / TWO_PI)
-        best = qa + k0 * TWO_PI
+        lo, hi = self._limits_with_slack
+        k0 = ref - qa
+        k0 /= TWO_PI
+        np.round(k0, out=k0)
+        best = k0 * TWO_PI
+        best += qa
         # The nearest turn is within limits and less than half a turn from the
         # reference: no other turn can be closer. Not a number stays one. Only the
         # rest (outside limits, or near a tie) try the neighbouring turns.
-        settled = (best >= lo - 1e-9) & (best <= hi + 1e-9) & (np.abs(best - ref) < np.pi - 1e-6)
+        settled = best >= lo
+        settled &= best <= hi
+        off = best - ref
+        np.abs(off, out=off)
+        settled &= off < np.pi - 1e-6
         settled |= np.isnan(best)
         # A joint whose whole range lies within half a turn of the reference has no
         # other turn within limits: the nearest turn stays, within limits or not.
-        settled |= (lo - 1e-9 > ref - np.pi + 1e-6) & (hi + 1e-9 < ref + np.pi - 1e-6)
+        settled |= (lo > ref - np.pi + 1e-6) & (hi < ref + np.pi - 1e-6)
         shape = settled.shape
-        best = np.array(np.broadcast_to(best, shape))
+        if best.shape != shape:
+            best = np.array(np.broadcast_to(best, shape))
         if settled.all():
             return best
         # the rest: of the turns k0, k0 - 1, k0 + 1, k0 - 2, k0 + 2 within limits the
         # first nearest the reference, k0 where none is (one pass over all five)
-        rest = ~settled
-        qa_r, ref_r, lo_r, hi_r, k_r = (
-            a[rest] for a in np.broadcast_arrays(qa, ref, lo, hi, k0, subok=False)
-        )
+        rest = np.flatnonzero(~settled)
+        qa_r, ref_r, lo_r, hi_r, k_r = (_flat_at(a, shape, rest) for a in (qa, ref, lo, hi, k0))
         cand = qa_r + (k_r + _TURNS) * TWO_PI
-        within = (cand >= lo_r - 1e-9) & (cand <= hi_r + 1e-9)
+        within = (cand >= lo_r) & (cand <= hi_r)
         first = np.argmin(np.where(within, np.abs(cand - ref_r), np.inf), axis=0)
-        best[rest] = cand[first, np.arange(cand.shape[1])]
+        np.put(best, rest, cand[first, np.arange(cand.shape[1])])
         return best
+
+    @cached_property
+    def _limits_with_slack(self) -> tuple[FloatArray, FloatArray]:
+        """The lower and upper joint limits widened by 1e-9 rad, as the turn rules test them."""
+        return self.joint_limits[:, 0] - 1e-9, self.joint_limits[:, 1] + 1e-9
 
     def _turn_variants(self, sols: FloatArray) -> FloatArray:
         lo, hi = self.joint_limits[:, 0], self.joint_limits[:, 1]
@@ -461,6 +478,15 @@ class RobotModel:
                 extra.append(v[(v[:, j] >= lo[j] - 1e-9) & (v[:, j] <= hi[j] + 1e-9)])
             out = np.concatenate([out, *extra], axis=0)
         return out
+
+
+def _flat_at(a: FloatArray, shape: tuple[int, ...], flat: NDArray[np.intp]) -> FloatArray:
+    """The values of ``a`` broadcast to ``shape`` at the flat (C-order) indices ``flat``."""
+    if a.shape == shape:
+        return np.take(a, flat)
+    if a.ndim == 1 and a.shape[0] == shape[-1]:  # one value per joint
+        return a[flat % shape[-1]]
+    return np.broadcast_to(a, shape)[np.unravel_index(flat, shape)]
 
 
 def _unique_rows(a: FloatArray, tol: float) -> FloatArray:

@@ -109,6 +109,13 @@ def _ry(t: FloatArray) -> FloatArray:
     return R
 
 
+def solved_branches(arms: Sequence[int]) -> NDArray[np.intp]:
+    """The branches (0-7) :func:`opw_ik` solves when asked for ``arms`` (0-3): each arm
+    branch and its wrist flip, in ascending order of the arms."""
+    arm = np.unique(np.asarray(arms, dtype=np.intp))
+    return np.r_[arm, arm + 4]
+
+
 def opw_ik(
     p: OPWParameters,
     T_base_flange: FloatArray,
@@ -187,6 +194,7 @@ def opw_ik(
     exists4 = np.stack([ok_front, ok_front, ok_back, ok_back], axis=1)
     if arms is not None:  # the wrist below is most of the work: only for these
         arm = np.unique(np.asarray(arms, dtype=np.intp))
+        solved = solved_branches(arms)
         th1, th2, th3, exists4 = th1[:, arm], th2[:, arm], th3[:, arm], exists4[:, arm]
 
     # Wrist: R_c_e = Rz(q4) Ry(q5) Rz(q6). q5 from the norm of the third column
@@ -227,7 +235,6 @@ def opw_ik(
     np.subtract(np.pi, q, out=q)
     exists = np.concatenate([exists4, exists4], axis=1)
     if arms is not None:  # in the branch order of all eight
-        solved = np.r_[arm, arm + 4]
         q_all = np.full((T.shape[0], 8, 6), np.nan)
         q_all[:, solved] = q
         exists_all = np.zeros((T.shape[0], 8), dtype=bool)

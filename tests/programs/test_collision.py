@@ -388,9 +388,11 @@ def test_routes_asked_for_again_are_not_compiled_again(project, monkeypatch) -> 
 
     monkeypatch.setattr(replan, "compile_program", counted)
 
-    def routes(level: dict[str, int], memo: dict):
+    chains: dict = {}
+
+    def routes(level: dict[str, int], memo: dict, chains: dict = chains):
         return replan._compile_routes(
-            "t", package, project, T_WORLD_BASE, {}, candidates, level, placed, {}, memo
+            "t", package, project, T_WORLD_BASE, {}, candidates, level, placed, {}, memo, chains
         )
 
     memo: dict = {}
@@ -405,10 +407,46 @@ def test_routes_asked_for_again_are_not_compiled_again(project, monkeypatch) -> 
         if a is not None:
             assert b[0] is a[0] and b[1] == a[1]
             b[1]["B1"] = -5  # the caller's copy: the memo keeps its own
-            fresh = routes(level, {})
+            fresh = routes(level, {}, {})
             assert fresh is not None and fresh[1] == a[1]
             assert write_json_stream(fresh[0]) == write_json_stream(a[0])
     assert all(v is None or -5 not in v[1].values() for v in memo.values())
+
+
+def test_chains_solved_for_other_routes_give_the_programs_of_a_fresh_compile(project) -> None:
+    """Re-planning compiles share their solved chains: a program compiled with the
+    chains of other routes' programs is, to the bit, the program compiled without
+    them, and the chains it shares with them are not solved again."""
+    wall, package = _wall(1.0), _package()
+    obstacles = environment(project, T_WORLD_BASE, wall, package)
+    candidates = candidate_routes(package, project, T_WORLD_BASE, obstacles)
+    chains: dict = {}
+    reused = compiled = 0
+    for which in ({}, {"B2": 0}, {"B1": 0}, {"B1": 0, "B2": 0}, {"B1": 2}, {"B2": 0}):
+        routes = {e: candidates[e][k] for e, k in which.items()}
+        steps = work_package_motion(package, project, T_WORLD_BASE, routes)
+        try:
+            fresh = compile_program("t", steps, project, T_WORLD_BASE, {})
+        except InfeasibleError:
+            with pytest.raises(InfeasibleError):
+                compile_program("t", steps, project, T_WORLD_BASE, {}, memo=chains)
+            continue
+        own: dict = {}
+        compile_program("t", steps, project, T_WORLD_BASE, {}, memo=own)
+        before = len(chains)
+        program = compile_program("t", steps, project, T_WORLD_BASE, {}, memo=chains)
+        assert write_json_stream(program) == write_json_stream(fresh)
+        assert program.checks == fresh.checks
+        after = len(chains)
+        reused += len(own) - (after - before)
+        again = compile_program("t", steps, project, T_WORLD_BASE, {}, memo=chains)
+        assert write_json_stream(again) == write_json_stream(fresh)
+        assert len(chains) == after  # every chain found: none solved again
+        compiled += 1
+    assert compiled >= 4 and reused > 0
+    solved = next(iter(chains.values()))
+    with pytest.raises(ValueError):  # shared between programs: read-only
+        solved.q[0] = 0.0
 
 
 @pytest.mark.parametrize("length", [0.4, 1.0, 2.0])

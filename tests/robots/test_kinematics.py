@@ -353,11 +353,16 @@ def test_kuka_status_turn_batch_and_branches() -> None:
 
 @pytest.mark.parametrize("name", ["kuka_kr60_3", "abb_irb4600_60_205"])
 @pytest.mark.parametrize("arms", [[0], [0, 3], [1, 2], [3, 1, 3], []])
-def test_ik_batch_of_some_arm_branches_is_those_of_all(name: str, arms: list[int]) -> None:
+@pytest.mark.parametrize("per_pose", [False, True])
+def test_ik_batch_of_some_arm_branches_is_those_of_all(
+    name: str, arms: list[int], per_pose: bool
+) -> None:
     robot = get_robot(name)
-    T = robot.fk(np.random.default_rng(7).uniform(-2.0, 2.0, (300, 6)))
-    q, valid = robot.ik_batch(T, q_ref=np.full(6, 0.3))
-    q_some, valid_some = robot.ik_batch(T, q_ref=np.full(6, 0.3), arms=arms)
+    rng = np.random.default_rng(7)
+    T = robot.fk(rng.uniform(-2.0, 2.0, (300, 6)))
+    q_ref = rng.uniform(-4.0, 4.0, (300, 6)) if per_pose else np.full(6, 0.3)
+    q, valid = robot.ik_batch(T, q_ref=q_ref)
+    q_some, valid_some = robot.ik_batch(T, q_ref=q_ref, arms=arms)
     solved = np.zeros(8, dtype=bool)
     solved[np.r_[arms, np.asarray(arms, dtype=int) + 4].astype(int)] = True
     assert np.array_equal(q_some[:, solved], q[:, solved], equal_nan=True)
