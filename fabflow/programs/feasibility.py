@@ -26,7 +26,7 @@ from fabflow.programs.branch_follow import (
     follow_branch,
     follow_branch_chain,
 )
-from fabflow.programs.chain_memo import ChainMemo, chain_key, frozen
+from fabflow.programs.chain_memo import ChainMemo, ChainMove, chain_key, frozen
 from fabflow.programs.motion_checks import configuration_of, wrap_angle, wrist_flips
 from fabflow.programs.motions import Waypoint
 from fabflow.programs.wrist_lin import (
@@ -243,14 +243,14 @@ def solve_moves(
 
     def follow_chain(
         i: int, end: int, q_i: np.ndarray, branch: int, wrist_ok: bool
-    ) -> tuple[list[tuple[np.ndarray, float, np.ndarray | None, bool]], bool]:
+    ) -> tuple[list[ChainMove], bool]:
         """The linear moves after PTP ``i`` from ``q_i``; whether one takes A5 through 0.
 
         Each move is ``(joint path, slowdown, samples, joint)``: ``samples`` are the
         tool poses (world) of a wrist-interpolated move's path, None for the
         others; ``joint``: made a joint move (:func:`_as_joint_move`).
         """
-        chain: list[tuple[np.ndarray, float, np.ndarray | None, bool]] = []
+        chain: list[ChainMove] = []
         q_chain = q_i
         flips = False
         k = i + 1

@@ -193,8 +193,8 @@ def opw_ik(
     th3 = np.stack([tmp11 - tmp10, -tmp11 - tmp10, tmp12 - tmp10, -tmp12 - tmp10], axis=1)
     exists4 = np.stack([ok_front, ok_front, ok_back, ok_back], axis=1)
     if arms is not None:  # the wrist below is most of the work: only for these
-        arm = np.unique(np.asarray(arms, dtype=np.intp))
         solved = solved_branches(arms)
+        arm = solved[: len(solved) // 2]
         th1, th2, th3, exists4 = th1[:, arm], th2[:, arm], th3[:, arm], exists4[:, arm]
 
     # Wrist: R_c_e = Rz(q4) Ry(q5) Rz(q6). q5 from the norm of the third column
