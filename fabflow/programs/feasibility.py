@@ -168,7 +168,8 @@ def solve_moves(
     q
         (n, dof) joint configuration at each waypoint (radians).
     via_q, via_T
-        Per waypoint, the intermediate samples of a linear move (or None).
+        Per waypoint, the intermediate samples of a linear move (or None);
+        the joint paths are read-only, as a memo's programs share them.
     slowdown
         (n,) factor (>= 1) each linear move's speed must be divided by so that
         its joints stay within their speed limits (near a singularity).
