@@ -8,7 +8,9 @@ The CPU time (user + system of the child) is the median over the repeats.
 Targets: the cabin at most 1.5 CPU s, the print wall at most 2.5.
 Then one build per project in this process, timed stage by stage, after the
 imports a build needs (timed in a fresh process: ``import fabflow.cli`` and the
-build runner), to show where the time goes.
+build runner), to show where the time goes. The imports' peer: the third-party
+packages those imports load, imported alone in a fresh process (what no change
+to fabflow's own modules can take off a build).
 
     python benchmarks/build.py [--quick] [--repeats N] [--projects cabin,print_path]
 """
@@ -45,6 +47,17 @@ def child_cpu(command: list[str]) -> tuple[float, float]:
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return cpu, wall
+
+
+LOADED_THIRD_PARTY = """
+import sys
+import fabflow.cli, fabflow.build.runner
+names = {n.split(".")[0] for n in sys.modules} - set(sys.stdlib_module_names)
+# a module a C extension registers at run time (no spec) cannot be imported by name
+names = [n for n in names if not n.startswith(("_", "fabflow")) and sys.modules[n].__spec__]
+print(", ".join(sorted(names)))
+"""
+"""Prints the third-party packages a build's imports load (importable top-level names)."""
 
 
 def stage_times(project: str, out: Path) -> dict[str, float]:
@@ -85,6 +98,10 @@ def main() -> None:
     importing = [python, "-c", "import fabflow.cli, fabflow.build.runner"]
     child_cpu(importing)  # the warm-up: writes the bytecode caches
     imports = [child_cpu(importing)[0] for _ in range(repeats)]
+    loaded = subprocess.run(
+        [python, "-c", LOADED_THIRD_PARTY], capture_output=True, text=True, check=True, env=ENV
+    ).stdout.strip()
+    peer = [child_cpu([python, "-c", f"import {loaded}"])[0] for _ in range(repeats)]
     print(f"{'project':<12} {'CPU s (median)':>15} {'wall s':>8} {'target':>7} {'runs':>5}")
     with tempfile.TemporaryDirectory() as tmp:
         for project in projects:
@@ -101,6 +118,7 @@ def main() -> None:
         names = list(dict.fromkeys(n for t in table.values() for n in t))
         print(f"{'stage':<10}" + "".join(f" {p:>12}" for p in projects))
         print(f"{'imports':<10}" + f" {statistics.median(imports):>12.2f}" * len(projects))
+        print(f"{'  3rd party':<10}" + f" {statistics.median(peer):>12.2f}" * len(projects))
         for name in names:
             cells = "".join(
                 f" {table[p][name]:>12.2f}" if name in table[p] else f" {'-':>12}" for p in projects

@@ -36,9 +36,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.stats import chi2
 
 from fabflow.errors import InputError
+from fabflow.positioning.integrity import chi2_quantile
 from fabflow.transforms.so3 import exp_so3_one, log_so3_one
 
 FloatArray = NDArray[np.float64]
@@ -189,7 +189,7 @@ class IcpKinematicsFilter:
             raise InputError(f"gate_alpha must be in [0, 1) or None, got {alpha}")
         if len(p.icp_covariance) != 6:
             raise InputError("icp_covariance must hold the 6 variances of a pose")
-        self._gate = math.inf if not alpha else float(chi2.ppf(1.0 - alpha, 6))
+        self._gate = math.inf if not alpha else chi2_quantile(6, alpha)
         self._history_s = history_s
         self._R_kin = np.diag([p.kin_velocity_sigma**2] * 3 + [p.kin_rate_sigma**2] * 3)
         self._R_icp = np.diag(np.asarray(p.icp_covariance, dtype=float))
