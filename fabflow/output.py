@@ -25,6 +25,7 @@ with no new one in its place, and says so in one line.
 
 from __future__ import annotations
 
+import _thread
 import contextlib
 import ctypes
 import ctypes.util
@@ -109,18 +110,37 @@ class _Signals:
     Handlers are only installed in the main thread (Python delivers signals
     there), never over a signal the caller ignores (``nohup``, a background
     job), and are restored on exit.
+
+    A handler that runs inside a weakref callback or a ``__del__`` (the garbage
+    collector runs them between any two steps) raises where Python ignores
+    exceptions: it prints "Exception ignored" and goes on, and the signal would
+    be lost. :meth:`_unraisable`, installed as :data:`sys.unraisablehook` for
+    the run, takes that exception and has the signal raised again in the main
+    thread a millisecond later.
     """
 
     def __init__(self) -> None:
         self.holding = False
         self.pending: int | None = None
+        self.raised: int | None = None
         self.previous: dict[int, Any] = {}
+        self.previous_hook: Any = None
 
     def _handle(self, signum: int, frame: object) -> None:
         if self.holding:
             self.pending = signum
             return
+        self.raised = signum
         self._raise(signum)
+
+    def _unraisable(self, unraisable: Any) -> None:
+        """:data:`sys.unraisablehook`: a signal's exception lost in a callback is raised again."""
+        signum = self.raised
+        if signum is not None and isinstance(unraisable.exc_value, SystemExit | KeyboardInterrupt):
+            # not from here: the hook runs inside the callback, where it would be lost again
+            threading.Timer(0.001, _thread.interrupt_main, (signum,)).start()
+            return
+        (self.previous_hook or sys.__unraisablehook__)(unraisable)
 
     @staticmethod
     def _raise(signum: int) -> None:
@@ -140,10 +160,14 @@ class _Signals:
                 continue
             self.previous[signum] = current
             signal.signal(signum, self._handle)
+        if self.previous:
+            self.previous_hook, sys.unraisablehook = sys.unraisablehook, self._unraisable
 
     def restore(self) -> None:
         for signum, handler in self.previous.items():
             signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+        if self.previous:
+            sys.unraisablehook = self.previous_hook
         self.previous.clear()
 
     @contextlib.contextmanager

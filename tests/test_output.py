@@ -10,6 +10,8 @@ import os
 import signal
 import subprocess
 import sys
+import time
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -185,6 +187,39 @@ def test_sigterm_removes_the_staging_folder_and_exits_143(tmp_path: Path) -> Non
         pytest.fail("SIGTERM did not stop the run")
     assert info.value.code == 143
     assert signal.getsignal(signal.SIGTERM) is before
+    assert listing(out) == [MARKER, "old.txt"]
+    assert listing(tmp_path) == ["out"]
+
+
+def test_a_sigterm_inside_a_garbage_collector_callback_still_stops_the_run(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    # Python ignores an exception raised inside a weakref callback or __del__ (it
+    # prints "Exception ignored ..." with a traceback and goes on): a SIGTERM whose
+    # handler ran there was lost, and the build ran to its end
+    out = tmp_path / "out"
+    write_output(out, "old.txt", "old")
+    hook = sys.unraisablehook
+
+    class Collected:
+        pass
+
+    def callback(_: object) -> None:
+        os.kill(os.getpid(), signal.SIGTERM)
+        sum(range(1000))  # the handler runs here, inside the callback
+
+    with pytest.raises(SystemExit) as info, atomic_output_dir(out) as staging:
+        (staging / "new.txt").write_text("new")
+        thing = Collected()
+        ref = weakref.ref(thing, callback)
+        del thing
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            time.sleep(0.001)
+        pytest.fail(f"SIGTERM was lost in the callback of {ref}")
+    assert info.value.code == 143
+    assert "Exception ignored" not in capfd.readouterr().err
+    assert sys.unraisablehook is hook
     assert listing(out) == [MARKER, "old.txt"]
     assert listing(tmp_path) == ["out"]
 
