@@ -395,7 +395,10 @@ def kept_mean_variance(
     influence = influence - slope * (1.0 - kept + (f_u - f_l) * side)
     # a range left out moves the share kept only
     outside = (slope * kept) ** 2 * np.maximum(1.0 - kept, 0.0)
-    return (influence**2 * f * w).sum(-1) + outside[..., 0]
+    value = (influence**2 * f * w).sum(-1) + outside[..., 0]
+    # a window that holds none of the density (tens of sigmas off the line-of-sight
+    # range, no NLOS share) says nothing of the mean: the noise's variance, not 0
+    return np.where(kept[..., 0] > 1e-9, value, sigma[..., 0] ** 2)
 
 
 def kept_centre(

@@ -113,6 +113,8 @@ def test_ranges_the_model_does_not_explain_do_not_count_as_nlos() -> None:
 @settings(max_examples=60, deadline=None)
 @example(p=0.0, sigma=0.01171875, lower=1.0, upper=1.0, centre=0.0, slope=0.0)
 @example(p=0.5, sigma=0.0001, lower=0.1, upper=0.1, centre=0.0, slope=1.0)
+# a window 40 sigmas above a clear link's density: none of it is kept
+@example(p=0.0, sigma=0.00390625, lower=0.125, upper=1.0, centre=0.28125, slope=0.0)
 @given(
     p=st.floats(0.0, 1.0),
     sigma=st.floats(0.001, 0.3),
