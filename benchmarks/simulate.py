@@ -45,10 +45,14 @@ BREAKDOWN = (
     ("fabflow.localize.uwb_static", "median_seeds", "the tags' start fixes (all visits)"),
     ("fabflow.localize.uwb_static", "locate_platform", "the platform fixes with their tests"),
     ("fabflow.positioning.uwb_platform", "mirror_check", "  their mirror checks"),
-    ("fabflow.positioning.uwb_platform", "hidden_mirrors", "  mirrors one anchor's bias selects"),
+    (
+        "fabflow.localize.uwb_static",
+        "finish_mirror_searches",
+        "mirrors one anchor's bias selects (all visits)",
+    ),
 )
 """Parts of a UWB run timed by ``--breakdown``: (module, function, what it does); the
-indented ones are within the fix."""
+indented one is within the fixes."""
 
 
 def serial_rate(study: Study, n: int) -> tuple[float, float, int]:

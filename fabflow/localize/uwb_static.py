@@ -28,7 +28,12 @@ from fabflow.positioning.uwb_calibration import (
     reject_outliers_static,
     static_window,
 )
-from fabflow.positioning.uwb_platform import PlatformFix, locate_platform, median_seeds
+from fabflow.positioning.uwb_platform import (
+    PlatformFix,
+    finish_mirror_searches,
+    locate_platform,
+    median_seeds,
+)
 from fabflow.sensors.uwb import UwbErrorModel
 
 
@@ -115,7 +120,7 @@ def static_fixes(
     rej = reject_outliers_static(ranges, model.sigma(ranges))
     kept, per_link = without_nlos_leak(model, ranges, rej.ranges, link_sigma)
     seeds = median_seeds(A, kept, model.sigma) if method == "wls-t" else [None] * n_stations
-    out = []
+    fixes = []
     for v in range(n_stations):
         fix = locate_platform(
             A,
@@ -130,10 +135,14 @@ def static_fixes(
             base_lever=base_lever,
             alpha=alpha,
             seeds=seeds[v],
+            search_later=True,
         )
-        mine = Rejection(rej.ranges[:, v], rej.rejected[:, v], rej.out_of_bounds[:, v])
-        out.append((fix, mine))
-    return out
+        fixes.append(fix)
+    # the hidden-mirror searches of all the stations, their fits solved together
+    return [
+        (fix, Rejection(rej.ranges[:, v], rej.rejected[:, v], rej.out_of_bounds[:, v]))
+        for v, fix in enumerate(finish_mirror_searches(fixes))
+    ]
 
 
 def without_nlos_leak(

@@ -32,11 +32,12 @@ from fabflow.positioning.uwb import (
     sigma_of,
 )
 from fabflow.positioning.uwb_calibration import running_median
-from fabflow.positioning.uwb_platform_adjustment import (
-    PlatformAdjustment,
-    hidden_mirrors,
-    identify_by_refit,
+from fabflow.positioning.uwb_platform_adjustment import PlatformAdjustment, identify_by_refit
+from fabflow.positioning.uwb_platform_mirrors import (
+    MirrorCase,
+    hidden_mirrors_batch,
     mirror_check,
+    with_hidden_mirrors,
 )
 from fabflow.positioning.uwb_platform_model import platform_jacobian, platform_ranges
 from fabflow.positioning.uwb_platform_model import rotz as _rotz
@@ -70,6 +71,9 @@ class PlatformFix:
         link, reliability), what was left out, and the geometry checks.
     converged
         Whether the final Gauss-Newton solve converged.
+    mirror_search
+        The search for hidden mirrors still to be made (:func:`finish_mirror_searches`)
+        when :func:`locate_platform` was asked to leave it to the caller, else ``None``.
     """
 
     state: np.ndarray
@@ -82,6 +86,7 @@ class PlatformFix:
     per_anchor_rms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     integrity: Integrity | None = None
     converged: bool = True
+    mirror_search: MirrorCase | None = None
 
     @property
     def T(self) -> np.ndarray:
@@ -106,6 +111,7 @@ def locate_platform(
     base_lever: np.ndarray | None = None,
     link_sigma: Sigma | np.ndarray | None = None,
     seeds: np.ndarray | None = None,
+    search_later: bool = False,
 ) -> PlatformFix:
     """Estimate a standing platform's ``x, y, z, yaw`` from the ranges of its tags, and test it.
 
@@ -133,9 +139,9 @@ def locate_platform(
     explain the misfit, or none does, the fix fails naming them. A fix that
     passes must also be unique: the tags' mirror image through the plane of the
     anchors used must not fit as well
-    (:func:`~fabflow.positioning.uwb_platform_adjustment.mirror_check`); a
+    (:func:`~fabflow.positioning.uwb_platform_mirrors.mirror_check`); a
     mirror image that one anchor's bias could select unseen
-    (:func:`~fabflow.positioning.uwb_platform_adjustment.hidden_mirrors`) is
+    (:func:`~fabflow.positioning.uwb_platform_mirrors.hidden_mirrors`) is
     recorded as ``checks["mirror_by_one_fault"]`` and raises the protection
     level to the base shift it causes. The guard on exclusions
     (:func:`~fabflow.positioning.integrity.guard_exclusion`) is the caller's.
@@ -179,6 +185,9 @@ def locate_platform(
     seeds
         (n_tags, 3) with ``wls-t``: :func:`median_seeds` of these ranges, when the
         caller solved them for many stations at once; computed here when None.
+    search_later
+        Leave the search for hidden mirrors in ``mirror_search`` for the caller, who
+        makes those of many fixes at once (:func:`finish_mirror_searches`).
 
     Raises
     ------
@@ -260,7 +269,20 @@ def locate_platform(
         )
         use, state, tests, masks = trial.use, trial.state, trial.tests, trial.masks
         iterations, converged = trial.iterations, trial.converged
-    return _finish(adj, (d, link), use, state, tests, excluded, problem, iterations, converged)
+    fix = _finish(adj, (d, link), use, state, tests, excluded, problem, iterations, converged)
+    return fix if search_later else finish_mirror_searches([fix])[0]
+
+
+def finish_mirror_searches(fixes: Sequence[PlatformFix]) -> list[PlatformFix]:
+    """The fixes with their hidden-mirror searches made, all of them at once
+    (:func:`~fabflow.positioning.uwb_platform_mirrors.hidden_mirrors_batch`)."""
+    pending = [k for k, f in enumerate(fixes) if f.mirror_search is not None]
+    found = hidden_mirrors_batch([fixes[k].mirror_search for k in pending])  # type: ignore[misc]
+    out = list(fixes)
+    for k, hidden in zip(pending, found, strict=True):
+        integrity = with_hidden_mirrors(fixes[k].integrity, hidden)  # type: ignore[arg-type]
+        out[k] = replace(fixes[k], integrity=integrity, mirror_search=None)
+    return out
 
 
 def link_means(
@@ -393,6 +415,7 @@ def _finish(
     per_anchor = np.where(n_used > 0, np.sqrt(ss / np.maximum(n_used, 1)), np.nan)
     checks: dict[str, Any] = _geometry(A[np.unique(an)], state)
     integrity = record(tests, excluded, adj.alpha, checks)
+    search: MirrorCase | None = None
     if integrity.status != "failed":
         mirror = mirror_check(adj, use, state, tests)
         integrity = integrity.with_checks(mirror=mirror)
@@ -405,8 +428,8 @@ def _finish(
                 f"(global test {mirror['statistic']:.1f} <= {mirror['threshold']:.1f}), "
                 "so the height is not determined"
             )
-        else:
-            integrity = _with_hidden_mirrors(integrity, hidden_mirrors(adj, use, state))
+        else:  # made at the end (the records below do not read what it adds)
+            search = (adj, use, state)
     if problem:
         integrity = integrity.failing(problem)
     if not determined:
@@ -432,24 +455,8 @@ def _finish(
         per_anchor_rms=per_anchor,
         integrity=integrity,
         converged=converged,
+        mirror_search=search,
     )
-
-
-def _with_hidden_mirrors(integrity: Integrity, hidden: list[dict[str, Any]]) -> Integrity:
-    """The record with the hidden mirrors, its protection level raised to their base shift.
-
-    A hidden mirror (:func:`~fabflow.positioning.uwb_platform_adjustment.hidden_mirrors`)
-    is a fault the tests cannot see at any size; the base shift it causes
-    (metres, horizontal and vertical) bounds the protection level from below.
-    """
-    if not hidden:
-        return integrity
-    pl = dict(integrity.protection_level)
-    for m in hidden:
-        dx, dy, dz = m["base_shift_m"]
-        pl["horizontal"] = max(pl.get("horizontal") or 0.0, math.hypot(dx, dy))
-        pl["vertical"] = max(pl.get("vertical") or 0.0, abs(dz))
-    return replace(integrity.with_checks(mirror_by_one_fault=hidden), protection_level=pl)
 
 
 def rejected_ranges(rejected: np.ndarray, anchor_ids: Sequence[str]) -> dict[str, Any]:

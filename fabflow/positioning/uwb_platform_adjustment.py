@@ -15,9 +15,9 @@ tests and compares fits of any subset of them:
   leaving out each in turn, fitting again and testing (as
   :mod:`fabflow.positioning.registration` does for prism points); an
   exclusion is accepted only when it is the one that explains the misfit;
-- :func:`mirror_check`: whether the reflection of the tags through the plane
-  of the anchors used fits as well (anchors nearly in one plane cannot tell
-  above from below).
+- :func:`reflected`: the pose mirrored through the plane of the anchors used
+  (anchors nearly in one plane cannot tell above from below; the mirror checks
+  are :mod:`fabflow.positioning.uwb_platform_mirrors`').
 """
 
 from __future__ import annotations
@@ -25,28 +25,24 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from scipy import special
 
 from fabflow.errors import LocalizationError
 from fabflow.positioning.integrity import (
-    POWER,
     Covariance,
     Hypothesis,
     TestResult,
     adjustment_test,
-    chi2_quantile,
-    global_passes,
     global_test,
-    noncentrality,
 )
 from fabflow.positioning.uwb import COND_LIMIT
 from fabflow.positioning.uwb_platform_model import (
     platform_information,
     platform_jacobian,
     platform_newton,
+    platform_newton_batch,
     platform_ranges,
     rotz,
 )
@@ -276,6 +272,47 @@ class Trial:
         return (self.tests.statistic - r) / math.sqrt(2.0 * r)
 
 
+def fit_many(
+    cases: Sequence[tuple[PlatformAdjustment, np.ndarray, np.ndarray]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:meth:`PlatformAdjustment.fit` of many ``(adjustment, use, start)`` at once.
+
+    Each case keeps its own links, weights and heading prior (its links padded
+    with weight 0 to the longest);
+    :func:`~fabflow.positioning.uwb_platform_model.platform_newton_batch` solves
+    them together, as many as share an iteration cap.
+
+    Returns
+    -------
+    tuple
+        ``(B, 4)`` states, ``(B,)`` iterations, converged, and solved (``False``
+        where :meth:`PlatformAdjustment.fit` raises :class:`LocalizationError`).
+    """
+    B = len(cases)
+    m = max((adj.d.size for adj, _, _ in cases), default=0)
+    A_link, L_link = np.zeros((B, m, 3)), np.zeros((B, m, 3))
+    d, weight = np.zeros((B, m)), np.zeros((B, m))
+    prior = np.zeros((B, 2))
+    for b, (adj, use, _) in enumerate(cases):
+        k = adj.d.size
+        A_link[b, :k], L_link[b, :k] = adj.anchors[adj.anc_idx], adj.lever_arms[adj.tag_idx]
+        d[b, :k] = adj.d
+        weight[b, :k] = np.where(use, 1.0 / adj.s**2, 0.0)
+        if adj.heading_prior is not None:
+            prior[b] = adj.heading_prior[0], 1.0 / adj.heading_prior[1] ** 2
+    starts = np.array([start for _, _, start in cases], dtype=float).reshape(B, 4)
+    out = np.zeros((B, 4)), np.zeros(B, dtype=int), np.zeros(B, dtype=bool), np.zeros(B, bool)
+    caps = np.array([adj.max_iter for adj, _, _ in cases])
+    for cap in np.unique(caps):
+        b = np.flatnonzero(caps == cap)
+        solved = platform_newton_batch(
+            A_link[b], L_link[b], d[b], weight[b], starts[b], prior[b], int(cap)
+        )
+        for into, part in zip(out, solved, strict=True):
+            into[b] = part
+    return out
+
+
 def identify_by_refit(
     adj: PlatformAdjustment,
     use: np.ndarray,
@@ -360,7 +397,7 @@ def _refit(
     fits = []
     try:
         fits.append(adj.fit(use, state))
-        fits.append(adj.fit(use, _reflected(adj, use, fits[0][0])[0]))
+        fits.append(adj.fit(use, reflected(adj, use, fits[0][0])[0]))
     except LocalizationError:
         if not fits:
             return None
@@ -368,7 +405,7 @@ def _refit(
     return min(trials, key=lambda t: (not t.converged, t.tests.statistic))
 
 
-def _reflected(
+def reflected(
     adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray
 ) -> tuple[np.ndarray, float]:
     """The pose mirrored through the plane of the anchors ``use`` reaches, and its distance.
@@ -392,142 +429,3 @@ def _reflected(
 def _strict_subset(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether the ranges ``a`` are a proper subset of the ranges ``b`` (masks)."""
     return bool(np.all(b[a]) and b.sum() > a.sum())
-
-
-def mirror_check(
-    adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray, tests: TestResult | None = None
-) -> dict[str, Any]:
-    """Whether the tags' reflection through the plane of the anchors used fits as well.
-
-    Anchors nearly in one plane (three always are; A1-A3 at one height once A4
-    is left out) give the same ranges to a point and to its mirror image
-    through their plane: the height above them is then not determined by the
-    ranges. The check reflects the tags' centroid through the anchors'
-    best-fit plane, fits the pose again from there (:meth:`PlatformAdjustment.fit`,
-    the heading free to follow) and tests it. The fix is ambiguous when that fit
-    converges to a different pose (the difference in ``x, y, z`` beyond the
-    chi-square(3) critical value at ``alpha`` of the fix's own covariance),
-    passes its global test, and fits the ranges worse than the fix by less than
-    Baarda's ``lambda_0`` (:func:`~fabflow.positioning.integrity.noncentrality`
-    at the w-tests' level and ``POWER``, one degree of freedom: 22.8 for 12
-    hypotheses at ``alpha`` = 0.001), the misfit a just-detectable bias leaves.
-    A mirror that much worse is told apart by the ranges (the level platform,
-    the anchors off their plane); one within it is not.
-
-    ``tests``, the tests of the ranges ``use`` at ``state`` when the caller has
-    them (:meth:`PlatformAdjustment.tests`), saves computing them again.
-
-    Returns
-    -------
-    dict
-        ``passed`` (no second solution), ``plane_distance_m`` (the tags'
-        centroid from the anchors' plane), and, when a mirror fit was made,
-        ``statistic``, ``threshold`` (its global test), ``worse_by`` (its
-        statistic minus the fix's) and ``limit`` (``lambda_0``), ``offset_m``
-        (``x, y, z`` of the mirror fit minus the fix, metres), ``distinct``.
-    """
-    return _mirror(adj, use, state, tests)[0]
-
-
-def hidden_mirrors(
-    adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray
-) -> list[dict[str, Any]]:
-    """Mirror solutions one anchor's bias would select without failing a test.
-
-    When the anchors but one lie nearly in one plane (A1-A3 at one height, A4
-    above), that one alone tells the side: a bias on it as large as the
-    difference of its ranges between the two sides (about 0.5 m in the cabin)
-    moves the fix to the mirror image, and the tests, which see a consistent
-    solution, pass. The linear reliability (MDB, protection level) cannot see
-    such a jump. For every anchor used whose removal leaves three or more, the
-    fit without it (from the fix) is checked with :func:`mirror_check`; a second
-    solution found there is such a hidden mirror.
-
-    Returns
-    -------
-    list of dict
-        Per hidden mirror: ``anchor`` (its name), ``bias_m`` (the
-        mean residual of its ranges at the mirror: the bias that selects it),
-        ``base_shift_m`` (``x, y, z`` of the arm base at the mirror minus at the
-        fix, metres).
-    """
-    found = []
-    for j in adj.anchors_used(use):
-        mask = use & (adj.anc_idx == j)
-        rest = use & ~mask
-        if adj.n_anchors_used(rest) < 3 or not adj.determined(rest, state):
-            continue
-        try:
-            near, _, converged = adj.fit(rest, state)
-        except LocalizationError:
-            continue
-        if not converged:  # no fix without the anchor to mirror
-            continue
-        check, mirror = _mirror(adj, rest, near, decision_only=True)
-        if check["passed"] or mirror is None:
-            continue
-        residual = adj.raw_mean[mask] - platform_ranges(
-            adj.anchors, adj.lever_arms, mirror, adj.tag_idx[mask], adj.anc_idx[mask]
-        )
-        shift = _base(adj, mirror) - _base(adj, state)
-        found.append(
-            {
-                "anchor": adj.ids[j],
-                "bias_m": float(np.average(residual, weights=adj.count[mask])),
-                "base_shift_m": [float(x) for x in shift],
-            }
-        )
-    return found
-
-
-def _base(adj: PlatformAdjustment, state: np.ndarray) -> np.ndarray:
-    """The arm base position (metres, anchors' frame) at ``state``."""
-    return state[:3] + rotz(float(state[3])) @ adj.lever
-
-
-def _mirror(
-    adj: PlatformAdjustment,
-    use: np.ndarray,
-    state: np.ndarray,
-    tests: TestResult | None = None,
-    decision_only: bool = False,
-) -> tuple[dict[str, Any], np.ndarray | None]:
-    """:func:`mirror_check` and the mirror fit's state (``None`` when it failed to solve).
-
-    With ``decision_only``, a mirror fit that did not converge or came back to
-    the fix is reported as ``passed`` without its tests (they cannot change that).
-    """
-    start, h = _reflected(adj, use, state)
-    out: dict[str, Any] = {"passed": True, "plane_distance_m": h}
-    try:
-        mirror, _, converged = adj.fit(use, start)
-    except LocalizationError:
-        return out, None
-    info = adj.information(use, state)
-    if not adj.heading_observed:
-        info = info[:3, :3]
-    cov = np.linalg.pinv(info)[:3, :3]
-    dp = mirror[:3] - state[:3]
-    distinct = float(dp @ np.linalg.pinv(cov) @ dp) > chi2_quantile(3, adj.alpha)
-    if decision_only and not (converged and distinct):
-        return out, mirror
-    # the global tests decide; the w-tests are not needed
-    redundancy, statistic, threshold = adj.global_test(use, mirror)
-    if tests is not None:
-        main_statistic, n_hypotheses = tests.statistic, len(tests.labels)
-    else:
-        main_statistic = adj.global_test(use, state)[1]
-        n_hypotheses = adj.n_hypotheses(use)
-    worse_by = statistic - main_statistic
-    limit = noncentrality(adj.alpha / max(n_hypotheses, 1), POWER, 1)
-    global_passed = global_passes(redundancy, statistic, threshold)
-    out.update(
-        statistic=statistic,
-        threshold=threshold,
-        worse_by=worse_by,
-        limit=limit,
-        offset_m=[float(x) for x in dp],
-        distinct=distinct,
-        passed=not (converged and distinct and global_passed and worse_by < limit),
-    )
-    return out, mirror

@@ -4,8 +4,10 @@ A level platform stands at ``x, y, z, yaw`` (anchors' frame, metres and
 radians); tag ``k`` sits at the lever arm ``l_k`` (platform frame), so the range
 of tag ``k`` to anchor ``j`` is ``|p + R(yaw) l_k - a_j|``. Here are that
 range, its first and second derivatives, the information of white ranges and
-the solve; :mod:`fabflow.positioning.uwb_platform_adjustment` tests and
-compares fits with them.
+the solve, of many problems at once (:func:`platform_newton_batch`: a simulated
+run's hidden-mirror searches, some 170 fits, in a dozen iterations of array
+operations) or of one; :mod:`fabflow.positioning.uwb_platform_adjustment` tests
+and compares fits with them.
 """
 
 from __future__ import annotations
@@ -54,12 +56,12 @@ def platform_jacobian(
 
 
 def _jacobian(lever: np.ndarray, diff: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """(m, 4) the ranges' derivative from :func:`_links`: the unit vectors ``u`` from
-    the anchors, and in yaw ``u . dp/dyaw`` with ``dp/dyaw = (-lever_y, lever_x, 0)``."""
-    J = np.empty((len(diff), 4))
-    u = J[:, :3]
-    np.divide(diff, np.maximum(dist, 1e-9)[:, None], out=u)
-    J[:, 3] = u[:, 1] * lever[:, 0] - u[:, 0] * lever[:, 1]
+    """(..., m, 4) the ranges' derivative from :func:`_links`: the unit vectors ``u``
+    from the anchors, and in yaw ``u . dp/dyaw`` with ``dp/dyaw = (-lever_y, lever_x, 0)``."""
+    J = np.empty((*diff.shape[:-1], 4))
+    u = J[..., :3]
+    np.divide(diff, np.maximum(dist, 1e-9)[..., None], out=u)
+    J[..., 3] = u[..., 1] * lever[..., 0] - u[..., 0] * lever[..., 1]
     return J
 
 
@@ -84,27 +86,40 @@ def range_curvature(
     return out
 
 
+_SCATTER = np.zeros((4, 16))
+"""Where the four sums of :func:`_weighted_curvature` go in the flattened 4x4."""
+_SCATTER[0, [0, 5, 10]] = 1.0  # sum a, on the x, y, z diagonal
+_SCATTER[1, [3, 12]] = 1.0  # sum a g_x, x-yaw
+_SCATTER[2, [7, 13]] = 1.0  # sum a g_y, y-yaw
+_SCATTER[3, 15] = 1.0  # yaw-yaw
+
+
 def _weighted_curvature(
     lever: np.ndarray, dist: np.ndarray, weight: np.ndarray, J: np.ndarray
 ) -> np.ndarray:
-    """``sum_m weight_m`` times :func:`range_curvature` of link ``m`` (4, 4), in closed form.
+    """``sum_m weight_m`` times :func:`range_curvature` of link ``m`` (..., 4, 4), in closed form.
 
     With ``G = [I | g]`` (``g = dp/dyaw = (-lever_y, lever_x, 0)``, :func:`_links`)
     and ``J = G^T u`` the Jacobian's rows (:func:`_jacobian`; its first three
     columns are the unit vectors ``u``):
     ``sum a G^T G = [[sum a I, sum a g], [sum a g^T, sum a |g|^2]]`` and
-    ``sum a (G^T u)(G^T u)^T = J^T diag(a) J`` with ``a = weight / range``; no
-    (m, 4, 4) stack (a platform's Newton solve makes thousands of these a run).
+    ``sum a (G^T u)(G^T u)^T = J^T diag(a) J`` with ``a = weight / range``, and
+    ``u . d2p/dyaw2 = -(u_x lever_x + u_y lever_y)`` in yaw-yaw; no (m, 4, 4)
+    stack (a platform's Newton solve makes thousands of these a run). Leading
+    axes (``lever (..., m, 3)``, ``dist`` and ``weight (..., m)``, ``J (..., m, 4)``)
+    are problems solved together.
     """
     a = weight / np.maximum(dist, 1e-9)
-    x, y = lever[:, 0], lever[:, 1]
-    out = np.zeros((4, 4))
-    out[0, 0] = out[1, 1] = out[2, 2] = a.sum()
-    out[0, 3] = out[3, 0] = -(a @ y)
-    out[1, 3] = out[3, 1] = a @ x
-    out[3, 3] = a @ (y * y + x * x)
-    out -= J.T @ (J * a[:, None])
-    out[3, 3] -= weight @ (J[:, 0] * x + J[:, 1] * y)
+    x, y = lever[..., 0], lever[..., 1]
+    K = np.empty((*x.shape, 4))
+    K[..., 0] = 1.0
+    np.negative(y, out=K[..., 1])
+    K[..., 2] = x
+    # a |g|^2 - weight u . (x, y) = a (|g|^2 - range u . (x, y))
+    K[..., 3] = x * x + y * y - np.maximum(dist, 1e-9) * (J[..., 0] * x + J[..., 1] * y)
+    sums = (a[..., None, :] @ K)[..., 0, :]
+    out = (sums @ _SCATTER).reshape(*sums.shape[:-1], 4, 4)
+    out -= J.swapaxes(-1, -2) @ (J * a[..., None])
     return out
 
 
@@ -140,61 +155,162 @@ def platform_newton(
 
     Newton's step where its Hessian is positive definite, else Gauss-Newton's;
     each step is scaled back (halved, up to 7 times) until it lowers the cost; the
-    solve has converged when a step is negligible against its own uncertainty.
+    solve has converged when a step is negligible against its own uncertainty
+    (:func:`platform_newton_batch` with one problem).
 
     Raises
     ------
     LocalizationError
         The normal matrix is singular (the geometry does not determine the pose).
     """
-    state = np.array(state, dtype=float)
-    weight = 1.0 / s**2
+    prior = np.zeros((1, 2))
+    if heading_prior is not None:
+        prior[0] = heading_prior[0], 1.0 / heading_prior[1] ** 2
+    states, iterations, converged, solved = platform_newton_batch(
+        A[anc_idx][None], L[tag_idx][None], np.asarray(d, dtype=float)[None],
+        1.0 / np.asarray(s, dtype=float)[None] ** 2, np.asarray(state, dtype=float)[None],
+        prior, max_iter,
+    )  # fmt: skip
+    if not solved[0]:
+        raise LocalizationError("the tag and anchor geometry does not determine the platform pose")
+    return states[0], int(iterations[0]), bool(converged[0])
 
-    A_link = A[anc_idx]
 
-    def evaluate(x: np.ndarray) -> tuple[float, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """The cost at ``x`` and the links there (the next iteration starts from them)."""
-        links = _links_at(A_link, L, x, tag_idx)
-        r = (d - links[2]) / s
-        c = float(r @ r)
-        if heading_prior is not None:
-            c += (
-                float(np.angle(np.exp(1j * (heading_prior[0] - x[3])))) ** 2 / heading_prior[1] ** 2
-            )
-        return c, links
+def platform_newton_batch(
+    A_link: np.ndarray,
+    L_link: np.ndarray,
+    d: np.ndarray,
+    weight: np.ndarray,
+    starts: np.ndarray,
+    heading_prior: np.ndarray,
+    max_iter: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Damped Newton of ``B`` problems at once, each over its own links.
 
-    cost, links = evaluate(state)
+    Problem ``b`` fits ``x, y, z, yaw`` (its anchors' frame, metres and radians)
+    to the link ranges ``d[b]`` with the weights ``weight[b]`` (``1 / s^2``; 0
+    for a link it leaves out, or padding) from ``starts[b]``; its links' anchors
+    and lever arms are ``A_link[b]`` and ``L_link[b]`` (m, 3). ``heading_prior``
+    is ``(B, 2)``: the prior's yaw and its weight ``1 / sigma^2`` (0 for none).
+    Per problem: Newton's step where its Hessian is positive definite (beyond
+    ``1e-9`` of the normal matrix's trace), else Gauss-Newton's; the full step
+    if it lowers the cost, else the first of its halvings (up to 7) that does
+    (none: the problem stops, not converged); converged when a step is
+    negligible against its own uncertainty (``step^T N step < 1e-10`` or
+    ``|step| < 1e-8``). The problems share each iteration's array operations,
+    so a few hundred solve in about the time of a few. A finished problem
+    keeps its state.
+
+    Returns
+    -------
+    tuple
+        ``(B, 4)`` states, ``(B,)`` iterations, ``(B,)`` converged and ``(B,)``
+        solved: ``False`` where the normal matrix was singular (the geometry does
+        not determine the pose; the state is the last iterate).
+    """
+    state = np.array(starts, dtype=float)
+    B = len(state)
+    prior_yaw, prior_w = heading_prior[:, 0], heading_prior[:, 1]
+    with_prior = bool(np.any(prior_w > 0))
+    # the rotated lever arm is cos(yaw) L_c + sin(yaw) L_s + L_z, per link
+    L_c = L_link * np.array([1.0, 1.0, 0.0])
+    L_s = L_link[..., [1, 0, 2]] * np.array([-1.0, 1.0, 0.0])
+    L_z = L_link * np.array([0.0, 0.0, 1.0])
+    scales = 0.5 ** np.arange(8)
+    eye = np.eye(4)
+
+    def links(x: np.ndarray, k: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Lever arms and anchor-to-tag vectors ``(B, ..., m, 3)`` and ranges at ``x``
+        ``(B, ..., 4)``; ``k`` indexes the per-link arrays to broadcast with ``x``."""
+        yaw = x[..., 3, None, None]
+        lever = np.cos(yaw) * L_c[k] + np.sin(yaw) * L_s[k] + L_z[k]
+        diff = (x[..., None, :3] - A_link[k]) + lever
+        return lever, diff, np.sqrt(np.add.reduce(diff * diff, axis=-1))
+
+    def cost_of(x: np.ndarray, dist: np.ndarray, k: tuple) -> np.ndarray:
+        """Weighted squared residuals at ``x`` plus the heading prior's term."""
+        r = d[k] - dist
+        c = np.add.reduce(weight[k] * r * r, axis=-1)
+        if with_prior:
+            c += prior_w[k] * _wrap(prior_yaw[k] - x[..., 3]) ** 2
+        return c
+
+    now = (slice(None),)
+    lever, diff, dist = links(state, now)
+    cost = cost_of(state, dist, now)
+    iterations = np.full(B, max_iter)
+    converged = np.zeros(B, dtype=bool)
+    solved = np.ones(B, dtype=bool)
+    active = np.ones(B, dtype=bool)
     for iteration in range(1, max_iter + 1):
-        lever, diff, dist = links
         J = _jacobian(lever, diff, dist)
         r = d - dist
-        Wj = J * weight[:, None]
-        M = J.T @ Wj
-        g = Wj.T @ r
-        if heading_prior is not None:
-            w = 1.0 / heading_prior[1] ** 2
-            M[3, 3] += w
-            g[3] += w * (np.angle(np.exp(1j * (heading_prior[0] - state[3]))))
-        # Newton's Hessian adds the ranges' curvature, which Gauss-Newton drops: with
-        # residuals not small against it (height over anchors near one plane) Gauss-
-        # Newton only creeps, as the per-tag fixes of positioning.uwb also find.
+        Wj = J * weight[..., None]
+        M = J.swapaxes(-1, -2) @ Wj
+        g = (Wj.swapaxes(-1, -2) @ r[..., None])[..., 0]
+        if with_prior:
+            M[:, 3, 3] += prior_w
+            g[:, 3] += prior_w * _wrap(prior_yaw - state[:, 3])
         H = M - _weighted_curvature(lever, dist, r * weight, J)
-        if np.linalg.eigvalsh(H)[0] <= 1e-9 * np.trace(M):
-            H = M
-        try:
-            step = np.linalg.solve(H, g)
+        shift = 1e-9 * np.trace(M, axis1=1, axis2=2)
+        try:  # positive definite beyond the shift: a Cholesky factor exists (all, mostly)
+            np.linalg.cholesky(H - shift[:, None, None] * eye)
+            newton = np.ones(B, dtype=bool)
         except np.linalg.LinAlgError:
-            raise LocalizationError(
-                "the tag and anchor geometry does not determine the platform pose"
-            ) from None
-        if float(step @ M @ step) < 1e-10 or np.linalg.norm(step) < 1e-8:
-            return state, iteration, True
-        for scale in 0.5 ** np.arange(8):
-            trial = state + scale * step
-            new, trial_links = evaluate(trial)
-            if new <= cost:
-                state, cost, links = trial, new, trial_links
-                break
-        else:
-            return state, iteration, False
-    return state, max_iter, False
+            newton = np.linalg.eigvalsh(H)[:, 0] > shift
+        # a finished problem solves with I: a singular one must not hold the others up
+        H = np.where(newton[:, None, None], H, M)
+        H = np.where(active[:, None, None], H, eye)
+        step, ok = _solve_each(H, g)
+        failed = active & ~ok
+        solved[failed], iterations[failed] = False, iteration
+        quad = (step[:, None, :] @ M @ step[:, :, None])[:, 0, 0]
+        small = (quad < 1e-10) | (np.sqrt(np.add.reduce(step * step, axis=1)) < 1e-8)
+        done = active & ok & small
+        converged[done], iterations[done] = True, iteration
+        active &= ok & ~small
+        if not active.any():
+            break
+        # the full step first; the halved ones only where it does not lower the cost
+        trial = state + step
+        t_lever, t_diff, t_dist = links(trial, now)
+        new = cost_of(trial, t_dist, now)
+        take = active & (new <= cost)
+        state[take], cost[take] = trial[take], new[take]
+        lever[take], diff[take], dist[take] = t_lever[take], t_diff[take], t_dist[take]
+        back = np.flatnonzero(active & ~take)
+        if back.size:
+            k = (back, None)
+            trials = state[k] + scales[1:, None] * step[k]
+            b_lever, b_diff, b_dist = links(trials, k)
+            b_new = cost_of(trials, b_dist, k)
+            lower = b_new <= cost[k]
+            first = np.argmax(lower, axis=1)
+            found = lower[np.arange(back.size), first]
+            iterations[back[~found]] = iteration  # no scale lowers the cost: not converged
+            active[back[~found]] = False
+            pick, rows_b = (np.flatnonzero(found), first[found]), back[found]
+            state[rows_b], cost[rows_b] = trials[pick], b_new[pick]
+            lever[rows_b], diff[rows_b], dist[rows_b] = b_lever[pick], b_diff[pick], b_dist[pick]
+        if not active.any():
+            break
+    return state, iterations, converged, solved
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    """Angles (radians) wrapped to ``(-pi, pi]`` as :func:`platform_newton` wraps them."""
+    return np.angle(np.exp(1j * angle))
+
+
+def _solve_each(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``H^-1 g`` per problem ``(B, 4)`` and whether it could be solved (``H`` not singular)."""
+    try:
+        return np.linalg.solve(H, g[..., None])[..., 0], np.ones(len(H), dtype=bool)
+    except np.linalg.LinAlgError:
+        step, ok = np.zeros_like(g), np.ones(len(H), dtype=bool)
+        for b in range(len(H)):  # only when one of them is singular: find which
+            try:
+                step[b] = np.linalg.solve(H[b], g[b])
+            except np.linalg.LinAlgError:
+                ok[b] = False
+        return step, ok

@@ -302,3 +302,92 @@ def test_the_hypotheses_are_counted_as_they_are_made(seed: int, n_tags: int, n_a
     for _ in range(5):
         use = rng.random(m) < rng.uniform(0.3, 1.0)
         assert adj.n_hypotheses(use) == len(adj.hypotheses(use)[0])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 12))
+def test_the_batched_newton_solve_is_each_problems_own(seed: int, n: int) -> None:
+    # problems with their own anchors, links left out, heading priors and starts,
+    # padded to one length: each ends where platform_newton ends alone (the sums'
+    # rounding can take one more or one less of the last, negligible steps); a
+    # singular one is flagged, not raised
+    from fabflow.errors import LocalizationError
+    from fabflow.positioning.uwb_platform_model import (
+        platform_newton,
+        platform_newton_batch,
+        platform_ranges,
+    )
+
+    rng = np.random.default_rng(seed)
+    m = 2 * 6
+    A_link, L_link = np.zeros((n, m, 3)), np.zeros((n, m, 3))
+    d, weight, starts, prior = (
+        np.zeros((n, m)),
+        np.zeros((n, m)),
+        np.zeros((n, 4)),
+        np.zeros((n, 2)),
+    )
+    alone = []
+    for b in range(n):
+        k = int(rng.integers(3, 7))  # anchors of this problem
+        A = rng.uniform([-8, -8, 0.5], [8, 8, 3.5], (k, 3))
+        tag_idx, anc_idx = np.repeat([0, 1], k), np.tile(np.arange(k), 2)
+        truth = np.r_[rng.uniform(-2, 2, 2), 0.0, rng.uniform(-np.pi, np.pi)]
+        dd = platform_ranges(A, TAGS, truth, tag_idx, anc_idx) + rng.normal(0, 0.03, 2 * k)
+        s = rng.uniform(0.01, 0.05, 2 * k)
+        use = rng.random(2 * k) > 0.2
+        use[:k] = use[k : k + 2] = True  # all anchors from tag 0, two from tag 1: determined
+        if rng.random() < 0.15:
+            use[:] = False  # no ranges: the normal matrix is singular
+        start = truth + rng.normal(0.0, [0.3, 0.3, 0.3, 0.2])
+        hp = (float(truth[3]), 0.05) if rng.random() < 0.3 else None
+        A_link[b, : 2 * k], L_link[b, : 2 * k] = A[anc_idx], TAGS[tag_idx]
+        d[b, : 2 * k], weight[b, : 2 * k] = dd, np.where(use, 1.0 / s**2, 0.0)
+        starts[b] = start
+        if hp is not None:
+            prior[b] = hp[0], 1.0 / hp[1] ** 2
+        try:
+            alone.append(
+                platform_newton(A, TAGS, dd[use], s[use], tag_idx[use], anc_idx[use], start, hp, 20)
+            )
+        except LocalizationError:
+            alone.append(None)
+    states, iterations, converged, solved = platform_newton_batch(
+        A_link, L_link, d, weight, starts, prior, 20
+    )
+    for b, single in enumerate(alone):
+        assert solved[b] == (single is not None)
+        if single is None:
+            continue
+        assert converged[b] == single[2] and abs(iterations[b] - single[1]) <= 1
+        np.testing.assert_allclose(states[b], single[0], rtol=0, atol=1e-7)
+
+
+def test_the_hidden_mirrors_of_many_fixes_are_each_fixs_own() -> None:
+    # a simulated run's visits search together; the padding of fixes with
+    # fewer links (an anchor out of sight) changes nothing
+    from fabflow.positioning.uwb_platform import finish_mirror_searches
+
+    cases = []
+    for seed, anchors in enumerate([PAPER_ANCHORS_3D, ANCHORS_5, PAPER_ANCHORS_3D, ANCHORS_5]):
+        r = _ranges(anchors, seed)
+        if seed == 3:
+            r[:, 1, 4] = np.nan  # tag 1 does not see the fifth anchor
+        cases.append((anchors, r))
+    alone = [_fix(a, r) for a, r in cases]
+    later = [_fix(a, r, search_later=True) for a, r in cases]
+    assert all(f.mirror_search is not None for f in later)
+    together = finish_mirror_searches(later)
+    assert any("mirror_by_one_fault" in f.integrity.checks for f in alone)
+    for a, t in zip(alone, together, strict=True):
+        assert t.mirror_search is None
+        assert a.integrity.status == t.integrity.status
+        assert a.integrity.checks.keys() == t.integrity.checks.keys()
+        for m, n in zip(
+            a.integrity.checks.get("mirror_by_one_fault", []),
+            t.integrity.checks.get("mirror_by_one_fault", []),
+            strict=True,
+        ):
+            assert m["anchor"] == n["anchor"]
+            np.testing.assert_allclose(m["base_shift_m"], n["base_shift_m"], atol=1e-9)
+        assert a.integrity.protection_level == pytest.approx(t.integrity.protection_level)
