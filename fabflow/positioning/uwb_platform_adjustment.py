@@ -272,6 +272,35 @@ class Trial:
         return (self.tests.statistic - r) / math.sqrt(2.0 * r)
 
 
+def padded_links(cases: Sequence[tuple[PlatformAdjustment, np.ndarray]]) -> dict[str, np.ndarray]:
+    """The links of many ``(adjustment, use)`` as arrays padded to the longest.
+
+    Returns
+    -------
+    dict
+        ``A_link``, ``L_link`` ``(B, m, 3)``: each link's anchor and lever arm
+        (metres); ``d``, ``s`` ``(B, m)``: its mean range and that mean's standard
+        deviation (metres; padding 0 and 1); ``use`` ``(B, m)``: used (padding
+        ``False``); ``weight``: ``1 / s^2`` where used, else 0; ``anchor``: its
+        anchor (index; padding 0).
+    """
+    B = len(cases)
+    m = max((adj.d.size for adj, _ in cases), default=0)
+    out = {
+        "A_link": np.zeros((B, m, 3)), "L_link": np.zeros((B, m, 3)), "d": np.zeros((B, m)),
+        "s": np.ones((B, m)), "use": np.zeros((B, m), dtype=bool),
+        "anchor": np.zeros((B, m), dtype=int),
+    }  # fmt: skip
+    for b, (adj, use) in enumerate(cases):
+        k = adj.d.size
+        out["A_link"][b, :k] = adj.anchors[adj.anc_idx]
+        out["L_link"][b, :k] = adj.lever_arms[adj.tag_idx]
+        out["d"][b, :k], out["s"][b, :k], out["use"][b, :k] = adj.d, adj.s, use
+        out["anchor"][b, :k] = adj.anc_idx
+    out["weight"] = np.where(out["use"], 1.0 / out["s"] ** 2, 0.0)
+    return out
+
+
 def fit_many(
     cases: Sequence[tuple[PlatformAdjustment, np.ndarray, np.ndarray]],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -289,15 +318,10 @@ def fit_many(
         where :meth:`PlatformAdjustment.fit` raises :class:`LocalizationError`).
     """
     B = len(cases)
-    m = max((adj.d.size for adj, _, _ in cases), default=0)
-    A_link, L_link = np.zeros((B, m, 3)), np.zeros((B, m, 3))
-    d, weight = np.zeros((B, m)), np.zeros((B, m))
+    links = padded_links([(adj, use) for adj, use, _ in cases])
+    A_link, L_link, d, weight = links["A_link"], links["L_link"], links["d"], links["weight"]
     prior = np.zeros((B, 2))
-    for b, (adj, use, _) in enumerate(cases):
-        k = adj.d.size
-        A_link[b, :k], L_link[b, :k] = adj.anchors[adj.anc_idx], adj.lever_arms[adj.tag_idx]
-        d[b, :k] = adj.d
-        weight[b, :k] = np.where(use, 1.0 / adj.s**2, 0.0)
+    for b, (adj, _, _) in enumerate(cases):
         if adj.heading_prior is not None:
             prior[b] = adj.heading_prior[0], 1.0 / adj.heading_prior[1] ** 2
     starts = np.array([start for _, _, start in cases], dtype=float).reshape(B, 4)

@@ -29,8 +29,13 @@ from fabflow.positioning.integrity import (
     global_passes,
     noncentrality,
 )
-from fabflow.positioning.uwb_platform_adjustment import PlatformAdjustment, fit_many, reflected
-from fabflow.positioning.uwb_platform_model import platform_ranges, rotz
+from fabflow.positioning.uwb_platform_adjustment import (
+    PlatformAdjustment,
+    fit_many,
+    padded_links,
+    reflected,
+)
+from fabflow.positioning.uwb_platform_model import platform_jacobians, platform_ranges, rotz
 
 MirrorCase = tuple[PlatformAdjustment, np.ndarray, np.ndarray]
 """A fix to search: its adjustment, the links it uses (mask) and its state ``x, y, z, yaw``."""
@@ -73,7 +78,7 @@ def mirror_check(
         mirror, _, converged = adj.fit(use, start)
     except LocalizationError:
         return {"passed": True, "plane_distance_m": h}
-    return _judged(adj, use, state, mirror, converged, h, tests)
+    return _verdicts([(adj, use, state, mirror, converged, h)], [tests])[0]
 
 
 def hidden_mirrors(
@@ -127,16 +132,19 @@ def hidden_mirrors_batch(cases: Sequence[MirrorCase]) -> list[list[dict[str, Any
             for i, (start, _) in zip(fixed, starts, strict=True)
         ]
     )
+    checks = _verdicts(
+        [
+            (cases[searches[i][0]][0], searches[i][1], near[i], mirrors[k],
+             bool(mirror_converged[k]), starts[k][1])
+            for k, i in enumerate(fixed)
+        ],
+        [None] * len(fixed),
+        decision_only=True,
+    )  # fmt: skip
     for k, i in enumerate(fixed):
         c, rest = searches[i]
         adj, use, state = cases[c]
-        if not mirror_solved[k]:
-            continue
-        check = _judged(
-            adj, rest, near[i], mirrors[k], bool(mirror_converged[k]), starts[k][1],
-            decision_only=True,
-        )  # fmt: skip
-        if check["passed"]:
+        if not mirror_solved[k] or checks[k]["passed"]:
             continue
         mask = use & ~rest
         residual = adj.raw_mean[mask] - platform_ranges(
@@ -175,48 +183,101 @@ def _base(adj: PlatformAdjustment, state: np.ndarray) -> np.ndarray:
     return state[:3] + rotz(float(state[3])) @ adj.lever
 
 
-def _judged(
-    adj: PlatformAdjustment,
-    use: np.ndarray,
-    state: np.ndarray,
-    mirror: np.ndarray,
-    converged: bool,
-    plane_distance: float,
-    tests: TestResult | None = None,
-    decision_only: bool = False,
-) -> dict[str, Any]:
-    """:func:`mirror_check`'s verdict on the fit ``mirror`` (converged or not) made from
-    the reflection of the fix ``state``, ``plane_distance`` metres from the anchors' plane.
+MirrorFit = tuple[PlatformAdjustment, np.ndarray, np.ndarray, np.ndarray, bool, float]
+"""A mirror fit to judge: adjustment, links used, the fix, the fit from its reflection,
+whether that converged, and the tags' distance from the anchors' plane (metres)."""
 
-    With ``decision_only``, a mirror fit that did not converge or came back to
-    the fix is reported as ``passed`` without its tests (they cannot change that).
+
+def _verdicts(
+    fits: Sequence[MirrorFit],
+    tests: Sequence[TestResult | None],
+    decision_only: bool = False,
+) -> list[dict[str, Any]]:
+    """:func:`mirror_check`'s verdict on each mirror fit, all of them at once.
+
+    ``tests``: per fit, the tests of the fix when the caller has them. With
+    ``decision_only``, a mirror fit that did not converge or came back to the
+    fix is reported as ``passed`` without its tests (they cannot change that).
+    The global tests' statistic ``v^T Q^-1 v`` is Woodbury's with
+    ``Q = diag(s^2) + U diag(b^2) U^T``: each link has one anchor, so
+    ``U^T diag(s^-2) U`` is diagonal and the statistic is
+    ``sum v^2 / s^2 - sum_a z_a^2 / (1 / b_a^2 + c_a)`` with ``z_a``, ``c_a`` the
+    sums of ``v / s^2`` and ``1 / s^2`` over anchor ``a``'s links.
     """
-    out: dict[str, Any] = {"passed": True, "plane_distance_m": plane_distance}
-    info = adj.information(use, state)
-    if not adj.heading_observed:
-        info = info[:3, :3]
-    cov = np.linalg.pinv(info)[:3, :3]
-    dp = mirror[:3] - state[:3]
-    distinct = float(dp @ np.linalg.pinv(cov) @ dp) > chi2_quantile(3, adj.alpha)
-    if decision_only and not (converged and distinct):
+    links = padded_links([(f[0], f[1]) for f in fits])
+    fix = np.array([f[2] for f in fits], dtype=float).reshape(-1, 4)
+    mirror = np.array([f[3] for f in fits], dtype=float).reshape(-1, 4)
+    converged = np.array([f[4] for f in fits], dtype=bool)
+    observed = np.array([f[0].heading_observed for f in fits], dtype=bool)
+    # the fix's covariance in x, y, z from its white ranges (and the heading prior)
+    J, _ = platform_jacobians(links["A_link"], links["L_link"], fix)
+    info = J.swapaxes(-1, -2) @ (J * links["weight"][..., None])
+    info[:, 3, 3] += [
+        0.0 if f[0].heading_prior is None else f[0].heading_prior[1] ** -2 for f in fits
+    ]
+    info[~observed, 3, :] = info[~observed, :, 3] = 0.0  # the heading is not a parameter
+    cov = np.linalg.pinv(info)[:, :3, :3]
+    dp = mirror[:, :3] - fix[:, :3]
+    distance = (dp[:, None, :] @ np.linalg.pinv(cov) @ dp[:, :, None])[:, 0, 0]
+    distinct = distance > np.array([chi2_quantile(3, f[0].alpha) for f in fits])
+    out: list[dict[str, Any]] = [{"passed": True, "plane_distance_m": f[5]} for f in fits]
+    judged = np.flatnonzero(converged & distinct) if decision_only else np.arange(len(fits))
+    if judged.size == 0:
         return out
     # the global tests decide; the w-tests are not needed
-    redundancy, statistic, threshold = adj.global_test(use, mirror)
-    if tests is not None:
-        main_statistic, n_hypotheses = tests.statistic, len(tests.labels)
-    else:
-        main_statistic = adj.global_test(use, state)[1]
-        n_hypotheses = adj.n_hypotheses(use)
-    worse_by = statistic - main_statistic
-    limit = noncentrality(adj.alpha / max(n_hypotheses, 1), POWER, 1)
-    global_passed = global_passes(redundancy, statistic, threshold)
-    out.update(
-        statistic=statistic,
-        threshold=threshold,
-        worse_by=worse_by,
-        limit=limit,
-        offset_m=[float(x) for x in dp],
-        distinct=distinct,
-        passed=not (converged and distinct and global_passed and worse_by < limit),
-    )
+    redundancy, statistic = _global_tests(links, judged, mirror[judged], observed, fits)
+    main = np.array([np.nan if tests[i] is None else tests[i].statistic for i in judged])
+    untested = np.flatnonzero(np.isnan(main))
+    if untested.size:
+        main[untested] = _global_tests(
+            links, judged[untested], fix[judged[untested]], observed, fits
+        )[1]
+    for k, i in enumerate(judged):
+        adj, use = fits[i][0], fits[i][1]
+        n_hypotheses = adj.n_hypotheses(use) if tests[i] is None else len(tests[i].labels)
+        r = int(redundancy[k])
+        threshold = chi2_quantile(r, adj.alpha) if r > 0 else math.inf
+        worse_by = float(statistic[k] - main[k])
+        limit = noncentrality(adj.alpha / max(n_hypotheses, 1), POWER, 1)
+        global_passed = global_passes(r, float(statistic[k]), threshold)
+        out[i].update(
+            statistic=float(statistic[k]),
+            threshold=threshold,
+            worse_by=worse_by,
+            limit=limit,
+            offset_m=[float(x) for x in dp[i]],
+            distinct=bool(distinct[i]),
+            passed=not (converged[i] and distinct[i] and global_passed and worse_by < limit),
+        )
     return out
+
+
+def _global_tests(
+    links: dict[str, np.ndarray],
+    rows: np.ndarray,
+    states: np.ndarray,
+    observed: np.ndarray,
+    fits: Sequence[MirrorFit],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Redundancy and statistic of the global test of the fits ``rows`` at ``states``
+    (:meth:`PlatformAdjustment.global_test`, see :func:`_verdicts`)."""
+    use = links["use"][rows]
+    J, dist = platform_jacobians(links["A_link"][rows], links["L_link"][rows], states)
+    J *= use[..., None]
+    J[~observed[rows], :, 3] = 0.0
+    redundancy = use.sum(axis=1) - np.linalg.matrix_rank(J)
+    v = np.where(use, links["d"][rows] - dist, 0.0)
+    w = links["weight"][rows]
+    statistic = np.einsum("bm,bm,bm->b", v, v, w)
+    n_anchors = max(len(fits[i][0].anchors) for i in rows)
+    bias = np.zeros((len(rows), n_anchors))
+    for k, i in enumerate(rows):
+        bias[k, : len(fits[i][0].anchors)] = fits[i][0].bias_sigma
+    at = (links["anchor"][rows][..., None] == np.arange(n_anchors)) & use[..., None]
+    z = np.einsum("bma,bm->ba", at, v * w)
+    c = np.einsum("bma,bm->ba", at, w)
+    reached = c > 0
+    shared = np.any(reached & (bias > 0), axis=1)  # else no shared errors in Q
+    core = 1.0 / np.maximum(bias, 1e-9) ** 2 + c
+    statistic -= np.where(shared, np.sum(np.where(reached, z * z / core, 0.0), axis=1), 0.0)
+    return redundancy, statistic

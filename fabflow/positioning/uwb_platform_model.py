@@ -212,20 +212,14 @@ def platform_newton_batch(
     B = len(state)
     prior_yaw, prior_w = heading_prior[:, 0], heading_prior[:, 1]
     with_prior = bool(np.any(prior_w > 0))
-    # the rotated lever arm is cos(yaw) L_c + sin(yaw) L_s + L_z, per link
-    L_c = L_link * np.array([1.0, 1.0, 0.0])
-    L_s = L_link[..., [1, 0, 2]] * np.array([-1.0, 1.0, 0.0])
-    L_z = L_link * np.array([0.0, 0.0, 1.0])
+    L_c, L_s, L_z = _lever_basis(L_link)
     scales = 0.5 ** np.arange(8)
     eye = np.eye(4)
 
     def links(x: np.ndarray, k: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Lever arms and anchor-to-tag vectors ``(B, ..., m, 3)`` and ranges at ``x``
-        ``(B, ..., 4)``; ``k`` indexes the per-link arrays to broadcast with ``x``."""
-        yaw = x[..., 3, None, None]
-        lever = np.cos(yaw) * L_c[k] + np.sin(yaw) * L_s[k] + L_z[k]
-        diff = (x[..., None, :3] - A_link[k]) + lever
-        return lever, diff, np.sqrt(np.add.reduce(diff * diff, axis=-1))
+        """:func:`_rotated_links` at ``x`` ``(B, ..., 4)``; ``k`` indexes the per-link
+        arrays to broadcast with ``x``."""
+        return _rotated_links(x, A_link[k], L_c[k], L_s[k], L_z[k])
 
     def cost_of(x: np.ndarray, dist: np.ndarray, k: tuple) -> np.ndarray:
         """Weighted squared residuals at ``x`` plus the heading prior's term."""
@@ -295,6 +289,36 @@ def platform_newton_batch(
         if not active.any():
             break
     return state, iterations, converged, solved
+
+
+def platform_jacobians(
+    A_link: np.ndarray, L_link: np.ndarray, states: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`platform_jacobian` and :func:`platform_ranges` of ``B`` problems, each over
+    its own links: ``(B, m, 4)`` and ``(B, m)`` at ``states`` ``(B, 4)``, for links
+    with anchors ``A_link`` and lever arms ``L_link`` ``(B, m, 3)`` (metres)."""
+    lever, diff, dist = _rotated_links(states, A_link, *_lever_basis(L_link))
+    return _jacobian(lever, diff, dist), dist
+
+
+def _lever_basis(L_link: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``L_c, L_s, L_z`` with the lever arm rotated by ``yaw`` ``cos(yaw) L_c + sin(yaw) L_s
+    + L_z`` (per link, ``(..., m, 3)``)."""
+    L_c = L_link * np.array([1.0, 1.0, 0.0])
+    L_s = L_link[..., [1, 0, 2]] * np.array([-1.0, 1.0, 0.0])
+    L_z = L_link * np.array([0.0, 0.0, 1.0])
+    return L_c, L_s, L_z
+
+
+def _rotated_links(
+    x: np.ndarray, A_link: np.ndarray, L_c: np.ndarray, L_s: np.ndarray, L_z: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotated lever arms and anchor-to-tag vectors ``(..., m, 3)`` and ranges ``(..., m)``
+    at the states ``x`` ``(..., 4)`` (:func:`_lever_basis`; metres)."""
+    yaw = x[..., 3, None, None]
+    lever = np.cos(yaw) * L_c + np.sin(yaw) * L_s + L_z
+    diff = (x[..., None, :3] - A_link) + lever
+    return lever, diff, np.sqrt(np.add.reduce(diff * diff, axis=-1))
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:

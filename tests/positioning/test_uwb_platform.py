@@ -391,3 +391,41 @@ def test_the_hidden_mirrors_of_many_fixes_are_each_fixs_own() -> None:
             assert m["anchor"] == n["anchor"]
             np.testing.assert_allclose(m["base_shift_m"], n["base_shift_m"], atol=1e-9)
         assert a.integrity.protection_level == pytest.approx(t.integrity.protection_level)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 6))
+def test_the_batched_global_tests_are_the_adjustments_own(seed: int, n: int) -> None:
+    # the mirror verdicts test many fits at once with Woodbury's identity in closed
+    # form (one anchor per link); each must be the adjustment's own global test
+    from fabflow.positioning.uwb_platform_adjustment import padded_links
+    from fabflow.positioning.uwb_platform_mirrors import _global_tests
+
+    rng = np.random.default_rng(seed)
+    fits, states = [], []
+    for _ in range(n):
+        anchors = ANCHORS_5 if rng.random() < 0.5 else PAPER_ANCHORS_3D
+        r = _ranges(anchors, int(rng.integers(0, 1000)), n=20)
+        r[rng.random(r.shape) < 0.05] = np.nan
+        bias = np.where(rng.random(len(anchors)) < 0.7, rng.uniform(0.0, 0.03, len(anchors)), 0.0)
+        later = locate_platform(
+            anchors, r, TAGS, SIGMA, anchor_bias_sigma=bias, base_lever=BASE, search_later=True
+        )
+        if later.mirror_search is None:
+            continue
+        adjustment, use, state = later.mirror_search
+        use = use & (rng.random(use.size) < 0.9)
+        if adjustment.n_anchors_used(use) < 3:
+            continue
+        fits.append((adjustment, use, state, state, True, 0.0))
+        states.append(state + rng.normal(0.0, 0.05, 4))
+    assume(fits)
+    links = padded_links([(f[0], f[1]) for f in fits])
+    observed = np.array([f[0].heading_observed for f in fits])
+    redundancy, statistic = _global_tests(
+        links, np.arange(len(fits)), np.array(states), observed, fits
+    )
+    for k, (f, x) in enumerate(zip(fits, states, strict=True)):
+        r_ref, t_ref, _ = f[0].global_test(f[1], x)
+        assert redundancy[k] == r_ref
+        assert statistic[k] == pytest.approx(t_ref, rel=1e-9, abs=1e-9)
