@@ -34,9 +34,8 @@ from fabflow.positioning.uwb import (
 from fabflow.positioning.uwb_calibration import running_median
 from fabflow.positioning.uwb_platform_adjustment import PlatformAdjustment, identify_by_refit
 from fabflow.positioning.uwb_platform_mirrors import (
-    MirrorCase,
     hidden_mirrors_batch,
-    mirror_check,
+    mirror_checks,
     with_hidden_mirrors,
 )
 from fabflow.positioning.uwb_platform_model import platform_jacobian, platform_ranges
@@ -72,8 +71,9 @@ class PlatformFix:
     converged
         Whether the final Gauss-Newton solve converged.
     mirror_search
-        The search for hidden mirrors still to be made (:func:`finish_mirror_searches`)
-        when :func:`locate_platform` was asked to leave it to the caller, else ``None``.
+        ``(adjustment, links used, state, tests)`` of the mirror checks still to be
+        made (:func:`finish_mirror_searches`) when :func:`locate_platform` was asked
+        to leave them to the caller, else ``None``.
     """
 
     state: np.ndarray
@@ -86,7 +86,7 @@ class PlatformFix:
     per_anchor_rms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     integrity: Integrity | None = None
     converged: bool = True
-    mirror_search: MirrorCase | None = None
+    mirror_search: tuple[PlatformAdjustment, np.ndarray, np.ndarray, TestResult] | None = None
 
     @property
     def T(self) -> np.ndarray:
@@ -186,8 +186,8 @@ def locate_platform(
         (n_tags, 3) with ``wls-t``: :func:`median_seeds` of these ranges, when the
         caller solved them for many stations at once; computed here when None.
     search_later
-        Leave the search for hidden mirrors in ``mirror_search`` for the caller, who
-        makes those of many fixes at once (:func:`finish_mirror_searches`).
+        Leave the mirror checks in ``mirror_search`` for the caller, who makes
+        those of many fixes at once (:func:`finish_mirror_searches`).
 
     Raises
     ------
@@ -274,14 +274,40 @@ def locate_platform(
 
 
 def finish_mirror_searches(fixes: Sequence[PlatformFix]) -> list[PlatformFix]:
-    """The fixes with their hidden-mirror searches made, all of them at once
-    (:func:`~fabflow.positioning.uwb_platform_mirrors.hidden_mirrors_batch`)."""
+    """The fixes with their mirror checks made, all of them at once.
+
+    A fix whose mirror image fits as well fails
+    (:func:`~fabflow.positioning.uwb_platform_mirrors.mirror_checks`); one that
+    passes is searched for hidden mirrors
+    (:func:`~fabflow.positioning.uwb_platform_mirrors.hidden_mirrors_batch`).
+    """
     pending = [k for k, f in enumerate(fixes) if f.mirror_search is not None]
-    found = hidden_mirrors_batch([fixes[k].mirror_search for k in pending])  # type: ignore[misc]
+    checks = mirror_checks([fixes[k].mirror_search for k in pending])  # type: ignore[misc]
     out = list(fixes)
-    for k, hidden in zip(pending, found, strict=True):
-        integrity = with_hidden_mirrors(fixes[k].integrity, hidden)  # type: ignore[arg-type]
+    searched = []
+    for k, mirror in zip(pending, checks, strict=True):
+        integrity = fixes[k].integrity.with_checks(mirror=mirror)  # type: ignore[union-attr]
+        if mirror["passed"]:
+            searched.append(k)
+        else:
+            dz = mirror["offset_m"][2]
+            left = "" if not integrity.excluded else " left"
+            reason = (
+                f"the anchors{left} lie nearly in one plane: the mirror solution "
+                f"{abs(dz):.2f} m {'below' if dz < 0 else 'above'} fits the ranges as well "
+                f"(global test {mirror['statistic']:.1f} <= {mirror['threshold']:.1f}), "
+                "so the height is not determined"
+            )
+            # the first reason found, after those the fix's later checks gave
+            integrity = replace(
+                integrity,
+                status="failed",
+                reason=f"{integrity.reason}; {reason}" if integrity.reason else reason,
+            )
         out[k] = replace(fixes[k], integrity=integrity, mirror_search=None)
+    found = hidden_mirrors_batch([fixes[k].mirror_search[:3] for k in searched])  # type: ignore[index]
+    for k, hidden in zip(searched, found, strict=True):
+        out[k] = replace(out[k], integrity=with_hidden_mirrors(out[k].integrity, hidden))  # type: ignore[arg-type]
     return out
 
 
@@ -415,21 +441,9 @@ def _finish(
     per_anchor = np.where(n_used > 0, np.sqrt(ss / np.maximum(n_used, 1)), np.nan)
     checks: dict[str, Any] = _geometry(A[np.unique(an)], state)
     integrity = record(tests, excluded, adj.alpha, checks)
-    search: MirrorCase | None = None
-    if integrity.status != "failed":
-        mirror = mirror_check(adj, use, state, tests)
-        integrity = integrity.with_checks(mirror=mirror)
-        if not mirror["passed"]:
-            dz = mirror["offset_m"][2]
-            left = "" if not excluded else " left"
-            integrity = integrity.failing(
-                f"the anchors{left} lie nearly in one plane: the mirror solution "
-                f"{abs(dz):.2f} m {'below' if dz < 0 else 'above'} fits the ranges as well "
-                f"(global test {mirror['statistic']:.1f} <= {mirror['threshold']:.1f}), "
-                "so the height is not determined"
-            )
-        else:  # made at the end (the records below do not read what it adds)
-            search = (adj, use, state)
+    # the mirror checks come at the end (finish_mirror_searches: many fixes' at once);
+    # what the records below add does not depend on them
+    search = (adj, use, state, tests) if integrity.status != "failed" else None
     if problem:
         integrity = integrity.failing(problem)
     if not determined:

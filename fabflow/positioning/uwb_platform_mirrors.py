@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from fabflow.errors import LocalizationError
 from fabflow.positioning.integrity import (
     POWER,
     Integrity,
@@ -73,12 +72,30 @@ def mirror_check(
         statistic minus the fix's) and ``limit`` (``lambda_0``), ``offset_m``
         (``x, y, z`` of the mirror fit minus the fix, metres), ``distinct``.
     """
-    start, h = reflected(adj, use, state)
-    try:
-        mirror, _, converged = adj.fit(use, start)
-    except LocalizationError:
-        return {"passed": True, "plane_distance_m": h}
-    return _verdicts([(adj, use, state, mirror, converged, h)], [tests])[0]
+    return mirror_checks([(adj, use, state, tests)])[0]
+
+
+def mirror_checks(
+    cases: Sequence[tuple[PlatformAdjustment, np.ndarray, np.ndarray, TestResult | None]],
+) -> list[dict[str, Any]]:
+    """:func:`mirror_check` of every ``(adjustment, use, state, tests)``, the mirror fits
+    solved together (:func:`~fabflow.positioning.uwb_platform_adjustment.fit_many`)."""
+    starts = [reflected(adj, use, state) for adj, use, state, _ in cases]
+    mirrors, _, converged, solved = fit_many(
+        [(c[0], c[1], start) for c, (start, _) in zip(cases, starts, strict=True)]
+    )
+    checks = _verdicts(
+        [
+            (c[0], c[1], c[2], mirrors[k], bool(converged[k]), starts[k][1])
+            for k, c in enumerate(cases)
+        ],
+        [c[3] for c in cases],
+    )
+    # no mirror fit (a singular normal matrix there): no second solution
+    return [
+        check if solved[k] else {"passed": True, "plane_distance_m": starts[k][1]}
+        for k, check in enumerate(checks)
+    ]
 
 
 def hidden_mirrors(

@@ -364,12 +364,16 @@ def test_the_batched_newton_solve_is_each_problems_own(seed: int, n: int) -> Non
 
 
 def test_the_hidden_mirrors_of_many_fixes_are_each_fixs_own() -> None:
-    # a simulated run's visits search together; the padding of fixes with
-    # fewer links (an anchor out of sight) changes nothing
+    # a simulated run's visits are checked together; the padding of fixes with
+    # fewer links (an anchor out of sight) changes nothing, nor does a mirror that
+    # fits as well (anchors in one plane) failing one of them
     from fabflow.positioning.uwb_platform import finish_mirror_searches
 
+    flat = np.array([[0.0, 0.0, 1.0], [4.8, 0.0, 1.0], [4.8, 6.0, 1.0], [0.0, 6.0, 1.02]])
     cases = []
-    for seed, anchors in enumerate([PAPER_ANCHORS_3D, ANCHORS_5, PAPER_ANCHORS_3D, ANCHORS_5]):
+    for seed, anchors in enumerate(
+        [PAPER_ANCHORS_3D, ANCHORS_5, PAPER_ANCHORS_3D, ANCHORS_5, flat]
+    ):
         r = _ranges(anchors, seed)
         if seed == 3:
             r[:, 1, 4] = np.nan  # tag 1 does not see the fifth anchor
@@ -379,9 +383,10 @@ def test_the_hidden_mirrors_of_many_fixes_are_each_fixs_own() -> None:
     assert all(f.mirror_search is not None for f in later)
     together = finish_mirror_searches(later)
     assert any("mirror_by_one_fault" in f.integrity.checks for f in alone)
+    assert not alone[-1].integrity.checks["mirror"]["passed"]  # anchors in one plane
     for a, t in zip(alone, together, strict=True):
         assert t.mirror_search is None
-        assert a.integrity.status == t.integrity.status
+        assert (a.integrity.status, a.integrity.reason) == (t.integrity.status, t.integrity.reason)
         assert a.integrity.checks.keys() == t.integrity.checks.keys()
         for m, n in zip(
             a.integrity.checks.get("mirror_by_one_fault", []),
@@ -413,7 +418,7 @@ def test_the_batched_global_tests_are_the_adjustments_own(seed: int, n: int) -> 
         )
         if later.mirror_search is None:
             continue
-        adjustment, use, state = later.mirror_search
+        adjustment, use, state, _ = later.mirror_search
         use = use & (rng.random(use.size) < 0.9)
         if adjustment.n_anchors_used(use) < 3:
             continue
