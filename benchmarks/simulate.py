@@ -44,15 +44,15 @@ BREAKDOWN = (
     ("fabflow.localize.uwb_static", "without_nlos_leak", "the kept NLOS ranges' bias (all visits)"),
     ("fabflow.localize.uwb_static", "median_seeds", "the tags' start fixes (all visits)"),
     ("fabflow.localize.uwb_static", "locate_platform", "the platform fixes with their tests"),
-    ("fabflow.positioning.uwb_platform", "mirror_check", "  their mirror checks"),
+    ("fabflow.localize.uwb_static", "finish_mirror_searches", "their mirror checks (all visits)"),
     (
-        "fabflow.localize.uwb_static",
-        "finish_mirror_searches",
-        "mirrors one anchor's bias selects (all visits)",
+        "fabflow.positioning.uwb_platform",
+        "hidden_mirrors_batch",
+        "  mirrors one anchor's bias selects",
     ),
 )
 """Parts of a UWB run timed by ``--breakdown``: (module, function, what it does); the
-indented one is within the fixes."""
+indented one is within the mirror checks."""
 
 
 def serial_rate(study: Study, n: int) -> tuple[float, float, int]:
