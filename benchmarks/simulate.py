@@ -43,16 +43,16 @@ BREAKDOWN = (
     ("fabflow.localize.uwb_static", "reject_outliers_static", "cleaning of each link (all visits)"),
     ("fabflow.localize.uwb_static", "without_nlos_leak", "the kept NLOS ranges' bias (all visits)"),
     ("fabflow.localize.uwb_static", "median_seeds", "the tags' start fixes (all visits)"),
-    ("fabflow.localize.uwb_static", "locate_platform", "the platform fixes with their tests"),
-    ("fabflow.localize.uwb_static", "finish_mirror_searches", "their mirror checks (all visits)"),
+    ("fabflow.localize.uwb_static", "locate_platforms", "the platform fixes with their tests"),
+    ("fabflow.positioning.uwb_platform", "finish_mirror_searches", "  their mirror checks"),
     (
         "fabflow.positioning.uwb_platform",
         "hidden_mirrors_batch",
-        "  mirrors one anchor's bias selects",
+        "    mirrors one anchor's bias selects",
     ),
 )
-"""Parts of a UWB run timed by ``--breakdown``: (module, function, what it does); the
-indented one is within the mirror checks."""
+"""Parts of a UWB run timed by ``--breakdown``: (module, function, what it does); an
+indented one is within the one above it."""
 
 
 def serial_rate(study: Study, n: int) -> tuple[float, float, int]:

@@ -28,12 +28,8 @@ from fabflow.positioning.uwb_calibration import (
     reject_outliers_static,
     static_window,
 )
-from fabflow.positioning.uwb_platform import (
-    PlatformFix,
-    finish_mirror_searches,
-    locate_platform,
-    median_seeds,
-)
+from fabflow.positioning.uwb_platform import PlatformFix, locate_platforms
+from fabflow.positioning.uwb_platform_start import median_seeds
 from fabflow.sensors.uwb import UwbErrorModel
 
 
@@ -120,28 +116,22 @@ def static_fixes(
     rej = reject_outliers_static(ranges, model.sigma(ranges))
     kept, per_link = without_nlos_leak(model, ranges, rej.ranges, link_sigma)
     seeds = median_seeds(A, kept, model.sigma) if method == "wls-t" else [None] * n_stations
-    fixes = []
-    for v in range(n_stations):
-        fix = locate_platform(
-            A,
-            kept[:, v],
-            L,
-            model.sigma,
-            method=method,
-            heading_prior=priors[v],
-            anchor_bias_sigma=anchor_bias_sigma[v],
-            link_sigma=per_link[v],
-            anchor_ids=anchor_ids,
-            base_lever=base_lever,
-            alpha=alpha,
-            seeds=seeds[v],
-            search_later=True,
-        )
-        fixes.append(fix)
-    # the hidden-mirror searches of all the stations, their fits solved together
+    # every station's first fit, mirror checks and hidden-mirror search solved together
+    fixes = locate_platforms(
+        [
+            {
+                "anchors": A, "ranges": kept[:, v], "lever_arms": L, "sigma": model.sigma,
+                "method": method, "heading_prior": priors[v],
+                "anchor_bias_sigma": anchor_bias_sigma[v], "link_sigma": per_link[v],
+                "anchor_ids": anchor_ids, "base_lever": base_lever, "alpha": alpha,
+                "seeds": seeds[v],
+            }
+            for v in range(n_stations)
+        ]
+    )  # fmt: skip
     return [
         (fix, Rejection(rej.ranges[:, v], rej.rejected[:, v], rej.out_of_bounds[:, v]))
-        for v, fix in enumerate(finish_mirror_searches(fixes))
+        for v, fix in enumerate(fixes)
     ]
 
 

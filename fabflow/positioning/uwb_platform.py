@@ -11,6 +11,7 @@ Metres and radians; anchors in the world frame.
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -28,11 +29,14 @@ from fabflow.positioning.uwb import (
     UNOBSERVED_VARIANCE,
     Method,
     Sigma,
-    locate,
     sigma_of,
 )
 from fabflow.positioning.uwb_calibration import running_median
-from fabflow.positioning.uwb_platform_adjustment import PlatformAdjustment, identify_by_refit
+from fabflow.positioning.uwb_platform_adjustment import (
+    PlatformAdjustment,
+    fit_many,
+    identify_by_refit,
+)
 from fabflow.positioning.uwb_platform_mirrors import (
     hidden_mirrors_batch,
     mirror_checks,
@@ -40,6 +44,7 @@ from fabflow.positioning.uwb_platform_mirrors import (
 )
 from fabflow.positioning.uwb_platform_model import platform_jacobian, platform_ranges
 from fabflow.positioning.uwb_platform_model import rotz as _rotz
+from fabflow.positioning.uwb_platform_start import initial_state, link_means
 
 
 @dataclass(frozen=True)
@@ -183,7 +188,8 @@ def locate_platform(
         reduce it. Links are taken as independent (tags farther apart than the
         multipath's correlation length).
     seeds
-        (n_tags, 3) with ``wls-t``: :func:`median_seeds` of these ranges, when the
+        (n_tags, 3) with ``wls-t``: the tags' start fixes of these ranges
+        (:func:`~fabflow.positioning.uwb_platform_start.median_seeds`), when the
         caller solved them for many stations at once; computed here when None.
     search_later
         Leave the mirror checks in ``mirror_search`` for the caller, who makes
@@ -194,6 +200,76 @@ def locate_platform(
     LocalizationError
         Too few valid fixes, or a single tag without a heading prior.
     """
+    adj, state, fit, ranges_links = _adjustment(
+        anchors, ranges, lever_arms, sigma, method, heading_prior, max_iter, anchor_bias_sigma,
+        alpha, anchor_ids, base_lever, link_sigma, seeds,
+    )  # fmt: skip
+    iterations, converged = 0, True
+    if fit:
+        state, iterations, converged = adj.fit(np.ones(adj.d.size, dtype=bool), state)
+    fix = _tested(adj, ranges_links, state, iterations, converged)
+    return fix if search_later else finish_mirror_searches([fix])[0]
+
+
+def locate_platforms(problems: Sequence[dict[str, Any]]) -> list[PlatformFix]:
+    """:func:`locate_platform` of many standing platforms (a simulated run's visits).
+
+    ``problems`` holds each one's arguments by name; the first fits of all of
+    them are one batched Newton solve, as are their mirror checks
+    (:func:`finish_mirror_searches`); the tests and exclusions stay each fix's own.
+
+    Raises
+    ------
+    LocalizationError
+        As :func:`locate_platform`, for the first platform it fails for.
+    """
+    prepared = [_adjustment(**_arguments(p)) for p in problems]
+    states = [state for _, state, _, _ in prepared]
+    iterations, converged = [0] * len(prepared), [True] * len(prepared)
+    fitted = [k for k, (_, _, fit, _) in enumerate(prepared) if fit]
+    fits = fit_many(
+        [(prepared[k][0], np.ones(prepared[k][0].d.size, dtype=bool), states[k]) for k in fitted]
+    )
+    for k, state, its, conv, solved in zip(fitted, *fits, strict=True):
+        if not solved:
+            raise LocalizationError(
+                "the tag and anchor geometry does not determine the platform pose"
+            )
+        states[k], iterations[k], converged[k] = state, int(its), bool(conv)
+    return finish_mirror_searches(
+        [
+            _tested(adj, ranges_links, states[k], iterations[k], converged[k])
+            for k, (adj, _, _, ranges_links) in enumerate(prepared)
+        ]
+    )
+
+
+def _arguments(problem: dict[str, Any]) -> dict[str, Any]:
+    """:func:`locate_platform`'s arguments for ``problem``, its defaults filled in (but
+    ``search_later``): what :func:`_adjustment` takes."""
+    bound = inspect.signature(locate_platform).bind(**problem)
+    bound.apply_defaults()
+    return {k: v for k, v in bound.arguments.items() if k != "search_later"}
+
+
+def _adjustment(
+    anchors: np.ndarray,
+    ranges: np.ndarray,
+    lever_arms: np.ndarray,
+    sigma: Sigma,
+    method: Method,
+    heading_prior: tuple[float, float] | None,
+    max_iter: int,
+    anchor_bias_sigma: np.ndarray | None,
+    alpha: float,
+    anchor_ids: Sequence[str] | None,
+    base_lever: np.ndarray | None,
+    link_sigma: Sigma | np.ndarray | None,
+    seeds: np.ndarray | None,
+) -> tuple[PlatformAdjustment, np.ndarray, bool, tuple[np.ndarray, np.ndarray]]:
+    """The checked inputs of :func:`locate_platform` as an adjustment: it, the start
+    state, whether the pose is fitted before the tests, and every finite range
+    (metres) with its link."""
     A = np.asarray(anchors, dtype=float)
     R = np.asarray(ranges, dtype=float)
     L = np.asarray(lever_arms, dtype=float)
@@ -209,7 +285,7 @@ def locate_platform(
             "one UWB tag cannot observe the heading of a standing platform; add a second "
             "tag or give a heading prior (from the motion or the IMU)"
         )
-    state, heading_observed = _initial_state(A, R, L, sigma, method, heading_prior, seeds)
+    state, heading_observed = initial_state(A, R, L, sigma, method, heading_prior, seeds)
     finite = np.isfinite(R)
     d = R[finite]
     links = link_means(
@@ -246,10 +322,20 @@ def locate_platform(
         alpha=alpha,
         max_iter=max_iter,
     )
+    fit = method == "wls-t" or not heading_observed or n_tags == 1
+    return adj, state, fit, (d, link)
+
+
+def _tested(
+    adj: PlatformAdjustment,
+    ranges_links: tuple[np.ndarray, np.ndarray],
+    state: np.ndarray,
+    iterations: int,
+    converged: bool,
+) -> PlatformFix:
+    """The fix from the first solution ``state``: tested, with exclusions while the
+    tests fail and one explains it (:func:`locate_platform`)."""
     use = np.ones(adj.d.size, dtype=bool)
-    iterations, converged = 0, True
-    if method == "wls-t" or not heading_observed or n_tags == 1:
-        state, iterations, converged = adj.fit(use, state)
     tests, masks = adj.tests(use, state)
     excluded: list[dict[str, Any]] = []
     problem = ""
@@ -269,8 +355,7 @@ def locate_platform(
         )
         use, state, tests, masks = trial.use, trial.state, trial.tests, trial.masks
         iterations, converged = trial.iterations, trial.converged
-    fix = _finish(adj, (d, link), use, state, tests, excluded, problem, iterations, converged)
-    return fix if search_later else finish_mirror_searches([fix])[0]
+    return _finish(adj, ranges_links, use, state, tests, excluded, problem, iterations, converged)
 
 
 def finish_mirror_searches(fixes: Sequence[PlatformFix]) -> list[PlatformFix]:
@@ -309,92 +394,6 @@ def finish_mirror_searches(fixes: Sequence[PlatformFix]) -> list[PlatformFix]:
     for k, hidden in zip(searched, found, strict=True):
         out[k] = replace(out[k], integrity=with_hidden_mirrors(out[k].integrity, hidden))  # type: ignore[arg-type]
     return out
-
-
-def link_means(
-    d: np.ndarray, s: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray, n_anchors: int
-) -> dict[str, np.ndarray]:
-    """A standing platform's ranges as one observation per tag-anchor link.
-
-    Returns the per-link fields of
-    :class:`~fabflow.positioning.uwb_platform_adjustment.PlatformAdjustment`
-    (``d, s, tag_idx, anc_idx, count, raw_mean, raw_sq_dev``) from ranges
-    ``d`` with standard deviations ``s`` (metres) of the tags ``tag_idx`` to the
-    anchors ``anc_idx``, and ``link``: the link of each range (index into them).
-    """
-    key = np.asarray(tag_idx) * n_anchors + np.asarray(anc_idx)
-    links, link = np.unique(key, return_inverse=True)
-    w = 1.0 / s**2
-    W = np.bincount(link, weights=w)
-    mean = np.bincount(link, weights=w * d) / W
-    count = np.bincount(link)
-    raw_mean = np.bincount(link, weights=d) / count
-    return {
-        "d": mean,
-        "s": 1.0 / np.sqrt(W),
-        "tag_idx": links // n_anchors,
-        "anc_idx": links % n_anchors,
-        "count": count,
-        "raw_mean": raw_mean,
-        "raw_sq_dev": np.bincount(link, weights=(d - raw_mean[link]) ** 2),
-        "link": link,
-    }
-
-
-def _initial_state(
-    A: np.ndarray,
-    R: np.ndarray,
-    L: np.ndarray,
-    sigma: Sigma,
-    method: Method,
-    heading_prior: tuple[float, float] | None,
-    seeds: np.ndarray | None = None,
-) -> tuple[np.ndarray, bool]:
-    """``[x, y, z, yaw]`` from the median per-tag fixes, and whether the heading is observed.
-
-    With ``wls-t`` the median pose only starts the Newton solve on all ranges, so
-    each tag's start is the fix of its per-link median ranges (:func:`median_seeds`,
-    or ``seeds`` given); a tag's per-epoch fixes are the fallback when its fails.
-    """
-    n_tags = L.shape[0]
-    tag_pos = np.empty((n_tags, 3))
-    seeded = np.zeros(n_tags, dtype=bool)
-    if method == "wls-t":
-        seed = median_seeds(A, R, sigma) if seeds is None else np.asarray(seeds, dtype=float)
-        seeded = np.isfinite(seed).all(axis=-1)
-        tag_pos[seeded] = seed[seeded]
-    for k in np.flatnonzero(~seeded):
-        fix = locate(A, R[:, k, :], method=method, sigma=sigma)
-        if not fix.valid.any():
-            raise LocalizationError(
-                f"tag {k}: no epoch has enough usable ranges ({int((~fix.too_few).sum())} of "
-                f"{len(fix.valid)} epochs with >= 4 ranges, {int(fix.degenerate.sum())} degenerate)"
-            )
-        tag_pos[k] = nanmedian(fix.positions[fix.valid], 0)
-    if n_tags >= 2:
-        lc = L[:, :2] - L[:, :2].mean(axis=0)
-        mc = tag_pos[:, :2] - tag_pos[:, :2].mean(axis=0)
-        yaw0 = np.arctan2(np.sum(lc[:, 0] * mc[:, 1] - lc[:, 1] * mc[:, 0]), np.sum(lc * mc))
-        heading_observed = bool(np.linalg.norm(lc, axis=1).max() > 0.05)
-    else:
-        yaw0 = float(heading_prior[0])  # type: ignore[index]
-        heading_observed = False
-    if heading_prior is not None:
-        heading_observed = True
-        if n_tags >= 2 and not np.isfinite(yaw0):
-            yaw0 = heading_prior[0]
-    p0 = tag_pos.mean(axis=0) - _rotz(yaw0) @ L.mean(axis=0)
-    return np.array([*p0, yaw0]), heading_observed
-
-
-def median_seeds(A: np.ndarray, R: np.ndarray, sigma: Sigma) -> np.ndarray:
-    """Each tag's ``wls-t`` fix of its per-link median ranges, ``(..., tags, 3)``
-    (metres; NaN where it fails), for ranges ``(rounds, ..., tags, anchors)``: one
-    :func:`~fabflow.positioning.uwb.locate` call for every tag of every station
-    (one epoch each), where there were as many as tags and stations."""
-    medians = nanmedian(R, 0)
-    seed = locate(A, medians.reshape(-1, A.shape[0]), method="wls-t", sigma=sigma)
-    return seed.positions.reshape(*medians.shape[:-1], 3)
 
 
 def _finish(

@@ -55,7 +55,7 @@ class PlatformAdjustment:
     A standing platform's ranges of one tag-anchor link all observe the same
     distance, so the adjustment holds one observation per link: the weighted mean
     of its ranges, with the weights' sum
-    (:func:`~fabflow.positioning.uwb_platform.link_means`). Fits, w-tests,
+    (:func:`~fabflow.positioning.uwb_platform_start.link_means`). Fits, w-tests,
     MDBs and covariances are those of all the ranges exactly (every hypothesis
     is a whole link or anchor, constant over a link's ranges). The global test
     is that of the link means. The ranges' scatter about their link means is

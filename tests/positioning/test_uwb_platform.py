@@ -434,3 +434,27 @@ def test_the_batched_global_tests_are_the_adjustments_own(seed: int, n: int) -> 
         r_ref, t_ref, _ = f[0].global_test(f[1], x)
         assert redundancy[k] == r_ref
         assert statistic[k] == pytest.approx(t_ref, rel=1e-9, abs=1e-9)
+
+
+def test_many_platforms_located_together_are_each_located_alone() -> None:
+    # a simulated run's visits: the first fits in one batched solve, then each
+    # fix's own tests; the same fixes as one call each, defaults filled the same
+    from fabflow.errors import LocalizationError
+    from fabflow.positioning.uwb_platform import locate_platforms
+
+    problems = [
+        {"anchors": PAPER_ANCHORS_3D, "ranges": _ranges(PAPER_ANCHORS_3D, 0)},
+        {"anchors": ANCHORS_5, "ranges": _ranges(ANCHORS_5, 1), "heading_prior": (0.5, 0.1)},
+        {"anchors": ANCHORS_5, "ranges": _ranges(ANCHORS_5, 2), "method": "ls"},
+    ]
+    for p in problems:
+        p.update(lever_arms=TAGS, sigma=SIGMA, base_lever=BASE)
+    together = locate_platforms(problems)
+    for p, t in zip(problems, together, strict=True):
+        alone = locate_platform(**p)
+        assert (alone.integrity.status, alone.iterations) == (t.integrity.status, t.iterations)
+        np.testing.assert_allclose(t.state, alone.state, atol=1e-10)
+        np.testing.assert_allclose(t.covariance, alone.covariance, rtol=1e-8, atol=1e-14)
+    one_tag = {**problems[0], "lever_arms": TAGS[:1], "ranges": problems[0]["ranges"][:, :1]}
+    with pytest.raises(LocalizationError, match="one UWB tag cannot observe the heading"):
+        locate_platforms([*problems, one_tag])
