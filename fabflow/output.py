@@ -123,6 +123,8 @@ class _Signals:
         self.holding = False
         self.pending: int | None = None
         self.raised: int | None = None
+        self.owed: int | None = None
+        self.timer: threading.Timer | None = None
         self.previous: dict[int, Any] = {}
         self.previous_hook: Any = None
 
@@ -130,15 +132,18 @@ class _Signals:
         if self.holding:
             self.pending = signum
             return
-        self.raised = signum
+        self.raised, self.owed = signum, None
         self._raise(signum)
 
     def _unraisable(self, unraisable: Any) -> None:
         """:data:`sys.unraisablehook`: a signal's exception lost in a callback is raised again."""
         signum = self.raised
         if signum is not None and isinstance(unraisable.exc_value, SystemExit | KeyboardInterrupt):
-            # not from here: the hook runs inside the callback, where it would be lost again
-            threading.Timer(0.001, _thread.interrupt_main, (signum,)).start()
+            # not from here: the hook runs inside the callback, where it would be lost again;
+            # a run that ends first raises it on restoring (restore)
+            self.raised, self.owed = None, signum
+            self.timer = threading.Timer(0.001, _thread.interrupt_main, (signum,))
+            self.timer.start()
             return
         (self.previous_hook or sys.__unraisablehook__)(unraisable)
 
@@ -164,11 +169,16 @@ class _Signals:
             self.previous_hook, sys.unraisablehook = sys.unraisablehook, self._unraisable
 
     def restore(self) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
         for signum, handler in self.previous.items():
             signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
         if self.previous:
             sys.unraisablehook = self.previous_hook
         self.previous.clear()
+        owed, self.owed = self.owed, None
+        if owed is not None:  # lost in a callback and not raised again before the end
+            self._raise(owed)
 
     @contextlib.contextmanager
     def held(self) -> Iterator[None]:

@@ -224,6 +224,30 @@ def test_a_sigterm_inside_a_garbage_collector_callback_still_stops_the_run(
     assert listing(tmp_path) == ["out"]
 
 
+def test_a_sigterm_lost_in_a_callback_at_the_end_of_the_run_still_stops_it(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    # the callback's signal is raised again a millisecond later; a run that ends
+    # before that raises it on the way out instead of dropping it
+    out = tmp_path / "out"
+
+    class Collected:
+        pass
+
+    def callback(_: object) -> None:
+        os.kill(os.getpid(), signal.SIGTERM)
+        sum(range(1000))
+
+    with pytest.raises(SystemExit) as info, atomic_output_dir(out) as staging:
+        (staging / "new.txt").write_text("new")
+        thing = Collected()
+        ref = weakref.ref(thing, callback)
+        del thing  # the last statement: the run ends within the millisecond
+    assert info.value.code == 143 and ref() is None
+    time.sleep(0.01)  # the cancelled re-raise does not come afterwards
+    assert "Exception ignored" not in capfd.readouterr().err
+
+
 def test_sigint_is_a_keyboard_interrupt_that_cleans_up(tmp_path: Path) -> None:
     out = tmp_path / "out"
     # Python's own SIGINT handling, whatever an earlier test in this process left
