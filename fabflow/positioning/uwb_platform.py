@@ -76,9 +76,9 @@ class PlatformFix:
     converged
         Whether the final Gauss-Newton solve converged.
     mirror_search
-        ``(adjustment, links used, state, tests)`` of the mirror checks still to be
-        made (:func:`finish_mirror_searches`) when :func:`locate_platform` was asked
-        to leave them to the caller, else ``None``.
+        ``(adjustment, links used, state, tests, reason recorded)`` of the mirror
+        checks still to be made (:func:`finish_mirror_searches`) when
+        :func:`locate_platform` was asked to leave them to the caller, else ``None``.
     """
 
     state: np.ndarray
@@ -91,7 +91,7 @@ class PlatformFix:
     per_anchor_rms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     integrity: Integrity | None = None
     converged: bool = True
-    mirror_search: tuple[PlatformAdjustment, np.ndarray, np.ndarray, TestResult] | None = None
+    mirror_search: tuple[PlatformAdjustment, np.ndarray, np.ndarray, TestResult, str] | None = None
 
     @property
     def T(self) -> np.ndarray:
@@ -367,7 +367,7 @@ def finish_mirror_searches(fixes: Sequence[PlatformFix]) -> list[PlatformFix]:
     (:func:`~fabflow.positioning.uwb_platform_mirrors.hidden_mirrors_batch`).
     """
     pending = [k for k, f in enumerate(fixes) if f.mirror_search is not None]
-    checks = mirror_checks([fixes[k].mirror_search for k in pending])  # type: ignore[misc]
+    checks = mirror_checks([fixes[k].mirror_search[:4] for k in pending])  # type: ignore[index]
     out = list(fixes)
     searched = []
     for k, mirror in zip(pending, checks, strict=True):
@@ -383,17 +383,27 @@ def finish_mirror_searches(fixes: Sequence[PlatformFix]) -> list[PlatformFix]:
                 f"(global test {mirror['statistic']:.1f} <= {mirror['threshold']:.1f}), "
                 "so the height is not determined"
             )
-            # the first reason found, after those the fix's later checks gave
-            integrity = replace(
-                integrity,
-                status="failed",
-                reason=f"{integrity.reason}; {reason}" if integrity.reason else reason,
-            )
+            integrity = failing_first(integrity, reason, fixes[k].mirror_search[4])  # type: ignore[index]
         out[k] = replace(fixes[k], integrity=integrity, mirror_search=None)
     found = hidden_mirrors_batch([fixes[k].mirror_search[:3] for k in searched])  # type: ignore[index]
     for k, hidden in zip(searched, found, strict=True):
         out[k] = replace(out[k], integrity=with_hidden_mirrors(out[k].integrity, hidden))  # type: ignore[arg-type]
     return out
+
+
+def failing_first(integrity: Integrity, reason: str, recorded: str) -> Integrity:
+    """``integrity`` failed for ``reason`` as if that had been found right after the record.
+
+    ``recorded`` is the reason the record had then (its exclusions, or ""); the
+    reasons found later stand before it, and :meth:`Integrity.failing` puts a
+    new reason first, so ``reason`` goes between them.
+    """
+    later = integrity.reason[: len(integrity.reason) - len(recorded)] if recorded else ""
+    if not recorded:
+        text = f"{integrity.reason}; {reason}" if integrity.reason else reason
+    else:
+        text = f"{later}{reason}; {recorded}"
+    return replace(integrity, status="failed", reason=text)
 
 
 def _finish(
@@ -442,7 +452,7 @@ def _finish(
     integrity = record(tests, excluded, adj.alpha, checks)
     # the mirror checks come at the end (finish_mirror_searches: many fixes' at once);
     # what the records below add does not depend on them
-    search = (adj, use, state, tests) if integrity.status != "failed" else None
+    search = (adj, use, state, tests, integrity.reason) if integrity.status != "failed" else None
     if problem:
         integrity = integrity.failing(problem)
     if not determined:

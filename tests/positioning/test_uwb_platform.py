@@ -418,7 +418,7 @@ def test_the_batched_global_tests_are_the_adjustments_own(seed: int, n: int) -> 
         )
         if later.mirror_search is None:
             continue
-        adjustment, use, state, _ = later.mirror_search
+        adjustment, use, state, *_ = later.mirror_search
         use = use & (rng.random(use.size) < 0.9)
         if adjustment.n_anchors_used(use) < 3:
             continue
@@ -458,3 +458,22 @@ def test_many_platforms_located_together_are_each_located_alone() -> None:
     one_tag = {**problems[0], "lever_arms": TAGS[:1], "ranges": problems[0]["ranges"][:, :1]}
     with pytest.raises(LocalizationError, match="one UWB tag cannot observe the heading"):
         locate_platforms([*problems, one_tag])
+
+
+def test_a_mirror_found_last_reads_as_found_right_after_the_record() -> None:
+    # the mirror checks are made after the fix's other checks, whose reasons stand
+    # first; the mirror's goes where it went when it was checked first
+    from fabflow.positioning.integrity import Integrity
+    from fabflow.positioning.uwb_platform import failing_first
+
+    recorded = Integrity(status="excluded", reason="left out anchor A4")
+    then = recorded.failing("MIRROR").failing("not converged")
+    now = failing_first(recorded.failing("not converged"), "MIRROR", recorded.reason)
+    assert (now.status, now.reason) == (then.status, then.reason)
+    assert failing_first(recorded, "MIRROR", recorded.reason).reason == "MIRROR; left out anchor A4"
+    clean = Integrity(status="ok")
+    assert (
+        failing_first(clean.failing("X"), "MIRROR", "").reason
+        == clean.failing("MIRROR").failing("X").reason
+    )
+    assert failing_first(clean, "MIRROR", "").reason == "MIRROR"
