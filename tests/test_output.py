@@ -191,6 +191,23 @@ def test_sigterm_removes_the_staging_folder_and_exits_143(tmp_path: Path) -> Non
     assert listing(tmp_path) == ["out"]
 
 
+def _sigterm_when_collected() -> weakref.ref:
+    """A weak reference whose callback sends SIGTERM, its object already collected: the
+    signal's handler runs inside the callback (where Python ignores exceptions)."""
+
+    class Collected:
+        pass
+
+    def callback(_: object) -> None:
+        os.kill(os.getpid(), signal.SIGTERM)
+        sum(range(1000))  # the handler runs here, inside the callback
+
+    thing = Collected()
+    ref = weakref.ref(thing, callback)
+    del thing
+    return ref
+
+
 def test_a_sigterm_inside_a_garbage_collector_callback_still_stops_the_run(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
@@ -200,19 +217,9 @@ def test_a_sigterm_inside_a_garbage_collector_callback_still_stops_the_run(
     out = tmp_path / "out"
     write_output(out, "old.txt", "old")
     hook = sys.unraisablehook
-
-    class Collected:
-        pass
-
-    def callback(_: object) -> None:
-        os.kill(os.getpid(), signal.SIGTERM)
-        sum(range(1000))  # the handler runs here, inside the callback
-
     with pytest.raises(SystemExit) as info, atomic_output_dir(out) as staging:
         (staging / "new.txt").write_text("new")
-        thing = Collected()
-        ref = weakref.ref(thing, callback)
-        del thing
+        ref = _sigterm_when_collected()
         deadline = time.monotonic() + 5.0
         while time.monotonic() < deadline:
             time.sleep(0.001)
@@ -230,19 +237,9 @@ def test_a_sigterm_lost_in_a_callback_at_the_end_of_the_run_still_stops_it(
     # the callback's signal is raised again a millisecond later; a run that ends
     # before that raises it on the way out instead of dropping it
     out = tmp_path / "out"
-
-    class Collected:
-        pass
-
-    def callback(_: object) -> None:
-        os.kill(os.getpid(), signal.SIGTERM)
-        sum(range(1000))
-
     with pytest.raises(SystemExit) as info, atomic_output_dir(out) as staging:
         (staging / "new.txt").write_text("new")
-        thing = Collected()
-        ref = weakref.ref(thing, callback)
-        del thing  # the last statement: the run ends within the millisecond
+        ref = _sigterm_when_collected()  # the last statement: the run ends within the millisecond
     assert info.value.code == 143 and ref() is None
     time.sleep(0.01)  # the cancelled re-raise does not come afterwards
     assert "Exception ignored" not in capfd.readouterr().err

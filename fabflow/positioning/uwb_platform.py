@@ -398,11 +398,11 @@ def failing_first(integrity: Integrity, reason: str, recorded: str) -> Integrity
     reasons found later stand before it, and :meth:`Integrity.failing` puts a
     new reason first, so ``reason`` goes between them.
     """
-    later = integrity.reason[: len(integrity.reason) - len(recorded)] if recorded else ""
-    if not recorded:
-        text = f"{integrity.reason}; {reason}" if integrity.reason else reason
-    else:
+    if recorded:
+        later = integrity.reason[: len(integrity.reason) - len(recorded)]
         text = f"{later}{reason}; {recorded}"
+    else:
+        text = f"{integrity.reason}; {reason}" if integrity.reason else reason
     return replace(integrity, status="failed", reason=text)
 
 

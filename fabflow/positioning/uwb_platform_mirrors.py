@@ -80,22 +80,33 @@ def mirror_checks(
 ) -> list[dict[str, Any]]:
     """:func:`mirror_check` of every ``(adjustment, use, state, tests)``, the mirror fits
     solved together (:func:`~fabflow.positioning.uwb_platform_adjustment.fit_many`)."""
+    return _mirror_fits(cases)[0]
+
+
+def _mirror_fits(
+    cases: Sequence[tuple[PlatformAdjustment, np.ndarray, np.ndarray, TestResult | None]],
+    decision_only: bool = False,
+) -> tuple[list[dict[str, Any]], np.ndarray]:
+    """:func:`mirror_checks` (``decision_only`` as :func:`_verdicts` takes it) and the
+    mirror fits' states ``(n, 4)``."""
     starts = [reflected(adj, use, state) for adj, use, state, _ in cases]
     mirrors, _, converged, solved = fit_many(
         [(c[0], c[1], start) for c, (start, _) in zip(cases, starts, strict=True)]
     )
     checks = _verdicts(
         [
-            (c[0], c[1], c[2], mirrors[k], bool(converged[k]), starts[k][1])
-            for k, c in enumerate(cases)
+            (adj, use, state, mirrors[k], bool(converged[k]), starts[k][1])
+            for k, (adj, use, state, _) in enumerate(cases)
         ],
         [c[3] for c in cases],
+        decision_only,
     )
     # no mirror fit (a singular normal matrix there): no second solution
-    return [
+    checks = [
         check if solved[k] else {"passed": True, "plane_distance_m": starts[k][1]}
         for k, check in enumerate(checks)
     ]
+    return checks, mirrors
 
 
 def hidden_mirrors(
@@ -142,26 +153,14 @@ def hidden_mirrors_batch(cases: Sequence[MirrorCase]) -> list[list[dict[str, Any
         return found
     near, _, converged, solved = fit_many([(cases[c][0], r, cases[c][2]) for c, r in searches])
     fixed = np.flatnonzero(converged & solved)  # no fix without the anchor: nothing to mirror
-    starts = [reflected(cases[searches[i][0]][0], searches[i][1], near[i]) for i in fixed]
-    mirrors, _, mirror_converged, mirror_solved = fit_many(
-        [
-            (cases[searches[i][0]][0], searches[i][1], start)
-            for i, (start, _) in zip(fixed, starts, strict=True)
-        ]
-    )
-    checks = _verdicts(
-        [
-            (cases[searches[i][0]][0], searches[i][1], near[i], mirrors[k],
-             bool(mirror_converged[k]), starts[k][1])
-            for k, i in enumerate(fixed)
-        ],
-        [None] * len(fixed),
+    checks, mirrors = _mirror_fits(
+        [(cases[searches[i][0]][0], searches[i][1], near[i], None) for i in fixed],
         decision_only=True,
-    )  # fmt: skip
+    )
     for k, i in enumerate(fixed):
         c, rest = searches[i]
         adj, use, state = cases[c]
-        if not mirror_solved[k] or checks[k]["passed"]:
+        if checks[k]["passed"]:
             continue
         mask = use & ~rest
         residual = adj.raw_mean[mask] - platform_ranges(
