@@ -11,6 +11,7 @@ share. The sections themselves live with the room that owns them
 from __future__ import annotations
 
 import difflib
+import functools
 import re
 import types
 import typing
@@ -246,11 +247,19 @@ class PoseSpec(StrictModel):
     abc_deg: Vec3 = (0.0, 0.0, 0.0)
 
     def matrix(self) -> np.ndarray:
-        """The pose as a 4x4 homogeneous matrix (metres)."""
-        T = np.eye(4)
-        T[:3, :3] = matrix_from_abc(*np.radians(self.abc_deg))
-        T[:3, 3] = self.xyz
-        return T
+        """The pose as a 4x4 homogeneous matrix (metres); a fresh array each call."""
+        return _pose_matrix(tuple(self.xyz), tuple(self.abc_deg)).copy()
+
+
+@functools.lru_cache(maxsize=1024)
+def _pose_matrix(xyz: tuple[float, ...], abc_deg: tuple[float, ...]) -> np.ndarray:
+    """:meth:`PoseSpec.matrix` of these values, made once: a simulated run asks for a
+    project's few poses at every visit."""
+    T = np.eye(4)
+    T[:3, :3] = matrix_from_abc(*np.radians(abc_deg))
+    T[:3, 3] = xyz
+    T.flags.writeable = False
+    return T
 
 
 class Limits(StrictModel):

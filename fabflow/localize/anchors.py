@@ -40,7 +40,7 @@ from fabflow.errors import LocalizationError
 from fabflow.localize.site import anchors_world, free_ground, points_in_world
 from fabflow.positioning.boxes import Boxes, segments_clear
 from fabflow.positioning.uwb import COND_LIMIT, anchor_geometry_problem
-from fabflow.positioning.uwb_platform import COVERAGE_MARGIN, outside_hull
+from fabflow.positioning.uwb_coverage import COVERAGE_MARGIN, outside_hull
 from fabflow.project import Project, UwbSetup
 from fabflow.robots import platform
 from fabflow.tasks.plan import Plan, Station
@@ -113,7 +113,7 @@ class AnchorCoverage:
     @property
     def covered(self) -> np.ndarray:
         """``(P,)`` packages whose judged sigma is within the target, inside the anchors'
-        plan hull (within :data:`~fabflow.positioning.uwb_platform.COVERAGE_MARGIN`)."""
+        plan hull (within :data:`~fabflow.positioning.uwb_coverage.COVERAGE_MARGIN`)."""
         inside = np.ones(len(self.sigma), dtype=bool)
         if self.outside is not None:
             inside = self.outside <= COVERAGE_MARGIN
@@ -241,7 +241,7 @@ def _zone_serves(
 ) -> bool:
     """Whether the tags ``(T, 3)`` ranging with ``ranged`` ``(T, A)`` of the anchors, of
     which they see ``sight``, fix themselves, stand inside the plan hull of the anchors
-    ranged (within :data:`~fabflow.positioning.uwb_platform.COVERAGE_MARGIN`) and reach
+    ranged (within :data:`~fabflow.positioning.uwb_coverage.COVERAGE_MARGIN`) and reach
     the target sigma."""
     if not _tags_fix_themselves(tags, anchors, ranged):
         return False

@@ -252,16 +252,24 @@ def shortest_half_center(series: np.ndarray, fraction: float = 0.25) -> np.ndarr
     """
     x = np.asarray(series, dtype=float)
     flat = x.reshape(x.shape[0], -1)
-    out = np.full(flat.shape[1], np.nan)
-    for j in range(flat.shape[1]):
-        v = np.sort(flat[np.isfinite(flat[:, j]), j])
-        if v.size < 3:
-            continue
-        h = max(2, int(np.ceil(fraction * v.size)))
-        widths = v[h - 1 :] - v[: v.size - h + 1]
-        i = int(np.argmin(widths))
-        out[j] = float(np.median(v[i : i + h]))
-    return out.reshape(x.shape[1:])
+    n_rows, n_series = flat.shape
+    out = np.full(n_series, np.nan)
+    n = np.isfinite(flat).sum(axis=0)
+    if n_rows < 3 or n_series == 0:
+        return out.reshape(x.shape[1:])
+    v = np.sort(flat, axis=0)  # NaN last: each column's finite samples first, ascending
+    h = np.maximum(2, np.ceil(fraction * n).astype(np.intp))
+    first = np.arange(n_rows)[:, None]
+    last = np.minimum(first + h - 1, n_rows - 1)
+    widths = np.take_along_axis(v, last, axis=0) - v
+    widths[first > n - h] = np.inf  # an interval must hold h finite samples
+    start = np.argmin(widths, axis=0)  # the first of the shortest, as np.argmin of a column
+    cols = np.arange(n_series)
+    # the median of v[start : start + h]: its middle sample, or the mean of its middle two
+    lo = np.minimum(start + (h - 1) // 2, n_rows - 1)
+    hi = np.minimum(start + h // 2, n_rows - 1)
+    centre = (v[lo, cols] + v[hi, cols]) / 2
+    return np.where(n >= 3, centre, out).reshape(x.shape[1:])
 
 
 def static_window(sigma: np.ndarray | float, k: float = 3.0, floor: float = 0.1) -> np.ndarray:

@@ -18,7 +18,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy.spatial import ConvexHull
 
 from fabflow.errors import InputError, LocalizationError
 from fabflow.positioning.integrity import ALPHA, Integrity, TestResult, identify, record
@@ -32,6 +31,7 @@ from fabflow.positioning.uwb import (
     sigma_of,
 )
 from fabflow.positioning.uwb_calibration import running_median
+from fabflow.positioning.uwb_coverage import COVERAGE_MARGIN, geometry_checks
 from fabflow.positioning.uwb_platform_adjustment import (
     PlatformAdjustment,
     fit_many,
@@ -448,7 +448,7 @@ def _finish(
     n_used = np.bincount(an, weights=adj.count[use], minlength=len(A))
     ss = np.bincount(an, weights=squares, minlength=len(A))
     per_anchor = np.where(n_used > 0, np.sqrt(ss / np.maximum(n_used, 1)), np.nan)
-    checks: dict[str, Any] = _geometry(A[np.unique(an)], state)
+    checks: dict[str, Any] = geometry_checks(A[np.unique(an)], state)
     integrity = record(tests, excluded, adj.alpha, checks)
     # the mirror checks come at the end (finish_mirror_searches: many fixes' at once);
     # what the records below add does not depend on them
@@ -513,42 +513,6 @@ def rejected_ranges(rejected: np.ndarray, anchor_ids: Sequence[str]) -> dict[str
         },
         "test": "beyond 3 sigma (at least 0.1 m) of its link's robust centre",
     }
-
-
-COVERAGE_MARGIN = 0.5
-"""How far (metres, in plan) a platform may stand outside the anchors' convex hull
-before its fix fails: outside, the geometry degrades fast and the linearized
-covariance no longer describes the error."""
-
-
-def _geometry(A: np.ndarray, state: np.ndarray) -> dict[str, float]:
-    """PDOP of the anchors used at the platform, and how far outside their plan hull it stands."""
-    p = state[:3]
-    u = p - A
-    u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
-    info = u.T @ u
-    pdop = float(np.sqrt(np.trace(np.linalg.pinv(info))))
-    outside = float(outside_hull(A[:, :2], p[None, :2])[0])
-    return {"pdop": pdop, "outside_coverage_m": outside}
-
-
-def outside_hull(anchors_xy: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
-    """How far (metres) each plan point ``(m, 2)`` lies outside the convex hull of the
-    anchors ``(n, 2)``: 0 inside; 0 for all when the anchors span no area."""
-    xy = np.asarray(anchors_xy, dtype=float)
-    p = np.asarray(points_xy, dtype=float).reshape(-1, 2)
-    outside = np.zeros(len(p))
-    if len(xy) < 3 or np.linalg.matrix_rank(xy - xy.mean(axis=0)) < 2:
-        return outside
-    hull = ConvexHull(xy)
-    out = (p @ hull.equations[:, :2].T + hull.equations[:, 2]).max(axis=1) > 0
-    if out.any():
-        v = xy[hull.vertices]
-        a, ab = v, np.roll(v, -1, axis=0) - v
-        q = p[out][:, None, :]
-        t = np.clip(np.einsum("mij,ij->mi", q - a, ab) / np.einsum("ij,ij->i", ab, ab), 0, 1)
-        outside[out] = np.linalg.norm(a + t[..., None] * ab - q, axis=2).min(axis=1)
-    return outside
 
 
 def platform_to_base_covariance(

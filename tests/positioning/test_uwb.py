@@ -308,6 +308,37 @@ def test_static_rejection_survives_half_nlos() -> None:
     np.testing.assert_allclose(np.nanmean(rej.ranges, axis=0), 4.0, atol=0.015)
 
 
+@settings(max_examples=150, deadline=None)
+@given(
+    st.integers(1, 30),
+    st.integers(1, 5),
+    st.sampled_from([0.1, 0.25, 0.5, 0.9]),
+    st.integers(0, 2**32 - 1),
+)
+def test_shortest_half_center_is_each_columns_densest_interval(
+    n: int, m: int, fraction: float, seed: int
+) -> None:
+    """The columns solved together give what each gives alone, with NaN, ties (ranges
+    on a centimetre grid) and too few samples (a sorted column, its shortest window of
+    ``max(2, ceil(fraction * n))`` samples, the first on ties, and that window's median)."""
+    from fabflow.positioning.uwb_calibration import shortest_half_center
+
+    rng = np.random.default_rng(seed)
+    y = np.round(rng.normal(5.0, 0.1, (n, m, 2)), int(rng.integers(1, 4)))
+    y[rng.random(y.shape) < rng.random()] = np.nan
+    y[rng.random(y.shape) < 0.2] += rng.uniform(0.3, 1.5)
+    got = shortest_half_center(y, fraction)
+    assert got.shape == (m, 2)
+    for j in np.ndindex(m, 2):
+        v = np.sort(y[(slice(None), *j)][np.isfinite(y[(slice(None), *j)])])
+        if v.size < 3:
+            assert np.isnan(got[j])
+            continue
+        h = max(2, int(np.ceil(fraction * v.size)))
+        i = int(np.argmin(v[h - 1 :] - v[: v.size - h + 1]))
+        assert got[j] == np.median(v[i : i + h])
+
+
 def test_calibration_bias_sigma() -> None:
     rng = np.random.default_rng(10)
     model = UwbErrorModel()

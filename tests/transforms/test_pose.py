@@ -175,6 +175,12 @@ def test_project_posespec_uses_kuka_abc() -> None:
     spec = PoseSpec(xyz=(1.0, 2.0, 3.0), abc_deg=(30.0, -45.0, 120.0))
     ref = from_kuka_xyzabc([1000.0, 2000.0, 3000.0, 30.0, -45.0, 120.0])
     np.testing.assert_allclose(spec.matrix(), ref.matrix, atol=1e-12)
+    # made once per value, handed out as a fresh array: a caller's edit stays its own
+    first = spec.matrix()
+    first[:3, 3] = 0.0
+    np.testing.assert_allclose(spec.matrix(), ref.matrix, atol=1e-12)
+    moved = spec.model_copy(update={"xyz": (0.0, 0.0, 0.0)})
+    np.testing.assert_allclose(moved.matrix()[:3, 3], 0.0)
 
 
 # ------------------------------------------------------------------ validation & API
