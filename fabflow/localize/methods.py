@@ -46,8 +46,10 @@ MeasureStation = Callable[..., Any]
 """A localizer's measuring half: called as its ``localize_station`` is, it draws every
 random number of a station and returns what its estimating half takes."""
 
-EstimateStations = Callable[[Project, Sequence[Any]], list[BasePose]]
-"""A localizer's estimating half: the base poses of what its measuring half measured."""
+EstimateStations = Callable[..., list[BasePose]]
+"""A localizer's estimating half, called as ``(project, measured, records=True)``: the
+base poses of what its measuring half measured; with ``records`` False their integrity
+records may leave out what cannot change a status, pose or covariance."""
 
 PHASED: dict[str, tuple[MeasureStation, EstimateStations]] = {
     "uwb": (uwb.measure_station, uwb.estimate_measured),

@@ -211,14 +211,17 @@ def measure_station(
     return MeasuredStation(data, station_id, heading_prior)
 
 
-def estimate_measured(project: Project, measured: Sequence[MeasuredStation]) -> list[BasePose]:
+def estimate_measured(
+    project: Project, measured: Sequence[MeasuredStation], records: bool = True
+) -> list[BasePose]:
     """:func:`localize_station`'s estimating half, of many stations at once
-    (:func:`estimate_stations`); it draws no random number."""
+    (:func:`estimate_stations`, which takes ``records``); it draws no random number."""
     return estimate_stations(
         project,
         [m.data for m in measured],
         [m.station_id for m in measured],
         [m.heading_prior for m in measured],
+        records=records,
     )
 
 
@@ -339,6 +342,7 @@ def estimate_stations(
     station_ids: Sequence[str | None],
     heading_priors: Sequence[tuple[float, float] | None] | None = None,
     anchors: np.ndarray | None = None,
+    records: bool = True,
 ) -> list[BasePose]:
     """:func:`estimate_station` of many stations (a simulated run's visits), in order.
 
@@ -349,7 +353,10 @@ def estimate_stations(
     station's pose is the one :func:`estimate_station` gives it alone (to the
     bit with the error model's default noise; with a noise so small that a
     station's NLOS correction integrates on a finer grid, the stations batched
-    with it share that grid).
+    with it share that grid). With ``records`` False the integrity records
+    leave out what cannot change a status, poses or covariances
+    (:func:`~fabflow.positioning.uwb_platform.finish_mirror_searches`): for a
+    simulated run that keeps none.
     """
     setup = _setup(project)
     model = setup.error_model()
@@ -379,6 +386,7 @@ def estimate_stations(
             alpha=project.localization.integrity.alpha,
             anchor_ids=first.anchor_ids,
             base_lever=project.robot.platform.T_platform_base.matrix()[:3, 3],
+            records=records,
         )
         for i, (fix, rej) in zip(members, fixes, strict=True):
             out[i] = _base_pose(project, stations[i], fix, rej, station_ids[i])

@@ -87,6 +87,7 @@ def static_fixes(
     alpha: float = ALPHA,
     anchor_ids: Sequence[str] | None = None,
     base_lever: np.ndarray | None = None,
+    records: bool = True,
 ) -> list[tuple[PlatformFix, Rejection]]:
     """:func:`static_fix` of several standing platforms that range with the same anchors.
 
@@ -110,6 +111,9 @@ def static_fixes(
         Per station, as ``heading_prior`` (default: none).
     model, A, L, method, alpha, anchor_ids, base_lever
         As :func:`static_fix` takes them.
+    records
+        False: the fixes' records without what cannot change a status
+        (:func:`~fabflow.positioning.uwb_platform.finish_mirror_searches`).
     """
     n_stations = ranges.shape[1]
     priors = [None] * n_stations if heading_priors is None else list(heading_priors)
@@ -127,7 +131,8 @@ def static_fixes(
                 "seeds": seeds[v],
             }
             for v in range(n_stations)
-        ]
+        ],
+        records,
     )  # fmt: skip
     return [
         (fix, Rejection(rej.ranges[:, v], rej.rejected[:, v], rej.out_of_bounds[:, v]))

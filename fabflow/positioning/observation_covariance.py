@@ -8,6 +8,7 @@ observations in linear time (Woodbury's identity for the low-rank part).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,24 +55,28 @@ class Covariance:
             Xb = X2.reshape(-1, b, X2.shape[1])
             out = np.linalg.solve(self.blocks, Xb).reshape(X2.shape)
         else:
-            assert self.diag is not None
-            Di = 1.0 / self.diag
+            Di, DU, core = self._woodbury
             out = Di[:, None] * X2
-            if self.low_rank is not None and self.low_rank_var is not None:
-                U = self.low_rank
-                DU = Di[:, None] * U
-                core = np.diag(1.0 / self.low_rank_var) + U.T @ DU
+            if DU is not None and core is not None:
                 out = out - DU @ np.linalg.solve(core, DU.T @ X2)
         return out[:, 0] if vec else out
+
+    @functools.cached_property
+    def _woodbury(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """``D^-1``, ``D^-1 U`` and ``diag(s)^-1 + U^T D^-1 U`` of Woodbury's identity, made
+        once: an adjustment's tests solve with the same ``Q`` several times."""
+        assert self.diag is not None
+        Di = 1.0 / self.diag
+        if self.low_rank is None or self.low_rank_var is None:
+            return Di, None, None
+        DU = Di[:, None] * self.low_rank
+        return Di, DU, np.diag(1.0 / self.low_rank_var) + self.low_rank.T @ DU
 
     def inverse_diag(self) -> np.ndarray:
         """The diagonal of ``Q^-1`` (m,)."""
         if self.blocks is not None:
             return np.linalg.inv(self.blocks).diagonal(axis1=1, axis2=2).reshape(-1)
-        assert self.diag is not None
-        Di = 1.0 / self.diag
-        if self.low_rank is None or self.low_rank_var is None:
+        Di, DU, core = self._woodbury
+        if DU is None or core is None:
             return Di
-        DU = Di[:, None] * self.low_rank
-        core = np.diag(1.0 / self.low_rank_var) + self.low_rank.T @ DU
         return Di - np.einsum("ij,ij->i", DU, np.linalg.solve(core, DU.T).T)

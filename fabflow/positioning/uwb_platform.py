@@ -11,6 +11,7 @@ Metres and radians; anchors in the world frame.
 
 from __future__ import annotations
 
+import functools
 import inspect
 import math
 from collections.abc import Sequence
@@ -211,12 +212,13 @@ def locate_platform(
     return fix if search_later else finish_mirror_searches([fix])[0]
 
 
-def locate_platforms(problems: Sequence[dict[str, Any]]) -> list[PlatformFix]:
+def locate_platforms(problems: Sequence[dict[str, Any]], records: bool = True) -> list[PlatformFix]:
     """:func:`locate_platform` of many standing platforms (a simulated run's visits).
 
     ``problems`` holds each one's arguments by name; the first fits of all of
     them are one batched Newton solve, as are their mirror checks
-    (:func:`finish_mirror_searches`); the tests and exclusions stay each fix's own.
+    (:func:`finish_mirror_searches`, which takes ``records``); the tests and
+    exclusions stay each fix's own.
 
     Raises
     ------
@@ -240,16 +242,39 @@ def locate_platforms(problems: Sequence[dict[str, Any]]) -> list[PlatformFix]:
         [
             _tested(adj, ranges_links, states[k], iterations[k], converged[k])
             for k, (adj, _, _, ranges_links) in enumerate(prepared)
-        ]
+        ],
+        records,
     )
 
 
 def _arguments(problem: dict[str, Any]) -> dict[str, Any]:
     """:func:`locate_platform`'s arguments for ``problem``, its defaults filled in (but
-    ``search_later``): what :func:`_adjustment` takes."""
-    bound = inspect.signature(locate_platform).bind(**problem)
-    bound.apply_defaults()
-    return {k: v for k, v in bound.arguments.items() if k != "search_later"}
+    ``search_later``): what :func:`_adjustment` takes.
+
+    Raises
+    ------
+    TypeError
+        For a name :func:`locate_platform` does not take, or one it needs missing.
+    """
+    names, defaults = _parameters()
+    unknown = sorted(problem.keys() - names)
+    missing = sorted(names - defaults.keys() - problem.keys())
+    if unknown or missing:
+        raise TypeError(
+            f"locate_platform() arguments: unknown {unknown or 'none'}, missing {missing or 'none'}"
+        )
+    arguments = {**defaults, **problem}
+    del arguments["search_later"]
+    return arguments
+
+
+@functools.cache
+def _parameters() -> tuple[frozenset[str], dict[str, Any]]:
+    """:func:`locate_platform`'s parameter names and defaults, read once (a run fills
+    them in at every visit)."""
+    parameters = inspect.signature(locate_platform).parameters
+    defaults = {k: p.default for k, p in parameters.items() if p.default is not p.empty}
+    return frozenset(parameters), defaults
 
 
 def _adjustment(
@@ -358,13 +383,19 @@ def _tested(
     return _finish(adj, ranges_links, use, state, tests, excluded, problem, iterations, converged)
 
 
-def finish_mirror_searches(fixes: Sequence[PlatformFix]) -> list[PlatformFix]:
+def finish_mirror_searches(fixes: Sequence[PlatformFix], records: bool = True) -> list[PlatformFix]:
     """The fixes with their mirror checks made, all of them at once.
 
     A fix whose mirror image fits as well fails
     (:func:`~fabflow.positioning.uwb_platform_mirrors.mirror_checks`); one that
     passes is searched for hidden mirrors
     (:func:`~fabflow.positioning.uwb_platform_mirrors.hidden_mirrors_batch`).
+
+    With ``records`` False only the fixes that left ranges out are searched: a
+    hidden mirror raises the protection level, which decides only such a fix's
+    status (:func:`~fabflow.positioning.integrity.guard_exclusion`); the others'
+    poses, covariances and statuses are the same, their records without the
+    ``mirror_by_one_fault`` check (a simulated run that keeps no records).
     """
     pending = [k for k, f in enumerate(fixes) if f.mirror_search is not None]
     checks = mirror_checks([fixes[k].mirror_search[:4] for k in pending])  # type: ignore[index]
@@ -373,7 +404,8 @@ def finish_mirror_searches(fixes: Sequence[PlatformFix]) -> list[PlatformFix]:
     for k, mirror in zip(pending, checks, strict=True):
         integrity = fixes[k].integrity.with_checks(mirror=mirror)  # type: ignore[union-attr]
         if mirror["passed"]:
-            searched.append(k)
+            if records or integrity.status == "excluded":
+                searched.append(k)
         else:
             dz = mirror["offset_m"][2]
             left = "" if not integrity.excluded else " left"

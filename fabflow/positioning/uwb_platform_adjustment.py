@@ -22,6 +22,7 @@ tests and compares fits of any subset of them:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -439,8 +440,7 @@ def reflected(
     distance from the plane (metres).
     """
     A = adj.anchors[adj.anchors_used(use)]
-    c = A.mean(axis=0)
-    normal = np.linalg.svd(A - c)[2][-1]
+    c, normal = _best_fit_plane(A.tobytes(), len(A))
     L_mean = adj.lever_arms.mean(axis=0)
     R = rotz(float(state[3]))
     centroid = state[:3] + R @ L_mean
@@ -448,6 +448,18 @@ def reflected(
     start = state.copy()
     start[:3] = centroid - 2.0 * h * normal - R @ L_mean
     return start, abs(h)
+
+
+@functools.lru_cache(maxsize=256)
+def _best_fit_plane(points_bytes: bytes, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Centroid and unit normal of the best-fit plane of ``n`` points (their ``(n, 3)``
+    float64 bytes), made once per point set: a run's mirror searches reflect through
+    the planes of a few anchor sets hundreds of times."""
+    A = np.frombuffer(points_bytes, dtype=float).reshape(n, 3)
+    c = A.mean(axis=0)
+    normal = np.linalg.svd(A - c)[2][-1].copy()
+    c.flags.writeable = normal.flags.writeable = False
+    return c, normal
 
 
 def _strict_subset(a: np.ndarray, b: np.ndarray) -> bool:

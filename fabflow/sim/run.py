@@ -488,7 +488,8 @@ def simulate_run(
             ),
         )
     if phased is not None and measured:
-        for v, estimate in enumerate(phased[1](study.project, measured)):
+        # a run that keeps no poses reads only their statuses, poses and covariances
+        for v, estimate in enumerate(phased[1](study.project, measured, records=keep_poses)):
             take(v, estimate)
     if study.visit_covariance is not None:
         cov[:] = study.visit_covariance

@@ -460,6 +460,31 @@ def test_many_platforms_located_together_are_each_located_alone() -> None:
         locate_platforms([*problems, one_tag])
 
 
+def test_fixes_without_records_search_only_those_that_left_ranges_out() -> None:
+    # a hidden mirror raises the protection level, which decides the status only of
+    # a fix that left ranges out: without records the others are not searched, and
+    # everything but that record is the same
+    from fabflow.positioning.uwb_platform import locate_platforms
+
+    faulty = _ranges(ANCHORS_5, 7)
+    faulty[:, 0, 3] += 0.5  # one link long: the tests leave it out
+    problems = [
+        {"anchors": a, "ranges": r, "lever_arms": TAGS, "sigma": SIGMA,
+         "anchor_bias_sigma": np.full(len(a), 0.01), "base_lever": BASE}
+        for a, r in ((PAPER_ANCHORS_3D, _ranges(PAPER_ANCHORS_3D, 6)), (ANCHORS_5, faulty))
+    ]  # fmt: skip
+    full = locate_platforms(problems)
+    lean = locate_platforms(problems, records=False)
+    assert [f.integrity.status for f in full] == ["ok", "excluded"]
+    for f, g in zip(full, lean, strict=True):
+        assert "mirror_by_one_fault" in f.integrity.checks
+        np.testing.assert_array_equal(f.state, g.state)
+        np.testing.assert_array_equal(f.covariance, g.covariance)
+        assert (f.integrity.status, f.integrity.reason) == (g.integrity.status, g.integrity.reason)
+    assert "mirror_by_one_fault" not in lean[0].integrity.checks
+    assert lean[1].integrity.to_dict() == full[1].integrity.to_dict()
+
+
 def test_a_mirror_found_last_reads_as_found_right_after_the_record() -> None:
     # the mirror checks are made after the fix's other checks, whose reasons stand
     # first; the mirror's goes where it went when it was checked first

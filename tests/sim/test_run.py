@@ -13,6 +13,7 @@ from fabflow.errors import InputError
 from fabflow.localize import icp, uwb
 from fabflow.localize.anchors import layout_anchors
 from fabflow.localize.methods import localizer_arguments, run_inputs
+from fabflow.localize.plan import check_visit, parked_pose
 from fabflow.project import Project, load_project
 from fabflow.sim.monte_carlo import run_study
 from fabflow.sim.run import Study, prepare_study, run_seed, simulate_run, study_localizer
@@ -361,3 +362,46 @@ def test_a_run_estimates_its_uwb_visits_together_as_one_at_a_time(cabin_study: S
         np.testing.assert_array_equal(together.deviation_xyz, alone.deviation_xyz)
         for a, b in zip(together.base_poses, alone.base_poses, strict=True):
             assert a.quality == b.quality
+
+
+def test_estimates_without_records_have_the_statuses_poses_and_covariances_of_full_ones(
+    cabin_study: Study,
+) -> None:
+    # a simulated run that keeps no poses skips the hidden-mirror search of the fixes
+    # that left nothing out: it can raise only their protection level, which decides
+    # the status of a fix that left ranges out alone. One link's ranges 0.4 m long at
+    # every other visit make such fixes; the poses, covariances and (after the check
+    # against the planned station) statuses must be the same, and so the records of
+    # the fixes that left ranges out.
+    project = cabin_study.project
+    rng = np.random.default_rng(5)
+    installation = uwb.draw_installation(project, rng)
+    planned, measured = [], []
+    for v, station in enumerate(cabin_study.stations[:16]):
+        T_planned, T_true = parked_pose(project, station, rng)
+        planned.append(T_planned)
+        built = cabin_study.built_before[v]
+        extra = {**cabin_study.visit_arguments[v], "installation": installation}
+        measured.append(uwb.measure_station(project, T_true, rng, station.id, built, **extra))
+    for m in measured[::2]:
+        m.data.ranges[:, 0, 1] += 0.4
+    full = uwb.estimate_measured(project, measured)
+    lean = uwb.estimate_measured(project, measured, records=False)
+    statuses = []
+    for a, b, T in zip(full, lean, planned, strict=True):
+        left_out = a.integrity.status == "excluded"
+        a, b = check_visit(project, a, T), check_visit(project, b, T)
+        np.testing.assert_array_equal(a.T_world_base, b.T_world_base)
+        np.testing.assert_array_equal(a.covariance, b.covariance)
+        assert a.integrity.status == b.integrity.status
+        if left_out:
+            assert a.integrity.to_dict() == b.integrity.to_dict()
+        statuses.append(("left out " if left_out else "") + a.integrity.status)
+    assert "ok" in statuses and any(s.startswith("left out") for s in statuses), statuses
+    # the lean records lack only the search's check
+    assert any("mirror_by_one_fault" in p.integrity.checks for p in full)
+    assert not any(
+        "mirror_by_one_fault" in p.integrity.checks
+        for p in lean
+        if p.integrity.status != "excluded"
+    )
