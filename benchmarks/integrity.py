@@ -9,7 +9,7 @@
    the centre) with 2 % NLOS ranges: mean error of LS, WLS-T and WLS-T with data
    snooping, and on clean data the RMS against the Cramer-Rao bound.
 
-Run: ``.venv/bin/python benchmarks/integrity.py [--quick] [--n 200]``
+Run: ``.venv/bin/python benchmarks/integrity.py [--quick] [--n 200] [--methods uwb,...]``
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def fifth_anchor(project):
     return project.model_copy(update={"localization": loc})
 
 
-def fault_table(n: int, console: Console) -> None:
+def fault_table(n: int, console: Console, methods: set[str] | None = None) -> None:
     table = Table(
         title=f"Fault injection, {n} stations of the cabin per row (alpha = {ALPHA}, "
         "alert limit = tolerances.position)"
@@ -82,6 +82,8 @@ def fault_table(n: int, console: Console) -> None:
     ):
         table.add_column(name, justify="left" if name in ("method", "fault") else "right")
     for label, method, project in projects():
+        if methods is not None and method not in methods:
+            continue
         for fault in FAULTS[method]:
             t0 = time.process_time()
             r = fault_study(project, method, fault, n, seed=1)
@@ -148,9 +150,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="a few stations per row")
     parser.add_argument("--n", type=int, default=200, help="stations per method and fault")
+    parser.add_argument("--methods", help=f"comma-separated, of {', '.join(FAULTS)} (default: all)")
     args = parser.parse_args()
+    methods = None if args.methods is None else set(args.methods.split(","))
+    if methods is not None and not methods <= set(FAULTS):
+        parser.error(f"--methods: unknown {', '.join(sorted(methods - set(FAULTS)))}")
     console = Console(width=150)
-    fault_table(8 if args.quick else args.n, console)
+    fault_table(8 if args.quick else args.n, console, methods)
     static_table(500 if args.quick else 5000, console)
 
 

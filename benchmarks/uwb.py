@@ -158,19 +158,20 @@ def _static_run(
     A_fix = anchors[:, :2] if tag_z is not None else anchors
     # mean |error| of an efficient unbiased per-fix estimator: sqrt(2 / pi) sqrt(CRLB_ii)
     bound = np.mean(
-        [np.sqrt(2 / np.pi * np.diag(crlb(A_fix, p[:dim], model.sigma))) for p in points], axis=0
+        [np.sqrt(2 / np.pi * np.diag(crlb(A_fix, p[:dim], model.total_sigma))) for p in points],
+        axis=0,
     )
     for p in points:
         p3 = np.array([*p, tag_z]) if tag_z is not None else p
         sim = simulate_ranges(anchors, np.broadcast_to(p3, (n, 3)), model, rng, bias=bias)
         y = cal.apply(sim.ranges)
-        y = reject_outliers(y, model.sigma(y)).ranges
+        y = reject_outliers(y, model.total_sigma(y)).ranges
         A = anchors
         if tag_z is not None:
             y = horizontal_ranges(y, anchors[:, 2], tag_z)
             A = anchors[:, :2]
         for m in METHODS:
-            fix = locate(A, y, method=m, sigma=model.sigma)
+            fix = locate(A, y, method=m, sigma=model.total_sigma)
             errs[m].append(np.abs(fix.positions[fix.valid] - p[:dim]))
             if m == "ls":
                 dropped += int((~fix.valid).sum())
@@ -264,7 +265,7 @@ def run_moving(
     sim = simulate_ranges(anchors, truth, model, rng, bias=bias, dt=1.0 / 60.0)
     raw = np.einsum("rjj->rj", sim.ranges)
     y = cal.apply(raw)
-    y_rej = reject_outliers(y, model.sigma(y)).ranges
+    y_rej = reject_outliers(y, model.total_sigma(y)).ranges
     t_round = t.mean(axis=1)
     p_round = traj.sample(t_round).p
     warm = t_round > 1.0
@@ -272,7 +273,7 @@ def run_moving(
     dim = 2 if two_d else 3
     A = anchors[:, :2] if two_d else anchors
     # per-fix bound: per-axis sqrt(2 / pi) sqrt(C_ii); XOY by sampling N(0, C_xy)
-    C = crlb(A, p_round[warm][:, :dim], model.sigma)
+    C = crlb(A, p_round[warm][:, :dim], model.total_sigma)
     draws = np.einsum(
         "nij,nkj->nki", np.linalg.cholesky(C[:, :2, :2]), rng.standard_normal((len(C), 16, 2))
     )
@@ -283,20 +284,22 @@ def run_moving(
     yy = horizontal_ranges(y_rej, anchors[:, 2], traj.z) if two_d else y_rej
     for m in ("ls", "wls-t"):
         if m == "ls" and ls_raw:
-            y_m = reject_outliers(raw, model.sigma(raw)).ranges
+            y_m = reject_outliers(raw, model.total_sigma(raw)).ranges
             y_m = horizontal_ranges(y_m, anchors[:, 2], traj.z) if two_d else y_m
         else:
             y_m = yy
-        fix = locate(A, y_m, method=m, sigma=model.sigma)
+        fix = locate(A, y_m, method=m, sigma=model.total_sigma)
         ok = fix.valid & warm
         e = np.abs(fix.positions[ok] - p_round[ok][:, :dim])
         res[m] = np.r_[e.mean(axis=0), np.linalg.norm(e[:, :2], axis=1).mean()]
-    start = locate(A, yy[:60], method="wls-t", sigma=model.sigma)
+    start = locate(A, yy[:60], method="wls-t", sigma=model.total_sigma)
     p0 = np.nanmedian(start.positions, axis=0)
     if two_d:
         p0 = np.r_[p0, traj.z]
     if with_cv:
-        tc, pc, _ = cv_ekf_track(t.ravel(), ai.ravel(), y.ravel(), anchors, model.sigma, p0=p0)
+        tc, pc, _ = cv_ekf_track(
+            t.ravel(), ai.ravel(), y.ravel(), anchors, model.total_sigma, p0=p0
+        )
         ok = tc > 1.0
         e = np.abs(pc[ok] - traj.sample(tc[ok]).p)[:, :dim]
         res["cv-ekf"] = np.r_[e.mean(axis=0), np.linalg.norm(e[:, :2], axis=1).mean()]
@@ -316,7 +319,7 @@ def run_moving(
         ai.ravel(),
         y.ravel(),
         anchors,
-        model.sigma,
+        model.total_sigma,
         height=(traj.z, 0.01) if two_d else None,
     )
     elapsed = time.perf_counter() - tic

@@ -50,8 +50,14 @@ class UwbSetup(StrictModel):
     horizontal dilution of precision of 2)."""
     T_world_uwb: PoseSpec = PoseSpec()
     estimator: Literal["ls", "wls", "wls-t", "eskf"] = "wls-t"
-    sigma: PositiveFloat = 0.05
-    """Range noise standard deviation at 1 m (metres)."""
+    sigma: PositiveFloat = UwbErrorModel.sigma_1m
+    """Range noise standard deviation at 1 m (metres): white, every range its own.
+    0.033 (the default) is the DW1000 chip's stated precision (10 cm at three
+    sigma; :class:`~fabflow.sensors.uwb.UwbErrorModel`); with the multipath below it
+    reproduces paper 003's static tables and, unfitted, its moving ones
+    (``benchmarks/sensor_models.py``)."""
+    sigma_growth: Annotated[NonNegativeFloat, Field(le=1.0)] = UwbErrorModel.growth
+    """Increase of ``sigma`` per metre of range (m/m; 0 by default, at most 1)."""
     multipath_sigma: NonNegativeFloat = 0.035
     """Standard deviation at 1 m (metres) of the range error multipath gives each
     tag-anchor link where the tag stands (:mod:`fabflow.sensors.uwb_multipath`): it
@@ -89,6 +95,7 @@ class UwbSetup(StrictModel):
         """The range error model of this setup (simulation and covariance alike)."""
         return UwbErrorModel(
             sigma_1m=self.sigma,
+            growth=self.sigma_growth,
             multipath_field_sigma=self.multipath_sigma,
             multipath_field_length=self.multipath_length,
             material_delay=self.material_delay,

@@ -265,7 +265,8 @@ def _localize(
         ids,
         str(anchors_yaml),
     )
-    sigma = setup.error_model().sigma
+    # a moving platform meets fresh multipath as it goes: its ranges weigh by the whole error
+    sigma = setup.error_model().total_sigma
     epochs = cal.apply(log.epochs(len(L), len(ids)))
     quality: dict[str, Any] = {
         "n_ranges": int(log.range.size),

@@ -34,9 +34,12 @@ class UwbErrorModel:
     Attributes
     ----------
     sigma_1m
-        Range noise standard deviation at 1 m (metres).
+        White range noise standard deviation at 1 m (metres). 0.033: the DW1000
+        chip's line-of-sight precision, 10 cm at three sigma (Time Domain, *P330
+        data sheet*, 6.4.1), the chip of most modules like paper 003's (unnamed).
     growth
-        Increase of the noise standard deviation per metre of range (m/m).
+        Increase of that standard deviation per metre of range (m/m; 0: the
+        precision is stated for the chip's whole range).
     nlos_prob
         Probability that a line-of-sight range carries an NLOS excess.
     nlos_excess
@@ -71,8 +74,8 @@ class UwbErrorModel:
         (:func:`material_excess`). Off by default.
     """
 
-    sigma_1m: float = 0.05
-    growth: float = 0.01
+    sigma_1m: float = 0.033
+    growth: float = 0.0
     nlos_prob: float = 0.02
     nlos_excess: tuple[float, float] = (0.3, 1.5)
     nlos_prob_occluded: float = 0.5
@@ -106,6 +109,12 @@ class UwbErrorModel:
         """Range noise standard deviation (metres) at ``distance`` (metres)."""
         d = np.asarray(distance, dtype=float)
         return np.maximum(self.sigma_1m + self.growth * (d - 1.0), 0.25 * self.sigma_1m)
+
+    def total_sigma(self, distance: np.ndarray | float) -> np.ndarray:
+        """Standard deviation (metres) at ``distance`` (metres) of the white noise and the
+        multipath together: what a moving tag's independent ranges weigh by (it meets
+        fresh multipath every ``multipath_field_length``)."""
+        return np.hypot(self.sigma(distance), self.field_sigma(distance))
 
     def field_sigma(self, distance: np.ndarray | float) -> np.ndarray:
         """Standard deviation (metres) of the position-dependent multipath at ``distance``

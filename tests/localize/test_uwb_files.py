@@ -337,8 +337,10 @@ def _blocked_site(tmp_path: Path, seed: int) -> tuple[Path, Path, np.ndarray]:
     t, ti, ai = ranging_schedule(5.0, 60.0, 4, n_tags=2)
     occluded = np.zeros((2, 4), dtype=bool)
     occluded[:, 0] = True
+    # a noisy chip (5 cm, growing 1 cm/m): its cleaning window reaches into the excess
+    noisy = UwbErrorModel(sigma_1m=0.05, growth=0.01)
     sim = simulate_ranges(
-        anchors, tags_w[ti], UwbErrorModel(), np.random.default_rng(seed), occluded=occluded[ti]
+        anchors, tags_w[ti], noisy, np.random.default_rng(seed), occluded=occluded[ti]
     )
     r = np.take_along_axis(sim.ranges, ai[..., None], axis=-1)[..., 0]
     ranges = tmp_path / "ranges.csv"
@@ -346,6 +348,7 @@ def _blocked_site(tmp_path: Path, seed: int) -> tuple[Path, Path, np.ndarray]:
     doc = {
         "anchors": {k: a.tolist() for k, a in zip(IDS, anchors, strict=True)},
         "sigma": 0.05,
+        "sigma_growth": 0.01,
         "multipath_sigma": 0.0,
         "tags": tags.tolist(),
         "calibration": {k: [0.0, 1.0] for k in IDS},

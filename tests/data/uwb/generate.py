@@ -35,6 +35,7 @@ def _anchors_yaml(path: Path, bias, tags: np.ndarray) -> None:
         "anchors": {k: [float(v) for v in a] for k, a in zip(IDS, ANCHORS, strict=True)},
         "T_world_uwb": {"xyz": [float(v) for v in T_WORLD_UWB]},
         "sigma": 0.05,
+        "sigma_growth": 0.01,
         "multipath_sigma": 0.0,  # simulated without multipath: an open site
         "tags": [[float(v) for v in t] for t in tags],
         "calibration": {
@@ -48,7 +49,7 @@ def _anchors_yaml(path: Path, bias, tags: np.ndarray) -> None:
 
 def main() -> None:
     rng = np.random.default_rng(20261122)
-    model = UwbErrorModel()
+    model = UwbErrorModel(sigma_1m=0.05, growth=0.01)  # the noise the files were made with
     anchors_w = ANCHORS + T_WORLD_UWB
     bias = draw_bias(4, model, rng)
 
