@@ -165,10 +165,12 @@ def static_errors(
             for k in range(len(tags)):
                 # the paper's LS is its baseline on the ranges as measured (module docstring)
                 y = sim.ranges[k] if method == "ls" and ls_raw else cal.apply(sim.ranges[k])
-                y = reject_outliers(y, model.total_sigma(y)).ranges
+                # a standing tag: its multipath stays, so the epochs scatter by the white
+                # noise alone (the cleaning and weights of fabflow.localize.uwb_static)
+                y = reject_outliers(y, model.sigma(y)).ranges
                 if tag_z is not None:
                     y = horizontal_ranges(y, anchors[:, 2], tag_z)
-                fix = locate(A, y, method=method, sigma=model.total_sigma)
+                fix = locate(A, y, method=method, sigma=model.sigma)
                 mean = np.nanmean(fix.positions[fix.valid], axis=0)
                 errors.append(np.abs(mean - tags[k, :dim]))
             out[method].append(np.mean(errors, axis=0))

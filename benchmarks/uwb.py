@@ -3,9 +3,10 @@
 Prints
   1. static 3D (table 2 layout and points) with unbiased Gaussian noise: LS / WLS / WLS-T
      RMSE beside the Cramer-Rao bound;
-  2. static 2D and 3D (tables 1, 2) with the full error model (distance-dependent noise,
+  2. static 2D and 3D (tables 1, 2) with the full error model (the default white noise,
      per-anchor bias removed by a simulated calibration, 2 % NLOS outliers removed by the
-     running median): mean absolute error per axis, gain over LS, with and without outliers;
+     running median; no multipath): mean absolute error per axis, gain over LS, with and
+     without outliers;
   3. moving (tables 3, 4, 5, 7): LS / WLS-T / CV-EKF / ESKF mean error per axis and XY,
      beside the paper's numbers;
   4. speed: batch fixes per second and ESKF steps per second (real-time factor);
@@ -158,20 +159,19 @@ def _static_run(
     A_fix = anchors[:, :2] if tag_z is not None else anchors
     # mean |error| of an efficient unbiased per-fix estimator: sqrt(2 / pi) sqrt(CRLB_ii)
     bound = np.mean(
-        [np.sqrt(2 / np.pi * np.diag(crlb(A_fix, p[:dim], model.total_sigma))) for p in points],
-        axis=0,
+        [np.sqrt(2 / np.pi * np.diag(crlb(A_fix, p[:dim], model.sigma))) for p in points], axis=0
     )
     for p in points:
         p3 = np.array([*p, tag_z]) if tag_z is not None else p
         sim = simulate_ranges(anchors, np.broadcast_to(p3, (n, 3)), model, rng, bias=bias)
         y = cal.apply(sim.ranges)
-        y = reject_outliers(y, model.total_sigma(y)).ranges
+        y = reject_outliers(y, model.sigma(y)).ranges  # standing: the white noise alone
         A = anchors
         if tag_z is not None:
             y = horizontal_ranges(y, anchors[:, 2], tag_z)
             A = anchors[:, :2]
         for m in METHODS:
-            fix = locate(A, y, method=m, sigma=model.total_sigma)
+            fix = locate(A, y, method=m, sigma=model.sigma)
             errs[m].append(np.abs(fix.positions[fix.valid] - p[:dim]))
             if m == "ls":
                 dropped += int((~fix.valid).sum())

@@ -248,13 +248,16 @@ class PoseSpec(StrictModel):
 
     def matrix(self) -> np.ndarray:
         """The pose as a 4x4 homogeneous matrix (metres); a fresh array each call."""
-        return _pose_matrix(tuple(self.xyz), tuple(self.abc_deg)).copy()
+        values = np.array([*self.xyz, *self.abc_deg], dtype=float)
+        return _pose_matrix(values.tobytes()).copy()
 
 
 @functools.lru_cache(maxsize=1024)
-def _pose_matrix(xyz: tuple[float, ...], abc_deg: tuple[float, ...]) -> np.ndarray:
-    """:meth:`PoseSpec.matrix` of these values, made once: a simulated run asks for a
-    project's few poses at every visit."""
+def _pose_matrix(values: bytes) -> np.ndarray:
+    """:meth:`PoseSpec.matrix` of ``xyz`` and ``abc_deg`` (their six float64 bytes, so
+    that -0.0 and 0.0 stay apart), made once: a simulated run asks for a project's few
+    poses at every visit."""
+    xyz, abc_deg = np.frombuffer(values, dtype=float).reshape(2, 3)
     T = np.eye(4)
     T[:3, :3] = matrix_from_abc(*np.radians(abc_deg))
     T[:3, 3] = xyz

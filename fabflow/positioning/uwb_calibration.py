@@ -241,7 +241,7 @@ def shortest_half_center(series: np.ndarray, fraction: float = 0.25) -> np.ndarr
     Parameters
     ----------
     series
-        (N, ...) samples along axis 0 (NaN ignored).
+        (N, ...) samples along axis 0 (NaN and infinities ignored).
     fraction
         Share of the finite samples the interval must hold.
 
@@ -250,8 +250,11 @@ def shortest_half_center(series: np.ndarray, fraction: float = 0.25) -> np.ndarr
     np.ndarray
         (...) centres; NaN for series with fewer than 3 finite samples.
     """
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"fraction must lie in (0, 1], got {fraction}")
     x = np.asarray(series, dtype=float)
     flat = x.reshape(x.shape[0], -1)
+    flat = np.where(np.isfinite(flat), flat, np.nan)  # an infinity is no sample either
     n_rows, n_series = flat.shape
     out = np.full(n_series, np.nan)
     n = np.isfinite(flat).sum(axis=0)

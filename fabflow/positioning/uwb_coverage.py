@@ -72,4 +72,6 @@ def _plan_hull(xy_bytes: bytes, n: int) -> tuple[np.ndarray, np.ndarray] | None:
     if n < 3 or np.linalg.matrix_rank(xy - xy.mean(axis=0)) < 2:
         return None
     hull = ConvexHull(xy)
-    return hull.equations, hull.vertices
+    equations, vertices = hull.equations.copy(), hull.vertices.copy()
+    equations.flags.writeable = vertices.flags.writeable = False
+    return equations, vertices

@@ -111,10 +111,10 @@ class UwbErrorModel:
         return np.maximum(self.sigma_1m + self.growth * (d - 1.0), 0.25 * self.sigma_1m)
 
     def total_sigma(self, distance: np.ndarray | float) -> np.ndarray:
-        """Standard deviation (metres) at ``distance`` (metres) of the white noise and the
-        multipath together: what a moving tag's independent ranges weigh by (it meets
-        fresh multipath every ``multipath_field_length``)."""
-        return np.hypot(self.sigma(distance), self.field_sigma(distance))
+        """Standard deviation (metres) at ``distance`` (metres) of the white noise and both
+        multipath terms: what a moving tag's ranges, taken as independent, weigh by."""
+        white, field = self.sigma(distance), self.field_sigma(distance)
+        return np.sqrt(white**2 + field**2 + self.multipath_sigma**2)
 
     def field_sigma(self, distance: np.ndarray | float) -> np.ndarray:
         """Standard deviation (metres) of the position-dependent multipath at ``distance``

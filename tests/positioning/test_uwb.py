@@ -339,6 +339,16 @@ def test_shortest_half_center_is_each_columns_densest_interval(
         assert got[j] == np.median(v[i : i + h])
 
 
+def test_shortest_half_center_ignores_infinities_and_checks_its_fraction() -> None:
+    from fabflow.positioning.uwb_calibration import shortest_half_center
+
+    finite = np.array([1.1, 1.15, 1.2, 1.3, 2.0])
+    y = np.r_[[-np.inf] * 3, finite, np.inf][:, None]
+    assert shortest_half_center(y)[0] == shortest_half_center(finite[:, None])[0] == 1.125
+    with pytest.raises(ValueError, match="fraction"):
+        shortest_half_center(y, 1.5)
+
+
 def test_calibration_bias_sigma() -> None:
     rng = np.random.default_rng(10)
     model = UwbErrorModel()

@@ -181,6 +181,9 @@ def test_project_posespec_uses_kuka_abc() -> None:
     np.testing.assert_allclose(spec.matrix(), ref.matrix, atol=1e-12)
     moved = spec.model_copy(update={"xyz": (0.0, 0.0, 0.0)})
     np.testing.assert_allclose(moved.matrix()[:3, 3], 0.0)
+    # equal values of another sign of zero are another pose, not the cached one's
+    negative = spec.model_copy(update={"xyz": (-0.0, 0.0, 0.0)})
+    assert not np.signbit(moved.matrix()[0, 3]) and np.signbit(negative.matrix()[0, 3])
 
 
 # ------------------------------------------------------------------ validation & API
