@@ -502,13 +502,8 @@ def eskf_integrity(
     integrity = record(test, alpha=c.alpha, checks=c.checks())
     if c.diverged:
         reason = c.reason
-        w = integrity.w_test
-        if w and not w.get("passed", True) and w.get("suspect"):
-            # the filter's own test failed first; the anchor-bias tests still say where
-            reason += (
-                f"; the largest anchor-bias test points at {w['suspect']} "
-                f"(w {w['max']:.1f} > {w['threshold']:.1f})"
-            )
+        if not integrity.w_test["passed"]:  # the anchor-bias tests still say where
+            reason += f"; {integrity.reason}"
         integrity = replace(integrity, status="failed", reason=reason)
     return integrity
 

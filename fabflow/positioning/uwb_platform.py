@@ -43,7 +43,11 @@ from fabflow.positioning.uwb_platform_mirrors import (
     mirror_checks,
     with_hidden_mirrors,
 )
-from fabflow.positioning.uwb_platform_model import platform_jacobian, platform_ranges
+from fabflow.positioning.uwb_platform_model import (
+    UNDETERMINED,
+    platform_jacobian,
+    platform_ranges,
+)
 from fabflow.positioning.uwb_platform_model import rotz as _rotz
 from fabflow.positioning.uwb_platform_start import initial_state, link_means
 
@@ -234,9 +238,7 @@ def locate_platforms(problems: Sequence[dict[str, Any]], records: bool = True) -
     )
     for k, state, its, conv, solved in zip(fitted, *fits, strict=True):
         if not solved:
-            raise LocalizationError(
-                "the tag and anchor geometry does not determine the platform pose"
-            )
+            raise LocalizationError(UNDETERMINED)
         states[k], iterations[k], converged[k] = state, int(its), bool(conv)
     return finish_mirror_searches(
         [
@@ -464,7 +466,7 @@ def _finish(
     ev = np.linalg.eigvalsh(info)
     determined = bool(ev[0] > ev[-1] / COND_LIMIT)
     if not determined and not excluded:
-        raise LocalizationError("the tag and anchor geometry does not determine the platform pose")
+        raise LocalizationError(UNDETERMINED)
     cov = np.linalg.inv(info) if determined else np.linalg.pinv(info) + np.diag(np.full(4, 1e6))
     if np.any(adj.bias_sigma > 0):
         J = platform_jacobian(A, L, state, tg, an)

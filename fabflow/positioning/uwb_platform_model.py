@@ -16,6 +16,9 @@ import numpy as np
 
 from fabflow.errors import LocalizationError
 
+UNDETERMINED = "the tag and anchor geometry does not determine the platform pose"
+"""Why a platform fix fails whose normal matrix is singular."""
+
 
 def rotz(yaw: float) -> np.ndarray:
     """3x3 rotation about z by ``yaw`` (radians)."""
@@ -172,7 +175,7 @@ def platform_newton(
         prior, max_iter,
     )  # fmt: skip
     if not solved[0]:
-        raise LocalizationError("the tag and anchor geometry does not determine the platform pose")
+        raise LocalizationError(UNDETERMINED)
     return states[0], int(iterations[0]), bool(converged[0])
 
 
