@@ -341,8 +341,11 @@ def check_program(
         found = _contacts(checked, program, robot, obs, held_boxes, clearance, parts or {})
     if memo is not None:
         assert todo is not None
+        by_move: dict[int, list[tuple[int, int, float]]] = {}
+        for (m, b, k), d in found.items():
+            by_move.setdefault(m, []).append((b, k, d))
         for mv in np.flatnonzero(todo).tolist():
-            memo[keys[mv]] = [(b, k, d) for (m, b, k), d in found.items() if m == mv]
+            memo[keys[mv]] = by_move.get(mv, [])
         for mv in np.flatnonzero(~todo).tolist():
             found.update({(mv, b, k): d for b, k, d in memo[keys[mv]]})
     names = [*link_names(robot, tool=True), "held"]

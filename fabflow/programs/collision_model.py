@@ -33,6 +33,7 @@ first move), and obstacles present from the start have ``since = -1``.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -126,16 +127,35 @@ def _aabb_box(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return T, hi - lo
 
 
+_BEAD_BOXES: weakref.WeakKeyDictionary[Element, tuple[np.ndarray, np.ndarray]] = (
+    weakref.WeakKeyDictionary()
+)
+""":func:`print_path_boxes` per element (an element is frozen and hashed by identity;
+an entry goes with its element): every later work package stands beside the layer."""
+
+
 def print_path_boxes(element: Element) -> tuple[np.ndarray, np.ndarray]:
     """The bead of a print path as boxes along chords of its extruding segments.
+
+    Made once per element: each later work package's environment holds the layer
+    again (21 packages of 76 layers on the print wall).
 
     Returns
     -------
     T_world_box, extents
         (k, 4, 4) box centre frames (world) and (k, 3) side lengths: along the
         chord, across it (bead width plus twice the path's deviation from the
-        chord), and the layer height (metres).
+        chord), and the layer height (metres); read only.
     """
+    boxes = _BEAD_BOXES.get(element)
+    if boxes is None:
+        T, extents = _bead_boxes(element)
+        T.flags.writeable = extents.flags.writeable = False
+        boxes = _BEAD_BOXES[element] = (T, extents)
+    return boxes
+
+
+def _bead_boxes(element: Element) -> tuple[np.ndarray, np.ndarray]:
     if element.polyline is None or len(element.polyline) < 2:
         return np.zeros((0, 4, 4)), np.zeros((0, 3))
     pts = np.asarray(element.polyline, dtype=float)
