@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
+from scipy import special
 
 from fabflow.localize.uwb_static import without_nlos_leak
 from fabflow.positioning.uwb_calibration import (
+    kept_centre,
     kept_mean_variance,
     kept_moments,
     reject_outliers_static,
@@ -44,6 +46,51 @@ def test_kept_moments_match_a_monte_carlo(p, sigma, lower, upper, low, width, se
         else:
             tol = 5 * drawn.std() / np.sqrt(n) + 1e-6
         assert abs(drawn.mean() - value) <= tol
+
+
+def _centre_every_excess(p, excess, sigma, lower, upper, steps=2, grid=32) -> np.ndarray:
+    """:func:`kept_centre` written out with every point of the excess in each cumulative
+    probability (the tail it leaves out kept in)."""
+    s = np.asarray(sigma, dtype=float)[..., None]
+    e = excess[0] + (np.arange(grid) + 0.5) / grid * (excess[1] - excess[0])
+
+    def cdf(x):
+        nlos = special.ndtr((x[..., None] - e) / s).mean(-1)
+        return (1.0 - p) * special.ndtr(x / s[..., 0]) + p * nlos
+
+    centre = np.zeros(np.broadcast_shapes(np.shape(p), s.shape[:-1], np.shape(lower)))
+    for _ in range(steps):
+        lo_x, hi_x = centre - lower, centre + upper
+        half = 0.5 * (cdf(lo_x) + cdf(hi_x))
+        for _ in range(20):
+            mid = 0.5 * (lo_x + hi_x)
+            below = cdf(mid) < half
+            lo_x, hi_x = np.where(below, mid, lo_x), np.where(below, hi_x, mid)
+        centre = 0.5 * (lo_x + hi_x)
+    return centre
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    p=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=6),
+    sigma=st.floats(0.005, 0.5),
+    spread=st.floats(0.0, 3.0),
+    low=st.floats(0.0, 1.0),
+    width=st.floats(0.01, 2.0),
+    half_width=st.floats(0.01, 0.8),
+)
+def test_the_window_centre_leaves_out_only_what_no_bit_holds(
+    p, sigma, spread, low, width, half_width
+) -> None:
+    # links of different sigmas in one call: the tail left out is set by the widest
+    p = np.asarray(p)
+    s = sigma * (1.0 + spread * np.linspace(0.0, 1.0, len(p)))
+    excess = (low, low + width)
+    window = np.maximum(half_width, 3.0 * s)
+    got = kept_centre(p, excess, s, window, window)
+    want = _centre_every_excess(p, excess, s, window, window)
+    assert np.all(np.isfinite(got))
+    assert np.allclose(got, want, rtol=0.0, atol=1e-9)
 
 
 def _links(p: float, d: float, seed: int, links: int = 400) -> tuple:

@@ -122,6 +122,12 @@ def test_print_boxes_cover_the_path() -> None:
     inside = np.all(np.abs(local[..., :2]) <= 0.5 * ext[:, None, :2] + 1e-9, axis=-1).any(axis=0)
     assert inside.all()
     assert np.allclose(T[:, 2, 3], -0.01)
+    # made once per element and shared, so no caller may change them
+    again = print_path_boxes(element)
+    assert again[0] is T and again[1] is ext
+    assert not T.flags.writeable and not ext.flags.writeable
+    twin = Element("P", "print_path", np.eye(4), polyline=path[::-1].copy(), attributes={})
+    assert print_path_boxes(twin)[0] is not T  # an element of the same id is another element
 
 
 def test_a_wall_in_the_way_is_found_and_the_replay_agrees(project) -> None:
