@@ -8,6 +8,7 @@ Frame-agnostic: boxes and queries in one frame, metres.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -144,20 +145,22 @@ def _cell_keys(points: np.ndarray) -> np.ndarray:
     return (c[:, 0] * int(span[1]) + c[:, 1]) * int(span[2]) + c[:, 2]
 
 
-def _slab_spans(
-    starts: np.ndarray, ends: np.ndarray, boxes: Boxes
-) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per chunk of segments, the (segment, box) pairs that pass near each other: the
-    segment indices and the parameters ``t0, t1`` in [0, 1] where the segment enters
-    and leaves the box (``t0 >= t1``: it misses)."""
-    starts = np.asarray(starts, dtype=float).reshape(-1, 3)
-    ends = np.asarray(ends, dtype=float).reshape(-1, 3)
-    if len(boxes) == 0 or len(starts) == 0:
-        return
-    centre = boxes.T_base_box[:, :3, 3]
-    radius = 0.5 * np.linalg.norm(boxes.extents, axis=1)
-    R = boxes.T_base_box[:, :3, :3]
-    half = 0.5 * boxes.extents
+GROUPS_CACHED = 20_000
+"""Most boxes whose groups :func:`segments_clear` keeps for the next call (64 sets at
+most): a larger structure's are made at each call, so the cache stays a few MB."""
+
+
+@functools.lru_cache(maxsize=64)
+def _groups(
+    centre_bytes: bytes, radius_bytes: bytes, n: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The boxes' groups for :func:`segments_clear`, from their ``(n, 3)`` centres and
+    ``(n,)`` bounding radii (float64 bytes): the boxes in group order, where each
+    group starts in it, and each group's centre and bounding radius (read only).
+    Made once per set of boxes: a simulated run tests its tags' lines of sight at
+    every visit against the structure then standing, the same in every run."""
+    centre = np.frombuffer(centre_bytes, dtype=float).reshape(n, 3)
+    radius = np.frombuffer(radius_bytes, dtype=float)
     _, group = np.unique(_cell_keys(centre), return_inverse=True)
     group = group.ravel()
     order = np.argsort(group, kind="stable")
@@ -169,6 +172,27 @@ def _slab_spans(
     )
     g_radius = np.zeros(len(g_centre))
     np.maximum.at(g_radius, group, np.linalg.norm(centre - g_centre[group], axis=1) + radius)
+    for a in (order, first, g_centre, g_radius):
+        a.flags.writeable = False
+    return order, first, g_centre, g_radius
+
+
+def _slab_spans(
+    starts: np.ndarray, ends: np.ndarray, boxes: Boxes
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per chunk of segments, the (segment, box) pairs that pass near each other: the
+    segment indices and the parameters ``t0, t1`` in [0, 1] where the segment enters
+    and leaves the box (``t0 >= t1``: it misses)."""
+    starts = np.asarray(starts, dtype=float).reshape(-1, 3)
+    ends = np.asarray(ends, dtype=float).reshape(-1, 3)
+    if len(boxes) == 0 or len(starts) == 0:
+        return
+    centre = np.ascontiguousarray(boxes.T_base_box[:, :3, 3], dtype=float)
+    radius = 0.5 * np.linalg.norm(boxes.extents, axis=1)
+    R = boxes.T_base_box[:, :3, :3]
+    half = 0.5 * boxes.extents
+    groups = _groups if len(radius) <= GROUPS_CACHED else _groups.__wrapped__
+    order, first, g_centre, g_radius = groups(centre.tobytes(), radius.tobytes(), len(radius))
     chunk = max(1, 4_000_000 // max(len(g_centre), 1))
     for lo in range(0, len(starts), chunk):
         s, e = starts[lo : lo + chunk], ends[lo : lo + chunk]

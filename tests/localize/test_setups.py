@@ -19,6 +19,7 @@ from fabflow.localize.setups import (
     plan_setups,
 )
 from fabflow.localize.stationing import register_setup
+from fabflow.positioning import boxes as boxes_module
 from fabflow.positioning.boxes import Boxes, segments_clear, segments_inside
 from fabflow.project import TotalStationSetup, load_project, parse_project
 from fabflow.schema import PoseSpec
@@ -79,6 +80,15 @@ def test_segments_clear_matches_a_plain_slab_test(seed: int, n_boxes: int, offse
         for s, e in zip(starts, ends, strict=True)
     ]
     assert clear.tolist() == reference
+    # the boxes' groups are kept for the next call: the same answer from them, and
+    # from boxes moved apart (new groups), and without the cache
+    assert segments_clear(starts, ends, Boxes(T, extents)).tolist() == reference
+    T[:, :3, 3] += 3.0
+    moved = segments_clear(starts + 3.0, ends + 3.0, Boxes(T, extents))
+    assert moved.tolist() == reference
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(boxes_module, "GROUPS_CACHED", 0)
+        assert segments_clear(starts + 3.0, ends + 3.0, Boxes(T, extents)).tolist() == reference
 
 
 @pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")
