@@ -260,27 +260,25 @@ def adjustment_test(
     """
     A = np.asarray(A, dtype=float)
     v = np.asarray(v, dtype=float)
-    m, u = A.shape
-    QiA = Q.solve(A)
-    N = A.T @ QiA
-    if prior_information is not None:
-        N = N + prior_information
-    Ninv = np.linalg.pinv(N)
-    r, statistic, threshold = global_test(A, Q, v, alpha, extra_statistic, extra_redundancy)
-    p_value = float(special.chdtrc(r, statistic)) if r > 0 else 1.0
-    G = np.eye(3, u) if position_map is None else np.asarray(position_map, dtype=float)
+    m = A.shape[0]
+    columns = [np.asarray(hyp.columns, dtype=float).reshape(m, -1) for hyp in hypotheses]
+    if columns and all(C.shape[1] == 1 for C in columns):
+        return one_column_test(
+            A, Q, v, [hyp.label for hyp in hypotheses], np.concatenate(columns, axis=1), alpha,
+            position_map, prior_information, extra_statistic, extra_redundancy,
+            excludable=[hyp.excludable for hyp in hypotheses],
+            units=[hyp.unit for hyp in hypotheses],
+        )  # fmt: skip
+    QiA, Ninv, (r, statistic, threshold), p_value, G = _solution(
+        A, Q, v, alpha, position_map, prior_information, extra_statistic, extra_redundancy
+    )
     h = len(hypotheses)
     w = np.full(h, np.nan)
     thr = np.full(h, np.inf)
     mdb = np.full(h, np.inf)
     shift = np.full((h, 2), np.inf)
-    columns = [np.asarray(hyp.columns, dtype=float).reshape(m, -1) for hyp in hypotheses]
     bias = [np.full(C.shape[1], np.nan) for C in columns]
-    if h and r > 0 and all(C.shape[1] == 1 for C in columns):
-        w, thr, mdb, shift, bias = _one_column_tests(
-            np.concatenate(columns, axis=1), Q, QiA, Ninv, v, G, alpha / h
-        )
-    elif h and r > 0:
+    if h and r > 0:
         alpha0 = alpha / h
         for i, C in enumerate(columns):
             QiC = Q.solve(C)
@@ -321,6 +319,81 @@ def adjustment_test(
         excludable=np.array([hyp.excludable for hyp in hypotheses], dtype=bool),
         units=tuple(hyp.unit for hyp in hypotheses),
     )
+
+
+def one_column_test(
+    A: np.ndarray,
+    Q: Covariance,
+    v: np.ndarray,
+    labels: Sequence[str],
+    C: np.ndarray,
+    alpha: float = ALPHA,
+    position_map: np.ndarray | None = None,
+    prior_information: np.ndarray | None = None,
+    extra_statistic: float = 0.0,
+    extra_redundancy: int = 0,
+    excludable: Sequence[bool] | None = None,
+    units: Sequence[str] | None = None,
+) -> TestResult:
+    """:func:`adjustment_test` where every hypothesis is one column, given as the
+    columns ``C`` ((m, h), one per label) instead of :class:`Hypothesis` objects:
+    what a platform fix's tests ask at every visit of a simulated run, without
+    making an object per hypothesis. ``excludable`` and ``units`` default to
+    :class:`Hypothesis`' defaults; the other parameters are :func:`adjustment_test`'s.
+    """
+    QiA, Ninv, (r, statistic, threshold), p_value, G = _solution(
+        A, Q, v, alpha, position_map, prior_information, extra_statistic, extra_redundancy
+    )
+    h = len(labels)
+    if h and r > 0:
+        w, thr, mdb, shift, bias = _one_column_tests(C, Q, QiA, Ninv, v, G, alpha / h)
+    else:
+        w, thr, mdb = np.full(h, np.nan), np.full(h, np.inf), np.full(h, np.inf)
+        shift, bias = np.full((h, 2), np.inf), [np.full(1, np.nan) for _ in range(h)]
+    return TestResult(
+        redundancy=r,
+        statistic=statistic,
+        threshold=threshold,
+        p_value=p_value,
+        variance_factor=statistic / r if r > 0 else math.nan,
+        labels=tuple(labels),
+        w=w,
+        thresholds=thr,
+        mdb=mdb,
+        shift=shift,
+        bias=tuple(bias),
+        excludable=np.ones(h, dtype=bool)
+        if excludable is None
+        else np.array(excludable, dtype=bool).reshape(h),
+        units=("m",) * h if units is None else tuple(units),
+    )
+
+
+def _solution(
+    A: np.ndarray,
+    Q: Covariance,
+    v: np.ndarray,
+    alpha: float,
+    position_map: np.ndarray | None,
+    prior_information: np.ndarray | None,
+    extra_statistic: float,
+    extra_redundancy: int,
+) -> tuple[np.ndarray, np.ndarray, tuple[int, float, float], float, np.ndarray]:
+    """What every test of :func:`adjustment_test` builds on: ``Q^-1 A``, the inverse
+    normal matrix, the global test and its p-value, and the position map."""
+    A = np.asarray(A, dtype=float)
+    v = np.asarray(v, dtype=float)
+    QiA = Q.solve(A)
+    N = A.T @ QiA
+    if prior_information is not None:
+        N = N + prior_information
+    Ninv = np.linalg.pinv(N)
+    global_ = global_test(A, Q, v, alpha, extra_statistic, extra_redundancy)
+    r, statistic = global_[0], global_[1]
+    p_value = float(special.chdtrc(r, statistic)) if r > 0 else 1.0
+    u = A.shape[1]
+    G = np.eye(3, u) if position_map is None else np.asarray(position_map, dtype=float)
+    return QiA, Ninv, global_, p_value, G
 
 
 def _one_column_tests(

@@ -33,10 +33,9 @@ from scipy import special
 from fabflow.errors import LocalizationError
 from fabflow.positioning.integrity import (
     Covariance,
-    Hypothesis,
     TestResult,
-    adjustment_test,
     global_test,
+    one_column_test,
 )
 from fabflow.positioning.uwb import COND_LIMIT
 from fabflow.positioning.uwb_platform_model import (
@@ -162,17 +161,19 @@ class PlatformAdjustment:
         the ranges file), unless the link is all that is left of its anchor.
         """
         anchors = self.anchors_used(use)
-        per_anchor = [use & (self.anc_idx == j) for j in anchors]
+        whole = use[None] & (self.anc_idx[None] == anchors[:, None])  # (anchors, links)
         labels = [f"anchor {self.ids[j]}" for j in anchors]
-        masks = list(per_anchor)
+        blocks = [whole]
         if len(self.lever_arms) >= 2:
+            n_whole = whole.sum(axis=1)
             for k in range(len(self.lever_arms)):
-                for j, whole in zip(anchors, per_anchor, strict=True):
-                    link = whole & (self.tag_idx == k)
-                    if link.any() and not np.array_equal(link, whole):
-                        labels.append(f"anchor {self.ids[j]} from tag {k}")
-                        masks.append(link)
-        return labels, masks
+                link = whole & (self.tag_idx == k)[None]
+                n_link = link.sum(axis=1)
+                # a link is a hypothesis of its own unless it is all its anchor has
+                shown = (n_link > 0) & (n_link < n_whole)
+                labels += [f"anchor {self.ids[j]} from tag {k}" for j in anchors[shown]]
+                blocks.append(link[shown])
+        return labels, list(np.concatenate(blocks))
 
     def n_hypotheses(self, use: np.ndarray) -> int:
         """How many hypotheses :meth:`hypotheses` makes on the links ``use``, without
@@ -193,9 +194,9 @@ class PlatformAdjustment:
         """
         J, Q, v = self._test_inputs(use, state)
         labels, masks = self.hypotheses(use)
-        hyps = [
-            Hypothesis(label, m[use].astype(float)) for label, m in zip(labels, masks, strict=True)
-        ]
+        C = np.ascontiguousarray(
+            np.array(masks, dtype=float).reshape(len(masks), use.size)[:, use].T
+        )
         G = np.zeros((3, J.shape[1]))
         G[:, :3] = np.eye(3)
         if self.heading_observed:
@@ -205,8 +206,8 @@ class PlatformAdjustment:
         if self.heading_prior is not None and self.heading_observed:
             prior = np.zeros((4, 4))
             prior[3, 3] = 1.0 / self.heading_prior[1] ** 2
-        test = adjustment_test(
-            J, Q, v, hyps, self.alpha, position_map=G, prior_information=prior,
+        test = one_column_test(
+            J, Q, v, labels, C, self.alpha, position_map=G, prior_information=prior,
         )  # fmt: skip
         return test, masks
 

@@ -301,7 +301,25 @@ def test_the_hypotheses_are_counted_as_they_are_made(seed: int, n_tags: int, n_a
     )  # fmt: skip
     for _ in range(5):
         use = rng.random(m) < rng.uniform(0.3, 1.0)
-        assert adj.n_hypotheses(use) == len(adj.hypotheses(use)[0])
+        labels, masks = adj.hypotheses(use)
+        assert adj.n_hypotheses(use) == len(labels)
+        # spelled out: each anchor reached, then per tag each of its links that is
+        # not all its anchor has
+        want_labels, want_masks = [], []
+        anchors = sorted(set(adj.anc_idx[use].tolist()))
+        for j in anchors:
+            want_labels.append(f"anchor A{j}")
+            want_masks.append(use & (adj.anc_idx == j))
+        for k in range(n_tags if n_tags >= 2 else 0):
+            for j in anchors:
+                whole = use & (adj.anc_idx == j)
+                link = whole & (adj.tag_idx == k)
+                if link.any() and not np.array_equal(link, whole):
+                    want_labels.append(f"anchor A{j} from tag {k}")
+                    want_masks.append(link)
+        assert labels == want_labels
+        assert len(masks) == len(want_masks)
+        assert all(np.array_equal(a, b) for a, b in zip(masks, want_masks, strict=True))
 
 
 @settings(max_examples=40, deadline=None)
