@@ -23,7 +23,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from fabflow.positioning.integrity import ALPHA
+from fabflow.positioning.adjustment_tests import ALPHA
 from fabflow.positioning.uwb import crlb, locate
 from fabflow.project import load_project
 from fabflow.sensors.uwb import UwbErrorModel, simulate_ranges

@@ -25,7 +25,7 @@ from fabflow.localize.prism_points import instrument_for, station_points, total_
 from fabflow.localize.report import check_options
 from fabflow.localize.setups import instrument_covariance, plan_setups, trunnion_pose
 from fabflow.localize.stationing import InstrumentPose, InstrumentTrack
-from fabflow.positioning.integrity import ALPHA
+from fabflow.positioning.adjustment_tests import ALPHA
 from fabflow.positioning.polar import (
     Observations,
     polar_covariance,

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from fabflow.positioning.integrity import ALPHA
+from fabflow.positioning.adjustment_tests import ALPHA
 from fabflow.positioning.medians import nanmedian
 from fabflow.positioning.uwb import Method
 from fabflow.positioning.uwb_calibration import (

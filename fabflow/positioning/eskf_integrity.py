@@ -61,14 +61,8 @@ from typing import Any
 import numpy as np
 from scipy import special
 
-from fabflow.positioning.integrity import (
-    ALPHA,
-    POWER,
-    Integrity,
-    TestResult,
-    noncentrality,
-    record,
-)
+from fabflow.positioning.adjustment_tests import ALPHA, POWER, TestResult, noncentrality
+from fabflow.positioning.integrity import Integrity, record
 
 WINDOW_S = 2.0
 """Length of the window before the pose over which the filter's consistency is tested (s)."""

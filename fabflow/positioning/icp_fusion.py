@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from fabflow.errors import InputError
-from fabflow.positioning.integrity import chi2_quantile
+from fabflow.positioning.adjustment_tests import chi2_quantile
 from fabflow.transforms.so3 import exp_so3_one, log_so3_one
 
 FloatArray = NDArray[np.float64]

@@ -2,7 +2,7 @@
 
 Block-diagonal (the 3x3 covariance of each measured point) or diagonal plus a
 low-rank part (ranges sharing an anchor's calibration error), so that
-:func:`fabflow.positioning.integrity.adjustment_test` tests thousands of
+:func:`fabflow.positioning.adjustment_tests.adjustment_test` tests thousands of
 observations in linear time (Woodbury's identity for the low-rank part).
 """
 

@@ -28,14 +28,8 @@ import numpy as np
 from scipy import special
 
 from fabflow.errors import InputError
-from fabflow.positioning.integrity import (
-    ALPHA,
-    Integrity,
-    TestResult,
-    identify,
-    record,
-    unchecked,
-)
+from fabflow.positioning.adjustment_tests import ALPHA, TestResult
+from fabflow.positioning.integrity import Integrity, identify, record, unchecked
 from fabflow.positioning.prism_match import match_prisms
 from fabflow.positioning.registration_tests import (
     Fits,
@@ -441,7 +435,7 @@ def point_tests(
     (a bias of its three coordinates: chi-square(3), the leave-one-out test) and
     a scale error between the instrument and the robot geometry (a wrong
     distance unit or a robot model of the wrong size), which cannot be left out.
-    The numbers of :func:`~fabflow.positioning.integrity.adjustment_test`, from
+    The numbers of :func:`~fabflow.positioning.adjustment_tests.adjustment_test`, from
     :func:`~fabflow.positioning.registration_tests.point_test_arrays`.
     """
     sel = np.flatnonzero(keep)

@@ -23,7 +23,8 @@ from scipy import special
 
 from fabflow.errors import InputError, LocalizationError
 from fabflow.positioning import registration_soa as soa
-from fabflow.positioning.integrity import ALPHA, record
+from fabflow.positioning.adjustment_tests import ALPHA
+from fabflow.positioning.integrity import record
 from fabflow.positioning.registration import (
     OutlierTest,
     Registration,

@@ -21,7 +21,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import special
 
-from fabflow.positioning.integrity import MIN_REDUNDANCY, chi2_quantile
+from fabflow.positioning.adjustment_tests import MIN_REDUNDANCY, chi2_quantile
 from fabflow.positioning.registration_tests import PointTestArrays, levels, partial_tests
 from fabflow.positioning.small_linalg import (
     Mat3,

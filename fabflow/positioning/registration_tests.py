@@ -1,6 +1,6 @@
 """The tests of a point registration as array kernels, for one problem or a batch at once.
 
-:func:`point_test_arrays` is :func:`fabflow.positioning.integrity.adjustment_test`
+:func:`point_test_arrays` is :func:`fabflow.positioning.adjustment_tests.adjustment_test`
 specialised to matched points (block-diagonal covariance, one three-column
 hypothesis per point and one for scale): the same global test, w-tests, MDBs
 and base shifts, with every per-point quantity a 3x3 matrix computed for all
@@ -28,7 +28,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import special
 
-from fabflow.positioning.integrity import (
+from fabflow.positioning.adjustment_tests import (
     MIN_REDUNDANCY,
     POWER,
     TestResult,
@@ -119,8 +119,8 @@ def point_test_arrays(
     shift of an undetected bias ``sqrt(lambda_0)`` times the largest singular
     value of ``(N^-1 J_k^T W_k)_xyz S_k^-1/2`` (rows x, y apart from z). Bias
     directions the residuals hardly see (a redundancy number below
-    :data:`~fabflow.positioning.integrity.MIN_REDUNDANCY`) make MDB and shift
-    infinite, as in :func:`~fabflow.positioning.integrity.adjustment_test`,
+    :data:`~fabflow.positioning.adjustment_tests.MIN_REDUNDANCY`) make MDB and shift
+    infinite, as in :func:`~fabflow.positioning.adjustment_tests.adjustment_test`,
     whose numbers these are.
 
     Parameters

@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from fabflow.errors import InputError
-from fabflow.positioning.integrity import ALPHA, record, unchecked
+from fabflow.positioning.adjustment_tests import ALPHA
+from fabflow.positioning.integrity import record, unchecked
 from fabflow.positioning.registration import Registration, point_tests
 from fabflow.positioning.rigid_fit import as_points, check_geometry, refine_registration
 from fabflow.transforms.se3 import make_T

@@ -18,7 +18,7 @@ import numpy as np
 
 from fabflow.errors import FabflowError, InputError, LocalizationError
 from fabflow.files import show
-from fabflow.positioning.integrity import ALPHA
+from fabflow.positioning.adjustment_tests import ALPHA
 from fabflow.positioning.polar import ARCSEC, Instrument, Observations
 from fabflow.positioning.registration import Registration, register_points
 from fabflow.positioning.rigid_fit import check_geometry

@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 
 from fabflow.errors import InputError, LocalizationError
-from fabflow.positioning.integrity import ALPHA, Integrity, TestResult, identify, record
+from fabflow.positioning.adjustment_tests import ALPHA, TestResult
+from fabflow.positioning.integrity import Integrity, identify, record
 from fabflow.positioning.medians import nanmedian
 from fabflow.positioning.uwb import (
     COND_LIMIT,

@@ -9,7 +9,7 @@ tests and compares fits of any subset of them:
 - :meth:`PlatformAdjustment.fit`: damped Newton over the ranges used;
 - :meth:`PlatformAdjustment.tests`: the global test and the w-tests of one
   anchor's ranges and of one tag-anchor link
-  (:func:`fabflow.positioning.integrity.adjustment_test`), each hypothesis with
+  (:func:`fabflow.positioning.adjustment_tests.adjustment_test`), each hypothesis with
   the ranges it names (a boolean mask), so nothing is parsed back from labels;
 - :func:`identify_by_refit`: which anchor or link to leave out, found by
   leaving out each in turn, fitting again and testing (as
@@ -31,12 +31,8 @@ import numpy as np
 from scipy import special
 
 from fabflow.errors import LocalizationError
-from fabflow.positioning.integrity import (
-    Covariance,
-    TestResult,
-    global_test,
-    one_column_test,
-)
+from fabflow.positioning.adjustment_tests import TestResult, global_test, one_column_test
+from fabflow.positioning.observation_covariance import Covariance
 from fabflow.positioning.uwb import COND_LIMIT
 from fabflow.positioning.uwb_platform_model import (
     platform_information,

@@ -20,14 +20,14 @@ from typing import Any
 
 import numpy as np
 
-from fabflow.positioning.integrity import (
+from fabflow.positioning.adjustment_tests import (
     POWER,
-    Integrity,
     TestResult,
     chi2_quantile,
     global_passes,
     noncentrality,
 )
+from fabflow.positioning.integrity import Integrity
 from fabflow.positioning.uwb_platform_adjustment import (
     PlatformAdjustment,
     fit_many,
@@ -54,7 +54,7 @@ def mirror_check(
     converges to a different pose (the difference in ``x, y, z`` beyond the
     chi-square(3) critical value at ``alpha`` of the fix's own covariance),
     passes its global test, and fits the ranges worse than the fix by less than
-    Baarda's ``lambda_0`` (:func:`~fabflow.positioning.integrity.noncentrality`
+    Baarda's ``lambda_0`` (:func:`~fabflow.positioning.adjustment_tests.noncentrality`
     at the w-tests' level and ``POWER``, one degree of freedom: 22.8 for 12
     hypotheses at ``alpha`` = 0.001), the misfit a just-detectable bias leaves.
     A mirror that much worse is told apart by the ranges (the level platform,

@@ -7,17 +7,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fabflow.positioning.integrity import (
-    Covariance,
+from fabflow.positioning.adjustment_tests import (
     Hypothesis,
-    Integrity,
     adjustment_test,
     global_passes,
     global_test,
-    identify,
     noncentrality,
-    record,
 )
+from fabflow.positioning.integrity import Integrity, identify, record
+from fabflow.positioning.observation_covariance import Covariance
 from fabflow.positioning.registration import register_points
 
 
