@@ -211,10 +211,24 @@ def global_test(
     (``inf`` without redundancy). For a caller that needs no w-test."""
     A = np.asarray(A, dtype=float)
     v = np.asarray(v, dtype=float)
-    r = A.shape[0] - int(np.linalg.matrix_rank(A)) + extra_redundancy
-    statistic = float(v @ Q.solve(v)) + extra_statistic
-    threshold = chi2_quantile(r, alpha) if r > 0 else math.inf
-    return r, statistic, threshold
+    r, statistic = _global(A, Q, v, extra_statistic, extra_redundancy)
+    return int(r), float(statistic), float(_thresholds(r, alpha))
+
+
+def _global(
+    A: np.ndarray, Q: Covariance, v: np.ndarray, extra_statistic: float, extra_redundancy: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Redundancy and statistic of the global test of ``A`` (..., m, u) and ``v`` (..., m)."""
+    r = A.shape[-2] - np.linalg.matrix_rank(A) + extra_redundancy
+    statistic = np.einsum("...m,...m->...", v, Q.solve(v)) + extra_statistic
+    return np.asarray(r), np.asarray(statistic)
+
+
+def _thresholds(r: np.ndarray, alpha: float) -> np.ndarray:
+    """Critical value of the global test of each redundancy ``r`` (``inf`` at none)."""
+    values, index = np.unique(r, return_inverse=True)
+    each = np.array([chi2_quantile(int(x), alpha) if x > 0 else math.inf for x in values])
+    return each[index.reshape(np.shape(r))]
 
 
 def adjustment_test(
@@ -265,9 +279,11 @@ def adjustment_test(
             excludable=[hyp.excludable for hyp in hypotheses],
             units=[hyp.unit for hyp in hypotheses],
         )  # fmt: skip
-    QiA, Ninv, (r, statistic, threshold), p_value, G = _solution(
-        A, Q, v, alpha, position_map, prior_information, extra_statistic, extra_redundancy
+    QiA, Ninv, r_, statistic_, p_, G = _solution(
+        A, Q, v, position_map, prior_information, extra_statistic, extra_redundancy
     )
+    r, statistic, p_value = int(r_), float(statistic_), float(p_)
+    threshold = float(_thresholds(r_, alpha))
     h = len(hypotheses)
     w = np.full(h, np.nan)
     thr = np.full(h, np.inf)
@@ -333,63 +349,121 @@ def one_column_test(
 ) -> TestResult:
     """:func:`adjustment_test` where every hypothesis is one column, given as the
     columns ``C`` ((m, h), one per label) instead of :class:`Hypothesis` objects:
-    what a platform fix's tests ask at every visit of a simulated run, without
-    making an object per hypothesis. ``excludable`` and ``units`` default to
-    :class:`Hypothesis`' defaults; the other parameters are :func:`adjustment_test`'s.
+    without making an object per hypothesis. ``excludable`` and ``units`` default
+    to :class:`Hypothesis`' defaults; the other parameters are :func:`adjustment_test`'s.
     """
-    QiA, Ninv, (r, statistic, threshold), p_value, G = _solution(
-        A, Q, v, alpha, position_map, prior_information, extra_statistic, extra_redundancy
+    A = np.asarray(A, dtype=float)
+    v = np.asarray(v, dtype=float)
+    return _one_column_results(
+        A, Q, v, labels, np.asarray(C, dtype=float), alpha, position_map, prior_information,
+        extra_statistic, extra_redundancy, excludable, units, batched=False,
+    )[0]  # fmt: skip
+
+
+def one_column_tests_many(
+    A: np.ndarray,
+    Q: Covariance,
+    v: np.ndarray,
+    labels: Sequence[str],
+    C: np.ndarray,
+    alpha: float = ALPHA,
+    position_map: np.ndarray | None = None,
+    prior_information: np.ndarray | None = None,
+) -> list[TestResult]:
+    """:func:`one_column_test` of many solutions of one shape at once: ``A``
+    (V, m, u), ``v`` (V, m), ``Q`` a stack of V diagonal-plus-low-rank covariances
+    (:meth:`Covariance.solve`), the same hypotheses (``labels``, ``C`` (m, h) or
+    (V, m, h)) and ``position_map`` (3, u) or (V, 3, u). A simulated run's visits
+    test their platform fixes in one call instead of one per visit.
+    """
+    A = np.asarray(A, dtype=float)
+    v = np.asarray(v, dtype=float)
+    return _one_column_results(
+        A, Q, v, labels, np.asarray(C, dtype=float), alpha, position_map, prior_information,
+        0.0, 0, None, None, batched=True,
+    )  # fmt: skip
+
+
+def _one_column_results(
+    A: np.ndarray,
+    Q: Covariance,
+    v: np.ndarray,
+    labels: Sequence[str],
+    C: np.ndarray,
+    alpha: float,
+    position_map: np.ndarray | None,
+    prior_information: np.ndarray | None,
+    extra_statistic: float,
+    extra_redundancy: int,
+    excludable: Sequence[bool] | None,
+    units: Sequence[str] | None,
+    batched: bool,
+) -> list[TestResult]:
+    """The tests of one solution (``batched`` False) or of a stack of them, as records."""
+    QiA, Ninv, r, statistic, p_value, G = _solution(
+        A, Q, v, position_map, prior_information, extra_statistic, extra_redundancy
     )
     h = len(labels)
-    if h and r > 0:
+    if h:
+        C = np.broadcast_to(C, (*A.shape[:-1], h))  # the same hypotheses for every solution
         w, thr, mdb, shift, bias = _one_column_tests(C, Q, QiA, Ninv, v, G, alpha / h)
     else:
-        w, thr, mdb = np.full(h, np.nan), np.full(h, np.inf), np.full(h, np.inf)
-        shift, bias = np.full((h, 2), np.inf), [np.full(1, np.nan) for _ in range(h)]
-    return TestResult(
-        redundancy=r,
-        statistic=statistic,
-        threshold=threshold,
-        p_value=p_value,
-        variance_factor=statistic / r if r > 0 else math.nan,
-        labels=tuple(labels),
-        w=w,
-        thresholds=thr,
-        mdb=mdb,
-        shift=shift,
-        bias=tuple(bias),
-        excludable=np.ones(h, dtype=bool)
-        if excludable is None
-        else np.array(excludable, dtype=bool).reshape(h),
-        units=("m",) * h if units is None else tuple(units),
-    )
+        w = thr = mdb = bias = np.zeros((*r.shape, 0))
+        shift = np.zeros((*r.shape, 0, 2))
+    if not batched:  # one solution: a stack of one
+        r, statistic, p_value = r[None], statistic[None], p_value[None]
+        w, thr, mdb, shift, bias = w[None], thr[None], mdb[None], shift[None], bias[None]
+    # without redundancy nothing is tested
+    tested = (r > 0)[:, None]
+    w = np.where(tested, w, np.nan)
+    thr, mdb = np.where(tested, thr, np.inf), np.where(tested, mdb, np.inf)
+    shift, bias = np.where(tested[..., None], shift, np.inf), np.where(tested, bias, np.nan)
+    threshold = _thresholds(r, alpha)
+    names = tuple(labels)
+    flags = np.ones(h, dtype=bool) if excludable is None else np.array(excludable, dtype=bool)
+    unit = ("m",) * h if units is None else tuple(units)
+    return [
+        TestResult(
+            redundancy=int(r[i]),
+            statistic=float(statistic[i]),
+            threshold=float(threshold[i]),
+            p_value=float(p_value[i]),
+            variance_factor=float(statistic[i] / r[i]) if r[i] > 0 else math.nan,
+            labels=names,
+            w=w[i],
+            thresholds=thr[i],
+            mdb=mdb[i],
+            shift=shift[i],
+            bias=tuple(bias[i][:, None]),
+            excludable=flags.reshape(h),
+            units=unit,
+        )
+        for i in range(len(r))
+    ]
 
 
 def _solution(
     A: np.ndarray,
     Q: Covariance,
     v: np.ndarray,
-    alpha: float,
     position_map: np.ndarray | None,
     prior_information: np.ndarray | None,
     extra_statistic: float,
     extra_redundancy: int,
-) -> tuple[np.ndarray, np.ndarray, tuple[int, float, float], float, np.ndarray]:
-    """What every test of :func:`adjustment_test` builds on: ``Q^-1 A``, the inverse
-    normal matrix, the global test and its p-value, and the position map."""
-    A = np.asarray(A, dtype=float)
-    v = np.asarray(v, dtype=float)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What every test of :func:`adjustment_test` builds on, over any leading dimensions
+    of ``A`` (..., m, u) and ``v`` (..., m): ``Q^-1 A``, the inverse normal matrix,
+    the redundancy, statistic and p-value of the global test, and the position map."""
     QiA = Q.solve(A)
-    N = A.T @ QiA
+    N = np.swapaxes(A, -1, -2) @ QiA
     if prior_information is not None:
         N = N + prior_information
     Ninv = np.linalg.pinv(N)
-    global_ = global_test(A, Q, v, alpha, extra_statistic, extra_redundancy)
-    r, statistic = global_[0], global_[1]
-    p_value = float(special.chdtrc(r, statistic)) if r > 0 else 1.0
-    u = A.shape[1]
+    r, statistic = _global(A, Q, v, extra_statistic, extra_redundancy)
+    p_value = np.where(r > 0, special.chdtrc(np.maximum(r, 1), statistic), 1.0)
+    u = A.shape[-1]
     G = np.eye(3, u) if position_map is None else np.asarray(position_map, dtype=float)
-    return QiA, Ninv, global_, p_value, G
+    return QiA, Ninv, r, statistic, p_value, G
 
 
 def _one_column_tests(
@@ -400,34 +474,34 @@ def _one_column_tests(
     v: np.ndarray,
     G: np.ndarray,
     alpha0: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The w-tests, MDBs and shifts of :func:`adjustment_test` for one-column hypotheses.
 
     The same formulas as its loop with every matrix ``S`` a number, for all
-    hypotheses at once (``C``: (m, h), one column each), so that a platform with
-    many anchors and links (hundreds of hypotheses, every one refitted when a
-    fault is searched for) costs one solve with ``Q`` instead of one per hypothesis.
-    Returns ``w, thresholds, mdb, shift, bias`` as :class:`TestResult` holds them.
+    hypotheses at once (``C``: (..., m, h), one column each), so that a platform
+    with many anchors and links (hundreds of hypotheses, every one refitted when a
+    fault is searched for) costs one solve with ``Q`` instead of one per
+    hypothesis; over any leading dimensions (many solutions). Returns ``w,
+    thresholds, mdb, shift`` as :class:`TestResult` holds them and ``bias``
+    (..., h), each hypothesis' one component.
     """
     QiC = Q.solve(C)
-    b = QiC.T @ v
-    B = QiA.T @ C
-    own = np.einsum("ij,ij->j", C, QiC)
-    S = own - np.einsum("ih,ij,jh->h", B, Ninv, B)
+    b = np.einsum("...mh,...m->...h", QiC, v)
+    B = np.swapaxes(QiA, -1, -2) @ C
+    own = np.einsum("...ij,...ij->...j", C, QiC)
+    S = own - np.einsum("...ih,...ij,...jh->...h", B, Ninv, B)
     seen = S > MIN_REDUNDANCY * np.maximum(own, 1e-300)
     Ss = np.where(seen, S, 1.0)
     w = np.where(seen, np.abs(b) / np.sqrt(Ss), np.nan)
-    bias = [np.array([x]) for x in np.where(seen, b / Ss, np.nan)]
+    bias = np.where(seen, b / Ss, np.nan)
     thr = np.where(seen, math.sqrt(chi2_quantile(1, alpha0)), np.inf)
     visible = seen & (S / np.maximum(own, 1e-300) >= MIN_REDUNDANCY)
     lam = noncentrality(alpha0, POWER, 1)
     mdb = np.where(visible, np.sqrt(lam / Ss), np.inf)
-    M = (G @ Ninv @ B) / np.sqrt(Ss)  # (3, h): base shift per unit of the scaled bias
-    shift = np.where(
-        visible[:, None],
-        math.sqrt(lam) * np.stack([np.linalg.norm(M[:2], axis=0), np.abs(M[2])], axis=1),
-        np.inf,
-    )
+    # (..., 3, h): base shift per unit of the scaled bias
+    M = (G @ Ninv @ B) / np.sqrt(Ss)[..., None, :]
+    plane, height = np.linalg.norm(M[..., :2, :], axis=-2), np.abs(M[..., 2, :])
+    shift = np.where(visible[..., None], math.sqrt(lam) * np.stack([plane, height], -1), np.inf)
     return w, thr, mdb, shift, bias
 
 

@@ -46,20 +46,27 @@ class Covariance:
         return int(self.diag.shape[0])
 
     def solve(self, X: np.ndarray) -> np.ndarray:
-        """``Q^-1 X`` for ``X`` of shape (m,) or (m, k)."""
+        """``Q^-1 X`` for ``X`` of shape (m,) or (m, k).
+
+        A diagonal-plus-low-rank ``Q`` may hold a stack of covariances of one shape
+        (``diag`` (..., m), ``low_rank`` (..., m, k), ``low_rank_var`` (..., k): the
+        tests of many solutions at once); ``X`` is then (..., m) or (..., m, k).
+        """
         X = np.asarray(X, dtype=float)
-        vec = X.ndim == 1
-        X2 = X[:, None] if vec else X
         if self.blocks is not None:
+            vec = X.ndim == 1
+            X2 = X[:, None] if vec else X
             b = self.blocks.shape[1]
             Xb = X2.reshape(-1, b, X2.shape[1])
             out = np.linalg.solve(self.blocks, Xb).reshape(X2.shape)
-        else:
-            Di, DU, core = self._woodbury
-            out = Di[:, None] * X2
-            if DU is not None and core is not None:
-                out = out - DU @ np.linalg.solve(core, DU.T @ X2)
-        return out[:, 0] if vec else out
+            return out[:, 0] if vec else out
+        Di, DU, core = self._woodbury
+        vec = X.ndim == Di.ndim
+        X2 = X[..., None] if vec else X
+        out = Di[..., None] * X2
+        if DU is not None and core is not None:
+            out = out - DU @ np.linalg.solve(core, np.swapaxes(DU, -1, -2) @ X2)
+        return out[..., 0] if vec else out
 
     @functools.cached_property
     def _woodbury(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -69,8 +76,13 @@ class Covariance:
         Di = 1.0 / self.diag
         if self.low_rank is None or self.low_rank_var is None:
             return Di, None, None
-        DU = Di[:, None] * self.low_rank
-        return Di, DU, np.diag(1.0 / self.low_rank_var) + self.low_rank.T @ DU
+        U = self.low_rank
+        DU = Di[..., None] * U
+        k = U.shape[-1]
+        inv_var = 1.0 / np.asarray(self.low_rank_var, dtype=float)
+        prior = np.zeros((*inv_var.shape, k))
+        prior[..., np.arange(k), np.arange(k)] = inv_var
+        return Di, DU, prior + np.swapaxes(U, -1, -2) @ DU
 
     def inverse_diag(self) -> np.ndarray:
         """The diagonal of ``Q^-1`` (m,)."""

@@ -37,6 +37,7 @@ from fabflow.positioning.uwb_coverage import COVERAGE_MARGIN, geometry_checks
 from fabflow.positioning.uwb_platform_adjustment import (
     PlatformAdjustment,
     fit_many,
+    grouped_tests,
     identify_by_refit,
 )
 from fabflow.positioning.uwb_platform_mirrors import (
@@ -234,16 +235,17 @@ def locate_platforms(problems: Sequence[dict[str, Any]], records: bool = True) -
     states = [state for _, state, _, _ in prepared]
     iterations, converged = [0] * len(prepared), [True] * len(prepared)
     fitted = [k for k, (_, _, fit, _) in enumerate(prepared) if fit]
-    fits = fit_many(
-        [(prepared[k][0], np.ones(prepared[k][0].d.size, dtype=bool), states[k]) for k in fitted]
-    )
+    every = [np.ones(adj.d.size, dtype=bool) for adj, *_ in prepared]
+    fits = fit_many([(prepared[k][0], every[k], states[k]) for k in fitted])
     for k, state, its, conv, solved in zip(fitted, *fits, strict=True):
         if not solved:
             raise LocalizationError(UNDETERMINED)
         states[k], iterations[k], converged[k] = state, int(its), bool(conv)
+    # every fix's first tests at once: most fixes of a run pass them and need no others
+    first = grouped_tests([(adj, every[k], states[k]) for k, (adj, *_) in enumerate(prepared)])
     return finish_mirror_searches(
         [
-            _tested(adj, ranges_links, states[k], iterations[k], converged[k])
+            _tested(adj, ranges_links, states[k], iterations[k], converged[k], first[k])
             for k, (adj, _, _, ranges_links) in enumerate(prepared)
         ],
         records,
@@ -360,11 +362,13 @@ def _tested(
     state: np.ndarray,
     iterations: int,
     converged: bool,
+    first: tuple[TestResult, list[np.ndarray]] | None = None,
 ) -> PlatformFix:
     """The fix from the first solution ``state``: tested, with exclusions while the
-    tests fail and one explains it (:func:`locate_platform`)."""
+    tests fail and one explains it (:func:`locate_platform`). ``first``: the tests
+    of ``state`` on all links, when made already (:func:`grouped_tests`)."""
     use = np.ones(adj.d.size, dtype=bool)
-    tests, masks = adj.tests(use, state)
+    tests, masks = adj.tests(use, state) if first is None else first
     excluded: list[dict[str, Any]] = []
     problem = ""
     while identify(tests) is not None:

@@ -26,12 +26,13 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import special
 
 from fabflow.errors import LocalizationError
-from fabflow.positioning.adjustment_tests import TestResult, global_test, one_column_test
+from fabflow.positioning.adjustment_tests import TestResult, global_test, one_column_tests_many
 from fabflow.positioning.observation_covariance import Covariance
 from fabflow.positioning.uwb import COND_LIMIT
 from fabflow.positioning.uwb_platform_model import (
@@ -186,26 +187,19 @@ class PlatformAdjustment:
 
         Observations are the ranges with their white noise plus the bias every
         range to one anchor shares, ``Q = diag(s^2) + U diag(bias_sigma^2) U^T``
-        (``U``: one indicator column per anchor).
+        (``U``: one indicator column per anchor). :func:`grouped_tests` of one.
         """
-        J, Q, v = self._test_inputs(use, state)
-        labels, masks = self.hypotheses(use)
-        C = np.ascontiguousarray(
-            np.array(masks, dtype=float).reshape(len(masks), use.size)[:, use].T
-        )
-        G = np.zeros((3, J.shape[1]))
+        return grouped_tests([(self, use, state)])[0]
+
+    def position_map(self, state: np.ndarray) -> np.ndarray:
+        """(3, u) derivative of the base position by the state at ``state``: the
+        base lever turns with the heading."""
+        G = np.zeros((3, 4 if self.heading_observed else 3))
         G[:, :3] = np.eye(3)
         if self.heading_observed:
             Rl = rotz(float(state[3])) @ self.lever
             G[:2, 3] = np.array([-Rl[1], Rl[0]])
-        prior = None
-        if self.heading_prior is not None and self.heading_observed:
-            prior = np.zeros((4, 4))
-            prior[3, 3] = 1.0 / self.heading_prior[1] ** 2
-        test = one_column_test(
-            J, Q, v, labels, C, self.alpha, position_map=G, prior_information=prior,
-        )  # fmt: skip
-        return test, masks
+        return G
 
     def global_test(self, use: np.ndarray, state: np.ndarray) -> tuple[int, float, float]:
         """The global test of :meth:`tests` alone: redundancy, statistic, critical value."""
@@ -216,19 +210,74 @@ class PlatformAdjustment:
         self, use: np.ndarray, state: np.ndarray
     ) -> tuple[np.ndarray, Covariance, np.ndarray]:
         """Design matrix, observation covariance and residuals of the ranges ``use``."""
+        J, v = self._linearized(use, state)
+        U, var = self._shared(use)
+        return J, Covariance(diag=self.s[use] ** 2, low_rank=U, low_rank_var=var), v
+
+    def _linearized(self, use: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Design matrix and residuals of the ranges ``use`` at ``state``."""
         tg, an = self.tag_idx[use], self.anc_idx[use]
         J = platform_jacobian(self.anchors, self.lever_arms, state, tg, an)
         if not self.heading_observed:
             J = J[:, :3]
-        anchors = self.anchors_used(use)
-        U = (an[:, None] == anchors[None, :]).astype(float)
-        Q = Covariance(
-            diag=self.s[use] ** 2,
-            low_rank=U if np.any(self.bias_sigma[anchors] > 0) else None,
-            low_rank_var=np.maximum(self.bias_sigma[anchors], 1e-9) ** 2,
-        )
         v = self.d[use] - platform_ranges(self.anchors, self.lever_arms, state, tg, an)
-        return J, Q, v
+        return J, v
+
+    def _shared(self, use: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+        """The low-rank part of the ranges ``use``' covariance: one indicator column per
+        anchor (None when no anchor has a bias sigma) and the anchors' bias variances."""
+        anchors = self.anchors_used(use)
+        U = (self.anc_idx[use][:, None] == anchors[None, :]).astype(float)
+        var = np.maximum(self.bias_sigma[anchors], 1e-9) ** 2
+        return (U if np.any(self.bias_sigma[anchors] > 0) else None), var
+
+
+def grouped_tests(
+    problems: Sequence[tuple[PlatformAdjustment, np.ndarray, np.ndarray]],
+) -> list[tuple[TestResult, list[np.ndarray]]]:
+    """:meth:`PlatformAdjustment.tests` of many fixes ``(adjustment, use, state)``.
+
+    Fixes of one shape (the same links used, so the same hypotheses and shared
+    errors, the same heading prior and level) are tested in one call of
+    :func:`~fabflow.positioning.adjustment_tests.one_column_tests_many`: a
+    simulated run's visits, where one call per visit was most of the tests' time.
+    """
+    groups: dict[tuple[Any, ...], list[int]] = {}
+    for i, (adj, use, _) in enumerate(problems):
+        key = (
+            adj.ids, len(adj.lever_arms), adj.tag_idx.tobytes(), adj.anc_idx.tobytes(),
+            use.tobytes(), bool(np.any(adj.bias_sigma[adj.anchors_used(use)] > 0)),
+            adj.heading_observed, adj.heading_prior, adj.alpha,
+        )  # fmt: skip
+        groups.setdefault(key, []).append(i)
+    out: list[tuple[TestResult, list[np.ndarray]]] = [None] * len(problems)  # type: ignore[list-item]
+    for members in groups.values():
+        adj, use, _ = problems[members[0]]
+        labels, masks = adj.hypotheses(use)
+        C = np.ascontiguousarray(
+            np.array(masks, dtype=float).reshape(len(masks), use.size)[:, use].T
+        )
+        U, _ = adj._shared(use)
+        linearized = [problems[i][0]._linearized(use, problems[i][2]) for i in members]
+        shared = [problems[i][0]._shared(use)[1] for i in members]
+        Q = Covariance(
+            diag=np.stack([problems[i][0].s[use] ** 2 for i in members]),
+            low_rank=U,
+            low_rank_var=np.stack(shared),
+        )
+        prior = None
+        if adj.heading_prior is not None and adj.heading_observed:
+            prior = np.zeros((4, 4))
+            prior[3, 3] = 1.0 / adj.heading_prior[1] ** 2
+        tests = one_column_tests_many(
+            np.stack([J for J, _ in linearized]), Q, np.stack([v for _, v in linearized]),
+            labels, C, adj.alpha,
+            position_map=np.stack([problems[i][0].position_map(problems[i][2]) for i in members]),
+            prior_information=prior,
+        )  # fmt: skip
+        for i, test in zip(members, tests, strict=True):
+            out[i] = (test, masks)
+    return out
 
 
 @dataclass(frozen=True)

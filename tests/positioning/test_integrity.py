@@ -13,6 +13,8 @@ from fabflow.positioning.adjustment_tests import (
     global_passes,
     global_test,
     noncentrality,
+    one_column_test,
+    one_column_tests_many,
 )
 from fabflow.positioning.integrity import Integrity, identify, record
 from fabflow.positioning.observation_covariance import Covariance
@@ -193,3 +195,43 @@ def test_an_undetectable_bias_makes_the_protection_level_unbounded() -> None:
     reg4 = register_points(P4, M4, point_cov=np.array([np.eye(3) * (5e-4) ** 2] * 4))
     assert reg4.integrity is not None and reg4.integrity.status == "failed"
     assert np.isfinite(reg4.integrity.protection_level["horizontal"])
+
+
+@settings(deadline=None, max_examples=30)
+@given(
+    seed=st.integers(0, 2**31),
+    n=st.integers(1, 6),
+    m=st.integers(3, 12),
+    shared=st.booleans(),
+    prior=st.booleans(),
+)
+def test_many_solutions_are_tested_as_each_alone(
+    seed: int, n: int, m: int, shared: bool, prior: bool
+) -> None:
+    # a stack of solutions of one shape, their own covariances, residuals and
+    # position maps, the same hypotheses: each result is that solution's alone
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, m, 4))
+    d = rng.uniform(0.5, 2.0, (n, m)) ** 2 * 1e-4
+    U = (rng.integers(0, 3, m)[:, None] == np.arange(3)[None]).astype(float)
+    var = rng.uniform(1e-5, 1e-4, (n, 3))
+    v = rng.normal(size=(n, m)) * 0.01 * rng.uniform(0.1, 10.0, (n, 1))
+    C = np.c_[np.eye(m), U].astype(float)
+    labels = [f"h{i}" for i in range(C.shape[1])]
+    G = rng.normal(size=(n, 3, 4))
+    P = np.diag([0.0, 0.0, 0.0, 100.0]) if prior else None
+    low_rank = U if shared else None
+    many = one_column_tests_many(
+        A, Covariance(diag=d, low_rank=low_rank, low_rank_var=var), v, labels, C, 0.01, G, P
+    )
+    assert len(many) == n
+    for i, got in enumerate(many):
+        Q = Covariance(diag=d[i], low_rank=low_rank, low_rank_var=var[i])
+        want = one_column_test(A[i], Q, v[i], labels, C, 0.01, G[i], P)
+        assert (got.redundancy, got.labels, got.units) == (want.redundancy, want.labels, want.units)
+        for name in ("statistic", "threshold", "p_value"):
+            assert getattr(got, name) == pytest.approx(getattr(want, name), rel=1e-10)
+        for name in ("w", "thresholds", "mdb", "shift"):
+            np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-9)
+        np.testing.assert_allclose(np.concatenate(got.bias), np.concatenate(want.bias), rtol=1e-9)
+        assert got.passed == want.passed and np.array_equal(got.excludable, want.excludable)

@@ -13,7 +13,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from fabflow.positioning.uwb_platform import locate_platform
-from fabflow.positioning.uwb_platform_adjustment import PlatformAdjustment
+from fabflow.positioning.uwb_platform_adjustment import PlatformAdjustment, grouped_tests
 from fabflow.positioning.uwb_platform_model import (
     _jacobian,
     _links,
@@ -520,3 +520,35 @@ def test_a_mirror_found_last_reads_as_found_right_after_the_record() -> None:
         == clean.failing("MIRROR").failing("X").reason
     )
     assert failing_first(clean, "MIRROR", "").reason == "MIRROR"
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 8))
+def test_many_fixes_are_tested_as_each_alone(seed: int, n: int) -> None:
+    # fixes of two shapes (links used, heading prior, anchor biases) mixed in one
+    # call: each is grouped with its own shape and tested as it is alone
+    rng = np.random.default_rng(seed)
+
+    def adjustment(shape: int) -> tuple[PlatformAdjustment, np.ndarray, np.ndarray]:
+        pairs = np.arange(8) if shape == 0 else np.array([0, 1, 2, 4, 5, 6, 7])
+        m = len(pairs)
+        adj = PlatformAdjustment(
+            anchors=rng.uniform(-5.0, 5.0, (4, 3)), lever_arms=TAGS,
+            d=rng.uniform(2.0, 6.0, m), s=rng.uniform(0.01, 0.05, m),
+            tag_idx=pairs // 4, anc_idx=pairs % 4,
+            bias_sigma=np.full(4, 0.01 * shape), ids=("A1", "A2", "A3", "A4"),
+            lever=BASE, heading_prior=None if shape == 0 else (0.3, 0.1),
+            heading_observed=True, alpha=1e-3, max_iter=20,
+            count=np.full(m, 30), raw_mean=np.ones(m), raw_sq_dev=np.zeros(m),
+        )  # fmt: skip
+        use = rng.random(m) < 0.9 if shape == 1 else np.ones(m, dtype=bool)
+        return adj, use, np.r_[rng.uniform(-1.0, 1.0, 3), rng.uniform(-np.pi, np.pi)]
+
+    problems = [adjustment(int(rng.integers(0, 2))) for _ in range(n)]
+    for (adj, use, state), (got, masks) in zip(problems, grouped_tests(problems), strict=True):
+        want, want_masks = adj.tests(use, state)
+        assert got.labels == want.labels and got.redundancy == want.redundancy
+        assert all(np.array_equal(a, b) for a, b in zip(masks, want_masks, strict=True))
+        assert got.statistic == pytest.approx(want.statistic, rel=1e-10)
+        for name in ("w", "thresholds", "mdb", "shift"):
+            np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-9)
