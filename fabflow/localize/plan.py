@@ -21,7 +21,7 @@ from fabflow.localize.methods import LOCALIZERS, LocalizeStation, localizer_argu
 from fabflow.localize.setups import InstrumentSetup
 from fabflow.localize.site import parking_accuracy
 from fabflow.localize.stationing import track_for
-from fabflow.positioning.integrity import consistency_test, exact, guard_exclusion, unchecked
+from fabflow.positioning.integrity import consistency_tests, exact, guard_exclusion, unchecked
 from fabflow.positioning.result import BasePose
 from fabflow.project import Project
 from fabflow.robots import platform
@@ -167,7 +167,8 @@ def localize_plan(
 
 
 def parking_covariance(project: Project, T_world_base: np.ndarray) -> np.ndarray:
-    """4x4 covariance of the base ``[x, y, z, yaw]`` from the platform's parking accuracy.
+    """4x4 covariance of the base ``[x, y, z, yaw]`` from the platform's parking accuracy
+    (``(..., 4, 4)`` for base poses ``(..., 4, 4)``).
 
     The platform parks within ``parking_sigma`` per axis and ``parking_sigma_deg``
     in heading (``localization.integrity``; defaults: the simulation's driving
@@ -176,16 +177,16 @@ def parking_covariance(project: Project, T_world_base: np.ndarray) -> np.ndarray
     ``parking_sigma`` too (ground and lift).
     """
     s_xy, s_yaw = parking_accuracy(project)
-    lever = np.asarray(T_world_base, dtype=float)[:3, :3] @ (
+    lever = np.asarray(T_world_base, dtype=float)[..., :3, :3] @ (
         -project.robot.platform.T_platform_base.matrix()[:3, 3]
     )
     # the base moves by e_z x (base - platform) for a yaw about the platform origin
-    J = np.array([lever[1], -lever[0]])
-    C = np.zeros((4, 4))
-    C[:2, :2] = s_xy**2 * np.eye(2) + s_yaw**2 * np.outer(J, J)
-    C[:2, 3] = C[3, :2] = s_yaw**2 * J
-    C[2, 2] = s_xy**2
-    C[3, 3] = s_yaw**2
+    J = np.stack([lever[..., 1], -lever[..., 0]], axis=-1)
+    C = np.zeros((*J.shape[:-1], 4, 4))
+    C[..., :2, :2] = s_xy**2 * np.eye(2) + s_yaw**2 * (J[..., :, None] * J[..., None, :])
+    C[..., :2, 3] = C[..., 3, :2] = s_yaw**2 * J
+    C[..., 2, 2] = s_xy**2
+    C[..., 3, 3] = s_yaw**2
     return C
 
 
@@ -206,42 +207,62 @@ def check_visit(project: Project, estimate: BasePose, T_world_base_planned: np.n
       station, or a platform parked elsewhere: in every case not the pose to
       build from.
     """
-    integrity = estimate.integrity
-    if integrity is None:
-        integrity = unchecked(f"the {estimate.method} result carries no tests")
-    finite = np.all(np.isfinite(estimate.T_world_base)) and np.all(np.isfinite(estimate.covariance))
-    if not finite:
-        return replace(
-            estimate,
-            integrity=integrity.failing("the pose or its covariance is not finite"),
-        )
-    if "exact" in integrity.checks:
-        return replace(estimate, integrity=integrity)
-    integrity = guard_exclusion(integrity, project.tolerances.position)
-    planned = np.asarray(T_world_base_planned, dtype=float)
-    err = pose_error(estimate.T_world_base, planned)
-    e = np.array([err[0], err[1], err[2], err[5]])
+    return check_visits(project, [estimate], np.asarray(T_world_base_planned, dtype=float)[None])[0]
+
+
+def check_visits(
+    project: Project, estimates: Sequence[BasePose], T_world_base_planned: np.ndarray
+) -> list[BasePose]:
+    """:func:`check_visit` of many estimates with their planned base poses ``(n, 4, 4)``:
+    the planned-station tests of all of them at once (a simulated run's visits)."""
+    integrities = [
+        unchecked(f"the {est.method} result carries no tests") if est.integrity is None
+        else est.integrity
+        for est in estimates
+    ]  # fmt: skip
+    out = list(estimates)
+    tested = []
+    for i, (est, integrity) in enumerate(zip(estimates, integrities, strict=True)):
+        finite = np.all(np.isfinite(est.T_world_base)) and np.all(np.isfinite(est.covariance))
+        if not finite:
+            out[i] = replace(
+                est, integrity=integrity.failing("the pose or its covariance is not finite")
+            )
+        elif "exact" in integrity.checks:
+            out[i] = replace(est, integrity=integrity)
+        else:
+            tested.append(i)
+    if not tested:
+        return out
+    planned = np.asarray(T_world_base_planned, dtype=float)[tested]
+    err = pose_error(np.stack([estimates[i].T_world_base for i in tested]), planned)
     sel = [0, 1, 2, 5]
-    C = parking_covariance(project, planned) + estimate.covariance[np.ix_(sel, sel)]
+    e = err[:, sel]
+    own = np.stack([estimates[i].covariance for i in tested])[:, sel][:, :, sel]
     alpha = project.localization.integrity.alpha
-    statistic, threshold, passed = consistency_test(e, C, alpha)
-    check = {
-        "offset_xy_m": float(np.hypot(e[0], e[1])),
-        "offset_z_m": float(e[2]),
-        "offset_heading_deg": float(np.degrees(e[3])),
-        "statistic": statistic,
-        "threshold": threshold,
-        "passed": passed,
-    }
-    integrity = integrity.with_checks(planned_station=check)
-    if not passed:
-        integrity = integrity.failing(
-            f"the pose is {1e3 * check['offset_xy_m']:.0f} mm (height "
-            f"{1e3 * check['offset_z_m']:+.0f} mm) and {abs(check['offset_heading_deg']):.2f} deg "
-            "from the planned station, more than the parking accuracy allows: wrong map, anchor "
-            "survey or station?"
-        )
-    return replace(estimate, integrity=integrity)
+    statistic, threshold, passed = consistency_tests(
+        e, parking_covariance(project, planned) + own, alpha
+    )
+    for n, i in enumerate(tested):
+        check = {
+            "offset_xy_m": float(np.hypot(e[n, 0], e[n, 1])),
+            "offset_z_m": float(e[n, 2]),
+            "offset_heading_deg": float(np.degrees(e[n, 3])),
+            "statistic": float(statistic[n]),
+            "threshold": threshold,
+            "passed": bool(passed[n]),
+        }
+        integrity = guard_exclusion(integrities[i], project.tolerances.position)
+        integrity = integrity.with_checks(planned_station=check)
+        if not check["passed"]:
+            integrity = integrity.failing(
+                f"the pose is {1e3 * check['offset_xy_m']:.0f} mm (height "
+                f"{1e3 * check['offset_z_m']:+.0f} mm) and {abs(check['offset_heading_deg']):.2f} "
+                "deg from the planned station, more than the parking accuracy allows: wrong map, "
+                "anchor survey or station?"
+            )
+        out[i] = replace(estimates[i], integrity=integrity)
+    return out
 
 
 def failed_visits(results: VisitPoses) -> list[tuple[int, BasePose]]:

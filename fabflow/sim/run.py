@@ -45,7 +45,13 @@ from fabflow.localize.methods import (
     localizer_arguments,
     run_inputs,
 )
-from fabflow.localize.plan import LocalizeStation, check_visit, parked_pose, station_localizer
+from fabflow.localize.plan import (
+    LocalizeStation,
+    check_visit,
+    check_visits,
+    parked_pose,
+    station_localizer,
+)
 from fabflow.localize.setups import InstrumentSetup
 from fabflow.localize.stationing import InstrumentTrack
 from fabflow.positioning.result import BasePose
@@ -460,8 +466,9 @@ def simulate_run(
     )
     T_planned = np.empty((V, 4, 4))
 
-    def take(v: int, estimate: BasePose) -> None:
-        estimate = check_visit(study.project, estimate, T_planned[v])
+    def take(v: int, estimate: BasePose, checked: bool = False) -> None:
+        if not checked:
+            estimate = check_visit(study.project, estimate, T_planned[v])
         assert estimate.integrity is not None
         status[v] = STATUSES.index(estimate.integrity.status)
         T_est[v] = estimate.T_world_base
@@ -489,8 +496,9 @@ def simulate_run(
         )
     if phased is not None and measured:
         # a run that keeps no poses reads only their statuses, poses and covariances
-        for v, estimate in enumerate(phased[1](study.project, measured, records=keep_poses)):
-            take(v, estimate)
+        estimated = phased[1](study.project, measured, records=keep_poses)
+        for v, estimate in enumerate(check_visits(study.project, estimated, T_planned)):
+            take(v, estimate, checked=True)
     if study.visit_covariance is not None:
         cov[:] = study.visit_covariance
         error = np.einsum("vij,vj->vi", _cholesky(cov), rng.normal(0.0, 1.0, (V, 6)))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +11,8 @@ import pytest
 from helpers import DATA, PROJECTS
 
 from fabflow.errors import LocalizationError
-from fabflow.localize.plan import check_visit, localize_plan
-from fabflow.positioning.integrity import Integrity
+from fabflow.localize.plan import check_visit, check_visits, localize_plan
+from fabflow.positioning.integrity import Integrity, exact
 from fabflow.positioning.result import BasePose
 from fabflow.project import load_project, parse_project
 from fabflow.transforms.se3 import make_T
@@ -102,6 +103,18 @@ def test_planned_station_check_catches_a_shifted_pose() -> None:
     assert nan.integrity is not None and "not finite" in nan.integrity.reason
     untested = check_visit(project, BasePose(T, cov, "uwb"), T)
     assert untested.integrity is not None and untested.integrity.failed
+    # all of them checked at once (a simulated run's visits), with an exact one and a
+    # planned pose of their own each: what each gets alone
+    poses = [good, bad, low, nan, untested]
+    estimates = [replace(p, integrity=None if p is untested else ok) for p in poses]
+    estimates.append(BasePose(shifted, cov, "uwb", integrity=exact("noise-free")))
+    planned = np.stack([T, T, T, T, T, T])
+    planned[0, 1, 3] += 0.01
+    together = check_visits(project, estimates, planned)
+    for estimate, T_planned, got in zip(estimates, planned, together, strict=True):
+        want = check_visit(project, estimate, T_planned)
+        assert got.integrity == want.integrity
+    assert together[1].integrity.failed and together[-1].integrity.status == "ok"
 
 
 def test_no_program_from_a_failed_pose() -> None:
