@@ -388,8 +388,15 @@ def estimate_stations(
             base_lever=project.robot.platform.T_platform_base.matrix()[:3, 3],
             records=records,
         )
-        for i, (fix, rej) in zip(members, fixes, strict=True):
-            out[i] = _base_pose(project, stations[i], fix, rej, station_ids[i])
+        # the base poses and their covariances of all the group's fixes at once
+        T_platform_base = project.robot.platform.T_platform_base.matrix()
+        T_world_platform = np.stack([fix.T for fix, _ in fixes])
+        bases = platform.T_world_base(T_world_platform, 0.0, T_platform_base)
+        covs = platform_to_base_covariance(
+            T_world_platform, T_platform_base, np.stack([fix.covariance for fix, _ in fixes])
+        )
+        for n, (i, (fix, rej)) in enumerate(zip(members, fixes, strict=True)):
+            out[i] = _base_pose(project, stations[i], fix, rej, station_ids[i], bases[n], covs[n])
     return [pose for pose in out if pose is not None]
 
 
@@ -425,17 +432,16 @@ def _base_pose(
     fix: PlatformFix,
     rej: Rejection,
     station_id: str | None,
+    T_world_base_est: np.ndarray,
+    cov: np.ndarray,
 ) -> BasePose:
-    """The arm base pose of a station's platform fix, with its quality and integrity."""
+    """The arm base pose ``T_world_base_est`` of a station's platform fix, with its
+    covariance ``cov`` (:func:`platform_to_base_covariance`), quality and integrity."""
     setup = _setup(project)
     ids = data.anchor_ids
-    T_platform_base = project.robot.platform.T_platform_base.matrix()
     L = np.asarray(setup.tags, dtype=float)
     cal = data.calibration
     method = _method(setup)
-    T_world_platform_est = fix.T
-    T_world_base_est = platform.T_world_base(T_world_platform_est, 0.0, T_platform_base)
-    cov = platform_to_base_covariance(T_world_platform_est, T_platform_base, fix.covariance)
     unobserved = ["rx", "ry"] + ([] if fix.heading_observed else ["rz"])
     rmse = float(np.sqrt(np.mean(fix.residuals**2))) if fix.residuals.size else 0.0
     quality: dict[str, Any] = {

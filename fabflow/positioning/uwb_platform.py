@@ -463,7 +463,8 @@ def _finish(
     A, L = adj.anchors, adj.lever_arms
     d, link = ranges
     tg, an, s = adj.tag_idx[use], adj.anc_idx[use], adj.s[use]
-    info = adj.information(use, state)
+    J = platform_jacobian(A, L, state, tg, an)
+    info = adj.information(use, state, J)
     if not adj.heading_observed:
         info[3, :] = 0.0
         info[:, 3] = 0.0
@@ -474,9 +475,8 @@ def _finish(
         raise LocalizationError(UNDETERMINED)
     cov = np.linalg.inv(info) if determined else np.linalg.pinv(info) + np.diag(np.full(4, 1e6))
     if np.any(adj.bias_sigma > 0):
-        J = platform_jacobian(A, L, state, tg, an)
         if not adj.heading_observed:
-            J[:, 3] = 0.0
+            J = np.where(np.arange(4) < 3, J, 0.0)  # a copy without the heading column
         G = cov @ (J / s[:, None] ** 2).T
         U = (an[:, None] == np.arange(len(A))[None, :]).astype(float)
         g = G @ U
@@ -487,7 +487,7 @@ def _finish(
     n_used = np.bincount(an, weights=adj.count[use], minlength=len(A))
     ss = np.bincount(an, weights=squares, minlength=len(A))
     per_anchor = np.where(n_used > 0, np.sqrt(ss / np.maximum(n_used, 1)), np.nan)
-    checks: dict[str, Any] = geometry_checks(A[np.unique(an)], state)
+    checks: dict[str, Any] = geometry_checks(A[adj.anchors_used(use)], state)
     integrity = record(tests, excluded, adj.alpha, checks)
     # the mirror checks come at the end (finish_mirror_searches: many fixes' at once);
     # what the records below add does not depend on them
@@ -557,21 +557,22 @@ def rejected_ranges(rejected: np.ndarray, anchor_ids: Sequence[str]) -> dict[str
 def platform_to_base_covariance(
     T_world_platform: np.ndarray, T_platform_base: np.ndarray, cov_state: np.ndarray
 ) -> np.ndarray:
-    """Map the 4x4 ``[x, y, z, yaw]`` covariance to the 6x6 base pose covariance.
+    """Map the 4x4 ``[x, y, z, yaw]`` covariance to the 6x6 base pose covariance
+    (``(..., 6, 6)`` of platform poses ``(..., 4, 4)`` and covariances ``(..., 4, 4)``).
 
     Follows the convention of :mod:`fabflow.positioning.result`: the yaw error is a
     rotation about the world z axis and moves the base origin by
     ``e_z x (t_base - t_platform)``. Roll and pitch get ``UNOBSERVED_VARIANCE``.
     """
-    lever = T_world_platform[:3, :3] @ T_platform_base[:3, 3]
-    J = np.zeros((6, 4))
-    J[:3, :3] = np.eye(3)
-    J[:3, 3] = np.cross([0.0, 0.0, 1.0], lever)
-    J[5, 3] = 1.0
-    cov = J @ cov_state @ J.T
-    cov[3, 3] += UNOBSERVED_VARIANCE
-    cov[4, 4] += UNOBSERVED_VARIANCE
-    return 0.5 * (cov + cov.T)
+    lever = T_world_platform[..., :3, :3] @ T_platform_base[:3, 3]
+    J = np.zeros((*lever.shape[:-1], 6, 4))
+    J[..., :3, :3] = np.eye(3)
+    J[..., :3, 3] = np.cross([0.0, 0.0, 1.0], lever)
+    J[..., 5, 3] = 1.0
+    cov = J @ cov_state @ np.swapaxes(J, -1, -2)
+    cov[..., 3, 3] += UNOBSERVED_VARIANCE
+    cov[..., 4, 4] += UNOBSERVED_VARIANCE
+    return 0.5 * (cov + np.swapaxes(cov, -1, -2))
 
 
 def heading_from_motion(fix_xy: np.ndarray, min_travel: float = 0.3, window: int = 31) -> float:

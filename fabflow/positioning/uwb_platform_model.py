@@ -134,9 +134,11 @@ def platform_information(
     anc_idx: np.ndarray,
     state: np.ndarray,
     heading_prior: tuple[float, float] | None,
+    jacobian: np.ndarray | None = None,
 ) -> np.ndarray:
-    """4x4 information of ``x, y, z, yaw`` from white ranges of sd ``s`` (and the heading prior)."""
-    J = platform_jacobian(A, L, state, tag_idx, anc_idx)
+    """4x4 information of ``x, y, z, yaw`` from white ranges of sd ``s`` (and the heading
+    prior); ``jacobian``: :func:`platform_jacobian` at ``state``, when made already."""
+    J = platform_jacobian(A, L, state, tag_idx, anc_idx) if jacobian is None else jacobian
     info = J.T @ (J / s[:, None] ** 2)
     if heading_prior is not None:
         info[3, 3] += 1.0 / heading_prior[1] ** 2
