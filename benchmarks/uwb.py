@@ -43,7 +43,6 @@ from fabflow.sensors.uwb import (
     PAPER_ANCHORS_3D,
     PAPER_POINTS_2D,
     PAPER_POINTS_3D,
-    PlanarTrajectory,
     UwbErrorModel,
     calibration_campaign,
     draw_bias,
@@ -51,6 +50,7 @@ from fabflow.sensors.uwb import (
     ranging_schedule,
     simulate_ranges,
 )
+from fabflow.sensors.uwb_trajectories import PlanarTrajectory
 
 METHODS = ("ls", "wls", "wls-t")
 # seeds/003 tables (cm): X, Y, Z mean absolute error and XOY projection error

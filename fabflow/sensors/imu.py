@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fabflow.positioning.eskf import GRAVITY
-from fabflow.sensors.uwb import PlanarTrajectory
+from fabflow.sensors.uwb_trajectories import PlanarTrajectory
 
 
 @dataclass(frozen=True)

@@ -30,13 +30,13 @@ from fabflow.positioning.uwb_calibration import RangeCalibration, reject_outlier
 from fabflow.sensors.imu import ImuErrorModel, simulate_imu
 from fabflow.sensors.uwb import (
     PAPER_ANCHORS_3D,
-    PlanarTrajectory,
     UwbErrorModel,
     calibration_campaign,
     draw_bias,
     ranging_schedule,
     simulate_ranges,
 )
+from fabflow.sensors.uwb_trajectories import PlanarTrajectory
 from fabflow.transforms.so3 import exp_so3, matrix_from_quat, quat_from_rotvec
 
 LINE = PlanarTrajectory(np.array([[1.2, 1.5], [3.0, 3.0]]), 2.0, speed=0.3, rest_s=2.0)

@@ -15,13 +15,13 @@ from fabflow.sensors.uwb import (
     PAPER_ANCHORS_3D,
     PAPER_POINTS_3D,
     AnchorBias,
-    PlanarTrajectory,
     UwbErrorModel,
     calibration_campaign,
     draw_bias,
     segments_occluded,
     simulate_ranges,
 )
+from fabflow.sensors.uwb_trajectories import PlanarTrajectory
 
 SQUARE = np.array([[0.0, 0.0], [6.0, 0.0], [6.0, 6.0], [0.0, 6.0]])
 
@@ -380,3 +380,24 @@ def test_wls_fixes_move_with_the_site(seed: int, offset: tuple[float, float, flo
     np.testing.assert_array_equal(near.valid, far.valid)
     assume(near.valid.all())
     np.testing.assert_allclose(far.positions - np.asarray(offset), near.positions, atol=1e-6)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), rounds=st.integers(1, 40), growth=st.floats(0.0, 0.02))
+def test_a_standing_tag_ranges_as_the_same_positions_written_out(
+    seed: int, rounds: int, growth: float
+) -> None:
+    # a tag broadcast over the epochs takes its distances once: the ranges, truth and
+    # NLOS flags are those of the same positions written out, draw for draw
+    model = UwbErrorModel(sigma_1m=0.033, growth=growth)
+    tags = np.random.default_rng(seed).uniform(0.0, 5.0, (2, 3))
+    standing = np.broadcast_to(tags, (rounds, 2, 3))
+    occluded = np.broadcast_to([[True, False, False, True]] * 2, (rounds, 2, 4))
+    bias = draw_bias(4, model, np.random.default_rng(seed + 1))
+    a, b = (
+        simulate_ranges(PAPER_ANCHORS_3D, t, model, np.random.default_rng(seed), bias, occluded)
+        for t in (standing, standing.copy())
+    )
+    for name in ("ranges", "true_ranges", "nlos"):
+        assert np.array_equal(getattr(a, name), getattr(b, name))
+    assert a.true_ranges.flags.writeable

@@ -13,13 +13,8 @@ import yaml
 
 from fabflow.positioning.uwb_io import write_imu_csv, write_ranges_csv
 from fabflow.sensors.imu import ImuErrorModel, simulate_imu
-from fabflow.sensors.uwb import (
-    PlanarTrajectory,
-    UwbErrorModel,
-    draw_bias,
-    ranging_schedule,
-    simulate_ranges,
-)
+from fabflow.sensors.uwb import UwbErrorModel, draw_bias, ranging_schedule, simulate_ranges
+from fabflow.sensors.uwb_trajectories import PlanarTrajectory
 
 HERE = Path(__file__).parent
 IDS = ["A1", "A2", "A3", "A4"]
