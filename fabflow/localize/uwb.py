@@ -356,7 +356,7 @@ def estimate_stations(
     with it share that grid). With ``records`` False the integrity records
     leave out what cannot change a status, poses or covariances
     (:func:`~fabflow.positioning.uwb_platform.finish_mirror_searches`): for a
-    simulated run that keeps none.
+    simulated run that keeps none; nor do the poses' residuals and quality.
     """
     setup = _setup(project)
     model = setup.error_model()
@@ -396,7 +396,9 @@ def estimate_stations(
             T_world_platform, T_platform_base, np.stack([fix.covariance for fix, _ in fixes])
         )
         for n, (i, (fix, rej)) in enumerate(zip(members, fixes, strict=True)):
-            out[i] = _base_pose(project, stations[i], fix, rej, station_ids[i], bases[n], covs[n])
+            out[i] = _base_pose(
+                project, stations[i], fix, rej, station_ids[i], bases[n], covs[n], records
+            )
     return [pose for pose in out if pose is not None]
 
 
@@ -434,9 +436,16 @@ def _base_pose(
     station_id: str | None,
     T_world_base_est: np.ndarray,
     cov: np.ndarray,
+    records: bool = True,
 ) -> BasePose:
     """The arm base pose ``T_world_base_est`` of a station's platform fix, with its
-    covariance ``cov`` (:func:`platform_to_base_covariance`), quality and integrity."""
+    covariance ``cov`` (:func:`platform_to_base_covariance`), quality and integrity;
+    with ``records`` False without the residuals and the quality (a simulated run
+    that keeps no poses reads neither)."""
+    removed = rejected_ranges(rej.rejected, data.anchor_ids)
+    integrity = fix.integrity and fix.integrity.with_checks(rejected_ranges=removed)
+    if not records:
+        return BasePose(T_world_base_est, cov, "uwb", station=station_id, integrity=integrity)
     setup = _setup(project)
     ids = data.anchor_ids
     L = np.asarray(setup.tags, dtype=float)
@@ -477,7 +486,5 @@ def _base_pose(
         rmse=rmse,
         station=station_id,
         quality=quality,
-        integrity=None
-        if fix.integrity is None
-        else fix.integrity.with_checks(rejected_ranges=rejected_ranges(rej.rejected, ids)),
+        integrity=integrity,
     )

@@ -398,7 +398,9 @@ def test_estimates_without_records_have_the_statuses_poses_and_covariances_of_fu
             assert a.integrity.to_dict() == b.integrity.to_dict()
         statuses.append(("left out " if left_out else "") + a.integrity.status)
     assert "ok" in statuses and any(s.startswith("left out") for s in statuses), statuses
-    # the lean records lack only the search's check
+    # the lean poses lack the residuals and the quality, their records only the search's check
+    assert all(p.quality and p.residuals.size for p in full)
+    assert not any(p.quality or p.residuals.size for p in lean)
     assert any("mirror_by_one_fault" in p.integrity.checks for p in full)
     assert not any(
         "mirror_by_one_fault" in p.integrity.checks
