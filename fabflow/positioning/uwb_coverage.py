@@ -34,13 +34,18 @@ def geometry_checks(A: np.ndarray, state: np.ndarray) -> dict[str, float]:
     dict
         ``pdop`` and ``outside_coverage_m`` (metres; 0 inside the hull).
     """
-    p = state[:3]
-    u = p - A
-    u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
-    info = u.T @ u
-    pdop = float(np.sqrt(np.trace(np.linalg.pinv(info))))
-    outside = float(outside_hull(A[:, :2], p[None, :2])[0])
-    return {"pdop": pdop, "outside_coverage_m": outside}
+    pdop, outside = geometry_of_many(A, np.asarray(state, dtype=float)[None])
+    return {"pdop": float(pdop[0]), "outside_coverage_m": float(outside[0])}
+
+
+def geometry_of_many(A: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`geometry_checks` of many platforms ``(n, 4)`` with the same anchors ``A``:
+    their PDOPs and how far outside the anchors' plan hull they stand, ``(n,)`` each."""
+    u = states[:, None, :3] - A
+    u /= np.maximum(np.linalg.norm(u, axis=2), 1e-9)[..., None]
+    info = np.swapaxes(u, 1, 2) @ u
+    pdop = np.sqrt(np.trace(np.linalg.pinv(info), axis1=1, axis2=2))
+    return pdop, outside_hull(A[:, :2], states[:, :2])
 
 
 def outside_hull(anchors_xy: np.ndarray, points_xy: np.ndarray) -> np.ndarray:

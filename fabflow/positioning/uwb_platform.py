@@ -15,17 +15,16 @@ import functools
 import inspect
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from fabflow.errors import InputError, LocalizationError
 from fabflow.positioning.adjustment_tests import ALPHA, TestResult
-from fabflow.positioning.integrity import Integrity, identify, record
+from fabflow.positioning.integrity import Integrity, identify
 from fabflow.positioning.medians import nanmedian
 from fabflow.positioning.uwb import (
-    COND_LIMIT,
     MIN_RANGE_FOR_WEIGHT,
     UNOBSERVED_VARIANCE,
     Method,
@@ -33,13 +32,13 @@ from fabflow.positioning.uwb import (
     sigma_of,
 )
 from fabflow.positioning.uwb_calibration import running_median
-from fabflow.positioning.uwb_coverage import COVERAGE_MARGIN, geometry_checks
 from fabflow.positioning.uwb_platform_adjustment import (
     PlatformAdjustment,
     fit_many,
     grouped_tests,
     identify_by_refit,
 )
+from fabflow.positioning.uwb_platform_finish import Final, PlatformFix, finish_fixes
 from fabflow.positioning.uwb_platform_mirrors import (
     hidden_mirrors_batch,
     mirror_checks,
@@ -47,66 +46,8 @@ from fabflow.positioning.uwb_platform_mirrors import (
 )
 from fabflow.positioning.uwb_platform_model import (
     UNDETERMINED,
-    platform_jacobian,
-    platform_ranges,
 )
-from fabflow.positioning.uwb_platform_model import rotz as _rotz
 from fabflow.positioning.uwb_platform_start import initial_state, link_means
-
-
-@dataclass(frozen=True)
-class PlatformFix:
-    """A static platform pose (level platform) from the ranges of one or more tags.
-
-    Attributes
-    ----------
-    state
-        ``[x, y, z, yaw]`` of the platform frame in the anchors' frame (metres, rad).
-    covariance
-        4x4 covariance of ``state`` (yaw variance is ``UNOBSERVED_VARIANCE`` when no
-        tag pair or prior fixes it).
-    residuals
-        (n_used,) range residuals of the measurements used (metres).
-    n_ranges, n_used
-        Ranges given (finite), and used: all but those the tests left out
-        (``integrity.excluded``).
-    iterations
-        Gauss-Newton iterations of the final solve.
-    heading_observed
-        Whether the yaw is determined by the measurements (or a prior).
-    per_anchor_rms
-        (n_anchors,) RMS residual of the used ranges per anchor (metres); NaN for
-        an anchor none of whose ranges is used (write it as ``None``).
-    integrity
-        The tests of the fix (global test, w-test per anchor and per tag-anchor
-        link, reliability), what was left out, and the geometry checks.
-    converged
-        Whether the final Gauss-Newton solve converged.
-    mirror_search
-        ``(adjustment, links used, state, tests, reason recorded)`` of the mirror
-        checks still to be made (:func:`finish_mirror_searches`) when
-        :func:`locate_platform` was asked to leave them to the caller, else ``None``.
-    """
-
-    state: np.ndarray
-    covariance: np.ndarray
-    residuals: np.ndarray
-    n_ranges: int
-    n_used: int
-    iterations: int
-    heading_observed: bool
-    per_anchor_rms: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    integrity: Integrity | None = None
-    converged: bool = True
-    mirror_search: tuple[PlatformAdjustment, np.ndarray, np.ndarray, TestResult, str] | None = None
-
-    @property
-    def T(self) -> np.ndarray:
-        """4x4 platform pose (``T_frame_platform``)."""
-        T = np.eye(4)
-        T[:3, :3] = _rotz(float(self.state[3]))
-        T[:3, 3] = self.state[:3]
-        return T
 
 
 def locate_platform(
@@ -214,7 +155,7 @@ def locate_platform(
     iterations, converged = 0, True
     if fit:
         state, iterations, converged = adj.fit(np.ones(adj.d.size, dtype=bool), state)
-    fix = _tested(adj, ranges_links, state, iterations, converged)
+    [fix] = finish_fixes([_tested(adj, ranges_links, state, iterations, converged)])
     return fix if search_later else finish_mirror_searches([fix])[0]
 
 
@@ -243,13 +184,11 @@ def locate_platforms(problems: Sequence[dict[str, Any]], records: bool = True) -
         states[k], iterations[k], converged[k] = state, int(its), bool(conv)
     # every fix's first tests at once: most fixes of a run pass them and need no others
     first = grouped_tests([(adj, every[k], states[k]) for k, (adj, *_) in enumerate(prepared)])
-    return finish_mirror_searches(
-        [
-            _tested(adj, ranges_links, states[k], iterations[k], converged[k], first[k])
-            for k, (adj, _, _, ranges_links) in enumerate(prepared)
-        ],
-        records,
-    )
+    finals = [
+        _tested(adj, ranges_links, states[k], iterations[k], converged[k], first[k])
+        for k, (adj, _, _, ranges_links) in enumerate(prepared)
+    ]
+    return finish_mirror_searches(finish_fixes(finals), records)
 
 
 def _arguments(problem: dict[str, Any]) -> dict[str, Any]:
@@ -363,10 +302,10 @@ def _tested(
     iterations: int,
     converged: bool,
     first: tuple[TestResult, list[np.ndarray]] | None = None,
-) -> PlatformFix:
-    """The fix from the first solution ``state``: tested, with exclusions while the
-    tests fail and one explains it (:func:`locate_platform`). ``first``: the tests
-    of ``state`` on all links, when made already (:func:`grouped_tests`)."""
+) -> Final:
+    """The final solution from the first solution ``state``: tested, with exclusions
+    while the tests fail and one explains it (:func:`locate_platform`). ``first``: the
+    tests of ``state`` on all links, when made already (:func:`grouped_tests`)."""
     use = np.ones(adj.d.size, dtype=bool)
     tests, masks = adj.tests(use, state) if first is None else first
     excluded: list[dict[str, Any]] = []
@@ -387,7 +326,7 @@ def _tested(
         )
         use, state, tests, masks = trial.use, trial.state, trial.tests, trial.masks
         iterations, converged = trial.iterations, trial.converged
-    return _finish(adj, ranges_links, use, state, tests, excluded, problem, iterations, converged)
+    return Final(adj, ranges_links, use, state, tests, excluded, problem, iterations, converged)
 
 
 def finish_mirror_searches(fixes: Sequence[PlatformFix], records: bool = True) -> list[PlatformFix]:
@@ -443,82 +382,6 @@ def failing_first(integrity: Integrity, reason: str, recorded: str) -> Integrity
     else:
         text = f"{integrity.reason}; {reason}" if integrity.reason else reason
     return replace(integrity, status="failed", reason=text)
-
-
-def _finish(
-    adj: PlatformAdjustment,
-    ranges: tuple[np.ndarray, np.ndarray],
-    use: np.ndarray,
-    state: np.ndarray,
-    tests: TestResult,
-    excluded: list[dict[str, Any]],
-    problem: str,
-    iterations: int,
-    converged: bool,
-) -> PlatformFix:
-    """The fix from the final solution: covariance, residuals, integrity record and checks.
-
-    ``ranges``: every finite range (metres) and its link (index into ``adj``'s links).
-    """
-    A, L = adj.anchors, adj.lever_arms
-    d, link = ranges
-    tg, an, s = adj.tag_idx[use], adj.anc_idx[use], adj.s[use]
-    J = platform_jacobian(A, L, state, tg, an)
-    info = adj.information(use, state, J)
-    if not adj.heading_observed:
-        info[3, :] = 0.0
-        info[:, 3] = 0.0
-        info[3, 3] = 1.0 / UNOBSERVED_VARIANCE
-    ev = np.linalg.eigvalsh(info)
-    determined = bool(ev[0] > ev[-1] / COND_LIMIT)
-    if not determined and not excluded:
-        raise LocalizationError(UNDETERMINED)
-    cov = np.linalg.inv(info) if determined else np.linalg.pinv(info) + np.diag(np.full(4, 1e6))
-    if np.any(adj.bias_sigma > 0):
-        if not adj.heading_observed:
-            J = np.where(np.arange(4) < 3, J, 0.0)  # a copy without the heading column
-        G = cov @ (J / s[:, None] ** 2).T
-        U = (an[:, None] == np.arange(len(A))[None, :]).astype(float)
-        g = G @ U
-        cov = cov + (g * adj.bias_sigma**2) @ g.T
-    # squares of the ranges' residuals: their scatter about the link mean, plus the mean's
-    predicted = platform_ranges(A, L, state, adj.tag_idx, adj.anc_idx)
-    squares = adj.raw_sq_dev[use] + adj.count[use] * (adj.raw_mean[use] - predicted[use]) ** 2
-    n_used = np.bincount(an, weights=adj.count[use], minlength=len(A))
-    ss = np.bincount(an, weights=squares, minlength=len(A))
-    per_anchor = np.where(n_used > 0, np.sqrt(ss / np.maximum(n_used, 1)), np.nan)
-    checks: dict[str, Any] = geometry_checks(A[adj.anchors_used(use)], state)
-    integrity = record(tests, excluded, adj.alpha, checks)
-    # the mirror checks come at the end (finish_mirror_searches: many fixes' at once);
-    # what the records below add does not depend on them
-    search = (adj, use, state, tests, integrity.reason) if integrity.status != "failed" else None
-    if problem:
-        integrity = integrity.failing(problem)
-    if not determined:
-        integrity = integrity.failing("the ranges left out leave the pose undetermined")
-    elif not converged:
-        integrity = integrity.failing(f"the pose did not converge in {adj.max_iter} iterations")
-    elif integrity.checks["outside_coverage_m"] > COVERAGE_MARGIN:
-        integrity = integrity.failing(
-            f"the platform stands {integrity.checks['outside_coverage_m']:.1f} m outside the "
-            f"anchors' coverage (their convex hull in plan, PDOP "
-            f"{integrity.checks['pdop']:.1f}): move anchors around the station"
-        )
-    state = state.copy()
-    state[3] = (state[3] + np.pi) % (2 * np.pi) - np.pi
-    return PlatformFix(
-        state=state,
-        covariance=cov,
-        residuals=d[use[link]] - predicted[link[use[link]]],
-        n_ranges=adj.n_ranges(np.ones(adj.d.size, dtype=bool)),
-        n_used=adj.n_ranges(use),
-        iterations=iterations,
-        heading_observed=adj.heading_observed,
-        per_anchor_rms=per_anchor,
-        integrity=integrity,
-        converged=converged,
-        mirror_search=search,
-    )
 
 
 def rejected_ranges(rejected: np.ndarray, anchor_ids: Sequence[str]) -> dict[str, Any]:

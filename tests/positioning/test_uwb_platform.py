@@ -552,3 +552,34 @@ def test_many_fixes_are_tested_as_each_alone(seed: int, n: int) -> None:
         assert got.statistic == pytest.approx(want.statistic, rel=1e-10)
         for name in ("w", "thresholds", "mdb", "shift"):
             np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-9)
+
+
+def test_fixes_of_one_shape_finished_together_are_each_finished_alone() -> None:
+    # a run's visits share anchors and links: their covariances, residuals, records and
+    # geometry checks come from one stacked solve per shape, with a fix that left a
+    # link out among them
+    from fabflow.positioning.uwb_platform import locate_platforms
+
+    problems = []
+    for seed in range(4):
+        r = _ranges(PAPER_ANCHORS_3D, 20 + seed)
+        if seed == 2:
+            r[:, 1, 2] += 0.5
+        problems.append({"anchors": PAPER_ANCHORS_3D, "ranges": r})
+    problems += [{"anchors": ANCHORS_5, "ranges": _ranges(ANCHORS_5, 30 + k)} for k in range(2)]
+    for p in problems:
+        p.update(lever_arms=TAGS, sigma=SIGMA, base_lever=BASE)
+        p["anchor_bias_sigma"] = np.full(len(p["anchors"]), 0.01)
+    together = locate_platforms(problems)
+    assert "excluded" in [t.integrity.status for t in together]
+    for p, t in zip(problems, together, strict=True):
+        alone = locate_platform(**p)
+        assert (t.integrity.status, t.integrity.reason) == (
+            alone.integrity.status,
+            alone.integrity.reason,
+        )
+        np.testing.assert_allclose(t.covariance, alone.covariance, rtol=1e-10, atol=1e-16)
+        np.testing.assert_allclose(t.residuals, alone.residuals, rtol=1e-10, atol=1e-14)
+        np.testing.assert_allclose(t.per_anchor_rms, alone.per_anchor_rms, rtol=1e-10)
+        for name in ("pdop", "outside_coverage_m"):
+            assert t.integrity.checks[name] == pytest.approx(alone.integrity.checks[name])
