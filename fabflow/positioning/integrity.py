@@ -177,9 +177,11 @@ def record(
         protection_level={"horizontal": h, "vertical": vert},
         checks=dict(checks or {}),
         mdb={
-            label: float(v)
-            for label, v in zip(test.labels, test.mdb, strict=True)
-            if np.isfinite(v)
+            label: v
+            for label, v, finite in zip(
+                test.labels, test.mdb.tolist(), np.isfinite(test.mdb).tolist(), strict=True
+            )
+            if finite
         },
     )
 
