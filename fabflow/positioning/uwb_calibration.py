@@ -287,6 +287,22 @@ def _excess_points(excess: tuple[float, float], grid: int) -> np.ndarray:
     return lo + (np.arange(grid) + 0.5) / grid * (hi - lo)
 
 
+CDF_TAIL = 12.0
+"""Sigmas beyond the window within which :func:`kept_centre` and :func:`kept_moments`
+count an NLOS excess: the normal's tail there, 2e-33, is below the last bit of any
+probability or moment they sum it into."""
+
+
+def _within_reach(points: np.ndarray, edge: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """The ascending excess ``points`` (metres) no more than :data:`CDF_TAIL` sigmas ``s``
+    beyond the farthest window ``edge``: those beyond add below 1e-32 each to a kept
+    share or moment, under the last bit of any sum they are in."""
+    reach = np.max(edge + CDF_TAIL * s, initial=-np.inf)
+    if not np.isfinite(reach):
+        return points
+    return points[: np.searchsorted(points, reach, side="right")]
+
+
 def kept_moments(
     p: np.ndarray | float,
     excess: tuple[float, float],
@@ -325,9 +341,11 @@ def kept_moments(
         square metres), and the probability that an NLOS range is kept.
     """
     s = np.asarray(sigma, dtype=float)[..., None]
-    e = np.r_[0.0, _excess_points(excess, grid)]
+    upper_edge = np.asarray(upper, dtype=float)[..., None]
+    # the points out of reach are left out of the sums, not of their count
+    e = np.r_[0.0, _within_reach(_excess_points(excess, grid), upper_edge, s)]
     a = (-np.asarray(lower, dtype=float)[..., None] - e) / s
-    b = (np.asarray(upper, dtype=float)[..., None] - e) / s
+    b = (upper_edge - e) / s
     pdf_a = np.exp(-0.5 * a * a) / np.sqrt(2.0 * np.pi)
     pdf_b = np.exp(-0.5 * b * b) / np.sqrt(2.0 * np.pi)
     # per excess (0: line of sight): P(kept), E[x 1_kept], E[x^2 1_kept] of x = e + noise
@@ -338,9 +356,9 @@ def kept_moments(
     p = np.asarray(p, dtype=float)
 
     def mix(m: np.ndarray) -> np.ndarray:
-        return (1.0 - p) * m[..., 0] + p * m[..., 1:].mean(-1)
+        return (1.0 - p) * m[..., 0] + p * (m[..., 1:].sum(-1) / grid)
 
-    return mix(kept), mix(first), mix(second), kept[..., 1:].mean(-1)
+    return mix(kept), mix(first), mix(second), kept[..., 1:].sum(-1) / grid
 
 
 def _mixture_density(
@@ -412,12 +430,6 @@ def kept_mean_variance(
     return np.where(kept[..., 0] > 1e-9, value, sigma[..., 0] ** 2)
 
 
-CDF_TAIL = 12.0
-"""Sigmas beyond which :func:`kept_centre` leaves an NLOS excess out of a cumulative
-probability: the normal's tail there, 2e-33, is below the last bit of any value the
-bisection compares."""
-
-
 def kept_centre(
     p: np.ndarray | float,
     excess: tuple[float, float],
@@ -446,10 +458,7 @@ def kept_centre(
     centre = np.zeros(np.broadcast_shapes(p.shape, s.shape[:-1], lower.shape, upper.shape))
     for _ in range(steps):
         lo_x, hi_x = centre - lower, centre + upper
-        # Excess points more than CDF_TAIL sigmas beyond every window add below 1e-32
-        # each, far under the last bit of a cumulative probability: left out.
-        reach = np.max(hi_x + CDF_TAIL * s[..., 0], initial=-np.inf)
-        ahead = e[: np.searchsorted(e, reach, side="right")] if np.isfinite(reach) else e
+        ahead = _within_reach(e, hi_x, s[..., 0])
         half = 0.5 * (cdf(lo_x) + cdf(hi_x))
         for _ in range(20):  # bisection for the median of the kept mixture
             mid = 0.5 * (lo_x + hi_x)

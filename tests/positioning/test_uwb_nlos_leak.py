@@ -93,6 +93,42 @@ def test_the_window_centre_leaves_out_only_what_no_bit_holds(
     assert np.allclose(got, want, rtol=0.0, atol=1e-9)
 
 
+def _moments_every_excess(p, excess, sigma, lower, upper, grid=64):
+    """:func:`kept_moments` written out over every point of the excess."""
+    s = np.asarray(sigma, dtype=float)[..., None]
+    e = np.r_[0.0, excess[0] + (np.arange(grid) + 0.5) / grid * (excess[1] - excess[0])]
+    a = (-np.asarray(lower, dtype=float)[..., None] - e) / s
+    b = (np.asarray(upper, dtype=float)[..., None] - e) / s
+    pdf_a, pdf_b = (np.exp(-0.5 * z * z) / np.sqrt(2.0 * np.pi) for z in (a, b))
+    kept = special.ndtr(b) - special.ndtr(a)
+    first = e * kept + s * (pdf_a - pdf_b)
+    second = (
+        (e * e + s * s) * kept + 2.0 * e * s * (pdf_a - pdf_b) + s * s * (a * pdf_a - b * pdf_b)
+    )
+    p = np.asarray(p, dtype=float)
+    mix = [(1.0 - p) * m[..., 0] + p * m[..., 1:].mean(-1) for m in (kept, first, second)]
+    return (*mix, kept[..., 1:].mean(-1))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    p=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=6),
+    sigma=st.floats(0.005, 0.5),
+    low=st.floats(0.0, 1.0),
+    width=st.floats(0.01, 2.0),
+    half_width=st.floats(0.01, 0.8),
+)
+def test_the_kept_moments_leave_out_only_what_no_bit_holds(p, sigma, low, width, half_width):
+    p = np.asarray(p)
+    s = sigma * np.linspace(1.0, 2.0, len(p))
+    window = np.maximum(half_width, 3.0 * s)
+    got = kept_moments(p, (low, low + width), s, window, window)
+    want = _moments_every_excess(p, (low, low + width), s, window, window)
+    for g, w in zip(got, want, strict=True):
+        assert np.all(np.isfinite(g))
+        np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-30)
+
+
 def _links(p: float, d: float, seed: int, links: int = 400) -> tuple:
     """``links`` simulated links of 300 epochs at ``d`` metres, a share ``p`` of their
     ranges NLOS: the ranges, those the rejection keeps, and the corrected ones. The
