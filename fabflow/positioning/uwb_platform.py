@@ -255,13 +255,13 @@ def _adjustment(
             "tag or give a heading prior (from the motion or the IMU)"
         )
     state, heading_observed = initial_state(A, R, L, sigma, method, heading_prior, seeds)
-    finite = np.isfinite(R)
-    d = R[finite]
+    flat = np.flatnonzero(np.isfinite(R))  # each finite range's (round, tag, anchor), flat
+    d = R.ravel()[flat]
     links = link_means(
         d,
         sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT)),
-        np.broadcast_to(np.arange(n_tags)[None, :, None], R.shape)[finite],
-        np.broadcast_to(np.arange(A.shape[0])[None, None, :], R.shape)[finite],
+        flat // A.shape[0] % n_tags,
+        flat % A.shape[0],
         A.shape[0],
     )
     link = links.pop("link")

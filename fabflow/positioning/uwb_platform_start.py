@@ -30,7 +30,10 @@ def link_means(
     anchors ``anc_idx``, and ``link``: the link of each range (index into them).
     """
     key = np.asarray(tag_idx) * n_anchors + np.asarray(anc_idx)
-    links, link = np.unique(key, return_inverse=True)
+    # np.unique's sorted links and inverse, from a count: the keys are a few small integers
+    present = np.bincount(key) > 0
+    links = np.flatnonzero(present)
+    link = (np.cumsum(present) - 1)[key]
     w = 1.0 / s**2
     W = np.bincount(link, weights=w)
     mean = np.bincount(link, weights=w * d) / W
