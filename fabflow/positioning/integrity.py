@@ -231,19 +231,11 @@ def identify(test: TestResult) -> int | None:
     return k
 
 
-def consistency_test(e: np.ndarray, C: np.ndarray, alpha: float) -> tuple[float, float, bool]:
-    """Chi-square test of a difference ``e`` with covariance ``C``: statistic, threshold, passed."""
-    statistic, threshold, passed = consistency_tests(
-        np.asarray(e)[None], np.asarray(C)[None], alpha
-    )
-    return float(statistic[0]), threshold, bool(passed[0])
-
-
 def consistency_tests(
     e: np.ndarray, C: np.ndarray, alpha: float
 ) -> tuple[np.ndarray, float, np.ndarray]:
-    """:func:`consistency_test` of many differences ``e`` (n, k) with covariances ``C``
-    (n, k, k): statistics, the threshold, whether each passed."""
+    """Chi-square tests of differences ``e`` (n, k) with covariances ``C`` (n, k, k):
+    the statistics, the threshold, whether each passed."""
     e = np.asarray(e, dtype=float)
     statistic = np.einsum("ni,nij,nj->n", e, np.linalg.pinv(np.asarray(C, dtype=float)), e)
     threshold = float(special.chdtri(e.shape[-1], alpha))

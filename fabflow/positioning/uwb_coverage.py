@@ -19,28 +19,21 @@ before its fix fails: outside, the geometry degrades fast and the linearized
 covariance no longer describes the error."""
 
 
-def geometry_checks(A: np.ndarray, state: np.ndarray) -> dict[str, float]:
-    """PDOP of the anchors used at the platform, and how far outside their plan hull it stands.
+def geometry_checks(A: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """PDOP of the anchors used at each platform, and how far outside their plan hull it stands.
 
     Parameters
     ----------
     A
-        (n, 3) the anchors the fix used (world, metres).
-    state
-        The fix ``[x, y, z, yaw]`` (world, metres and radians).
+        (n, 3) the anchors the fixes used (world, metres).
+    states
+        (k, 4) the fixes ``[x, y, z, yaw]`` (world, metres and radians).
 
     Returns
     -------
-    dict
-        ``pdop`` and ``outside_coverage_m`` (metres; 0 inside the hull).
+    pdop, outside
+        (k,) each: the PDOPs and the distances outside the hull (metres; 0 inside).
     """
-    pdop, outside = geometry_of_many(A, np.asarray(state, dtype=float)[None])
-    return {"pdop": float(pdop[0]), "outside_coverage_m": float(outside[0])}
-
-
-def geometry_of_many(A: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`geometry_checks` of many platforms ``(n, 4)`` with the same anchors ``A``:
-    their PDOPs and how far outside the anchors' plan hull they stand, ``(n,)`` each."""
     u = states[:, None, :3] - A
     u /= np.maximum(np.linalg.norm(u, axis=2), 1e-9)[..., None]
     info = np.swapaxes(u, 1, 2) @ u

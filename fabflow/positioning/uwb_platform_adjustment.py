@@ -126,14 +126,11 @@ class PlatformAdjustment:
             self.anc_idx[use], start, self.heading_prior, self.max_iter,
         )  # fmt: skip
 
-    def information(
-        self, use: np.ndarray, state: np.ndarray, jacobian: np.ndarray | None = None
-    ) -> np.ndarray:
-        """4x4 information of ``x, y, z, yaw`` from the ranges ``use`` (white noise only);
-        ``jacobian``: theirs at ``state``, when made already."""
+    def information(self, use: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """4x4 information of ``x, y, z, yaw`` from the ranges ``use`` (white noise only)."""
         return platform_information(
             self.anchors, self.lever_arms, self.s[use], self.tag_idx[use], self.anc_idx[use],
-            state, self.heading_prior, jacobian,
+            state, self.heading_prior,
         )  # fmt: skip
 
     def determined(self, use: np.ndarray, state: np.ndarray) -> bool:

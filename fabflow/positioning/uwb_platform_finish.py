@@ -20,10 +20,11 @@ from fabflow.errors import LocalizationError
 from fabflow.positioning.adjustment_tests import TestResult
 from fabflow.positioning.integrity import Integrity, record
 from fabflow.positioning.uwb import COND_LIMIT, UNOBSERVED_VARIANCE
-from fabflow.positioning.uwb_coverage import COVERAGE_MARGIN, geometry_of_many
+from fabflow.positioning.uwb_coverage import COVERAGE_MARGIN, geometry_checks
 from fabflow.positioning.uwb_platform_adjustment import PlatformAdjustment
 from fabflow.positioning.uwb_platform_model import (
     UNDETERMINED,
+    information_of,
     platform_jacobian,
     platform_ranges,
 )
@@ -146,9 +147,7 @@ def _covariances(
     states = np.stack([f.state for f in finals])
     J = np.stack([platform_jacobian(A, f.adj.lever_arms, f.state, tg, an) for f in finals])
     s = np.stack([f.adj.s[use] for f in finals])
-    info = np.swapaxes(J, 1, 2) @ (J / s[..., None] ** 2)
-    if adj.heading_prior is not None:
-        info[:, 3, 3] += 1.0 / adj.heading_prior[1] ** 2
+    info = information_of(J, s, adj.heading_prior)
     if not adj.heading_observed:
         info[:, 3, :] = 0.0
         info[:, :, 3] = 0.0
@@ -167,7 +166,7 @@ def _covariances(
         G = cov @ np.swapaxes(J / s[..., None] ** 2, 1, 2)
         g = G @ (an[:, None] == np.arange(len(A))[None, :]).astype(float)
         cov = cov + (g * bias[:, None, :] ** 2) @ np.swapaxes(g, 1, 2)
-    pdop, outside = geometry_of_many(A[adj.anchors_used(use)], states)
+    pdop, outside = geometry_checks(A[adj.anchors_used(use)], states)
     return cov, determined, pdop, outside
 
 

@@ -134,14 +134,21 @@ def platform_information(
     anc_idx: np.ndarray,
     state: np.ndarray,
     heading_prior: tuple[float, float] | None,
-    jacobian: np.ndarray | None = None,
 ) -> np.ndarray:
-    """4x4 information of ``x, y, z, yaw`` from white ranges of sd ``s`` (and the heading
-    prior); ``jacobian``: :func:`platform_jacobian` at ``state``, when made already."""
-    J = platform_jacobian(A, L, state, tag_idx, anc_idx) if jacobian is None else jacobian
-    info = J.T @ (J / s[:, None] ** 2)
+    """4x4 information of ``x, y, z, yaw`` from white ranges of sd ``s`` (and the heading prior)."""
+    J = platform_jacobian(A, L, state, tag_idx, anc_idx)
+    return information_of(J, s, heading_prior)
+
+
+def information_of(
+    J: np.ndarray, s: np.ndarray, heading_prior: tuple[float, float] | None
+) -> np.ndarray:
+    """Information ``(..., 4, 4)`` of ``x, y, z, yaw`` from ranges with Jacobian ``J``
+    ``(..., m, 4)`` and white sd ``s`` ``(..., m)`` (metres), and the heading prior:
+    of one fix, or of a stack of fixes with the same prior."""
+    info = np.swapaxes(J, -1, -2) @ (J / s[..., None] ** 2)
     if heading_prior is not None:
-        info[3, 3] += 1.0 / heading_prior[1] ** 2
+        info[..., 3, 3] += 1.0 / heading_prior[1] ** 2
     return info
 
 

@@ -37,8 +37,8 @@ def test_outside_hull_of_anchors_without_area_is_zero() -> None:
 
 def test_geometry_checks() -> None:
     anchors = np.array([[0, 0, 0], [10, 0, 3], [10, 10, 0], [0, 10, 3]], float)
-    inside = geometry_checks(anchors, np.array([5.0, 5.0, 1.0, 0.3]))
-    outside = geometry_checks(anchors, np.array([13.0, 5.0, 1.0, 0.3]))
-    assert inside["outside_coverage_m"] == 0.0
-    assert abs(outside["outside_coverage_m"] - 3.0) < 1e-12
-    assert 1.0 < inside["pdop"] < outside["pdop"]
+    states = np.array([[5.0, 5.0, 1.0, 0.3], [13.0, 5.0, 1.0, 0.3]])  # inside, 3 m outside
+    pdop, outside = geometry_checks(anchors, states)
+    assert outside[0] == 0.0
+    assert abs(outside[1] - 3.0) < 1e-12
+    assert 1.0 < pdop[0] < pdop[1]
