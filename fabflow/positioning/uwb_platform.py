@@ -44,9 +44,7 @@ from fabflow.positioning.uwb_platform_mirrors import (
     mirror_checks,
     with_hidden_mirrors,
 )
-from fabflow.positioning.uwb_platform_model import (
-    UNDETERMINED,
-)
+from fabflow.positioning.uwb_platform_model import UNDETERMINED
 from fabflow.positioning.uwb_platform_start import initial_state, link_means
 
 

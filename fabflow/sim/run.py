@@ -466,9 +466,8 @@ def simulate_run(
     )
     T_planned = np.empty((V, 4, 4))
 
-    def take(v: int, estimate: BasePose, checked: bool = False) -> None:
-        if not checked:
-            estimate = check_visit(study.project, estimate, T_planned[v])
+    def take(v: int, estimate: BasePose) -> None:
+        """Record visit ``v``'s estimate, checked against its planned station."""
         assert estimate.integrity is not None
         status[v] = STATUSES.index(estimate.integrity.status)
         T_est[v] = estimate.T_world_base
@@ -488,17 +487,15 @@ def simulate_run(
                 phased[0](study.project, T_true[v], rng, station.id, study.built_before[v], **extra)
             )
             continue
-        take(
-            v,
-            localize(
-                study.project, T_true[v], rng, station.id, built=study.built_before[v], **extra
-            ),
+        estimate = localize(
+            study.project, T_true[v], rng, station.id, built=study.built_before[v], **extra
         )
+        take(v, check_visit(study.project, estimate, T_planned[v]))
     if phased is not None and measured:
         # a run that keeps no poses reads only their statuses, poses and covariances
         estimated = phased[1](study.project, measured, records=keep_poses)
         for v, estimate in enumerate(check_visits(study.project, estimated, T_planned)):
-            take(v, estimate, checked=True)
+            take(v, estimate)
     if study.visit_covariance is not None:
         cov[:] = study.visit_covariance
         error = np.einsum("vij,vj->vi", _cholesky(cov), rng.normal(0.0, 1.0, (V, 6)))
