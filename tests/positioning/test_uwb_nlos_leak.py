@@ -48,11 +48,16 @@ def test_kept_moments_match_a_monte_carlo(p, sigma, lower, upper, low, width, se
         assert abs(drawn.mean() - value) <= tol
 
 
+def _excess(excess, grid):
+    """The midpoints of the excess's range the correction integrates over (metres)."""
+    return excess[0] + (np.arange(grid) + 0.5) / grid * (excess[1] - excess[0])
+
+
 def _centre_every_excess(p, excess, sigma, lower, upper, steps=2, grid=32) -> np.ndarray:
     """:func:`kept_centre` written out with every point of the excess in each cumulative
     probability (the tail it leaves out kept in)."""
     s = np.asarray(sigma, dtype=float)[..., None]
-    e = excess[0] + (np.arange(grid) + 0.5) / grid * (excess[1] - excess[0])
+    e = _excess(excess, grid)
 
     def cdf(x):
         nlos = special.ndtr((x[..., None] - e) / s).mean(-1)
@@ -70,33 +75,10 @@ def _centre_every_excess(p, excess, sigma, lower, upper, steps=2, grid=32) -> np
     return centre
 
 
-@settings(max_examples=40, deadline=None)
-@given(
-    p=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=6),
-    sigma=st.floats(0.005, 0.5),
-    spread=st.floats(0.0, 3.0),
-    low=st.floats(0.0, 1.0),
-    width=st.floats(0.01, 2.0),
-    half_width=st.floats(0.01, 0.8),
-)
-def test_the_window_centre_leaves_out_only_what_no_bit_holds(
-    p, sigma, spread, low, width, half_width
-) -> None:
-    # links of different sigmas in one call: the tail left out is set by the widest
-    p = np.asarray(p)
-    s = sigma * (1.0 + spread * np.linspace(0.0, 1.0, len(p)))
-    excess = (low, low + width)
-    window = np.maximum(half_width, 3.0 * s)
-    got = kept_centre(p, excess, s, window, window)
-    want = _centre_every_excess(p, excess, s, window, window)
-    assert np.all(np.isfinite(got))
-    assert np.allclose(got, want, rtol=0.0, atol=1e-9)
-
-
 def _moments_every_excess(p, excess, sigma, lower, upper, grid=64):
     """:func:`kept_moments` written out over every point of the excess."""
     s = np.asarray(sigma, dtype=float)[..., None]
-    e = np.r_[0.0, excess[0] + (np.arange(grid) + 0.5) / grid * (excess[1] - excess[0])]
+    e = np.r_[0.0, _excess(excess, grid)]
     a = (-np.asarray(lower, dtype=float)[..., None] - e) / s
     b = (np.asarray(upper, dtype=float)[..., None] - e) / s
     pdf_a, pdf_b = (np.exp(-0.5 * z * z) / np.sqrt(2.0 * np.pi) for z in (a, b))
@@ -114,16 +96,27 @@ def _moments_every_excess(p, excess, sigma, lower, upper, grid=64):
 @given(
     p=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=6),
     sigma=st.floats(0.005, 0.5),
+    spread=st.floats(0.0, 3.0),
     low=st.floats(0.0, 1.0),
     width=st.floats(0.01, 2.0),
     half_width=st.floats(0.01, 0.8),
 )
-def test_the_kept_moments_leave_out_only_what_no_bit_holds(p, sigma, low, width, half_width):
+def test_the_nlos_correction_leaves_out_only_what_no_bit_holds(
+    p, sigma, spread, low, width, half_width
+) -> None:
+    # links of different sigmas in one call: the tail left out of the window centre
+    # and of the kept share and moments is set by the widest
     p = np.asarray(p)
-    s = sigma * np.linspace(1.0, 2.0, len(p))
+    s = sigma * (1.0 + spread * np.linspace(0.0, 1.0, len(p)))
+    excess = (low, low + width)
     window = np.maximum(half_width, 3.0 * s)
-    got = kept_moments(p, (low, low + width), s, window, window)
-    want = _moments_every_excess(p, (low, low + width), s, window, window)
+    centre = kept_centre(p, excess, s, window, window)
+    assert np.all(np.isfinite(centre))
+    assert np.allclose(
+        centre, _centre_every_excess(p, excess, s, window, window), atol=1e-9, rtol=0
+    )
+    got = kept_moments(p, excess, s, window, window)
+    want = _moments_every_excess(p, excess, s, window, window)
     for g, w in zip(got, want, strict=True):
         assert np.all(np.isfinite(g))
         np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-30)
