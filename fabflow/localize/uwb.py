@@ -361,7 +361,7 @@ def estimate_stations(
     setup = _setup(project)
     model = setup.error_model()
     priors = [None] * len(stations) if heading_priors is None else list(heading_priors)
-    calibrated = [_calibrated(model, data) for data in stations]
+    calibrated = _calibrated(model, stations)
     surveyed = [
         data.anchors_true if anchors is None else np.asarray(anchors, dtype=float)
         for data in stations
@@ -407,25 +407,37 @@ def _method(setup: UwbSetup) -> Method:
     return "wls-t" if setup.estimator in ("wls-t", "eskf") else setup.estimator
 
 
-def _calibrated(model: UwbErrorModel, data: StationRanges) -> tuple[np.ndarray, Any, np.ndarray]:
-    """A station's calibrated ranges (metres), the error its links share (a function of
-    the range, or per link with the material's delay taken off) and each anchor's
-    remaining calibration error (metres)."""
-    cal = data.calibration
-    ranges = cal.apply(data.ranges)
-    link_sigma: Any = model.field_sigma
-    if data.material_length is not None and model.material_delay > 0:
-        # the delay the design predicts is taken off; what the site's material
-        # may differ by stays in each link's variance, with the multipath's
-        predicted = material_excess(model, data.material_length)
-        ranges = ranges - predicted[None]
-        per_link = nanmedian(ranges, 0)
-        link_sigma = np.hypot(
-            model.field_sigma(np.where(np.isfinite(per_link), per_link, 0.0)),
-            model.material_delay_spread * predicted,
-        )
-    first_guess = nanmedian(ranges, (0, 1))
-    return ranges, link_sigma, cal.bias_sigma(np.where(np.isfinite(first_guess), first_guess, 0.0))
+def _calibrated(
+    model: UwbErrorModel, stations: Sequence[StationRanges]
+) -> list[tuple[np.ndarray, Any, np.ndarray]]:
+    """Per station, its calibrated ranges (metres), the error its links share (a function
+    of the range, or per link with the material's delay taken off) and each anchor's
+    remaining calibration error (metres). The median ranges its error is read at are
+    one call for the stations of one shape (a simulated run's visits)."""
+    out: list[list[Any]] = []
+    for data in stations:
+        ranges = data.calibration.apply(data.ranges)
+        link_sigma: Any = model.field_sigma
+        if data.material_length is not None and model.material_delay > 0:
+            # the delay the design predicts is taken off; what the site's material
+            # may differ by stays in each link's variance, with the multipath's
+            predicted = material_excess(model, data.material_length)
+            ranges = ranges - predicted[None]
+            per_link = nanmedian(ranges, 0)
+            link_sigma = np.hypot(
+                model.field_sigma(np.where(np.isfinite(per_link), per_link, 0.0)),
+                model.material_delay_spread * predicted,
+            )
+        out.append([ranges, link_sigma])
+    shapes: dict[tuple[int, ...], list[int]] = {}
+    for i, (ranges, _) in enumerate(out):
+        shapes.setdefault(ranges.shape, []).append(i)
+    for members in shapes.values():
+        guesses = nanmedian(np.stack([out[i][0] for i in members]), (1, 2))
+        for i, guess in zip(members, guesses, strict=True):
+            cal = stations[i].calibration
+            out[i].append(cal.bias_sigma(np.where(np.isfinite(guess), guess, 0.0)))
+    return [(ranges, link_sigma, sigma) for ranges, link_sigma, sigma in out]
 
 
 def _base_pose(

@@ -152,15 +152,15 @@ most): a larger structure's are made at each call, so the cache stays a few MB."
 
 @functools.lru_cache(maxsize=64)
 def _groups(
-    centre_bytes: bytes, radius_bytes: bytes, n: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    centre_bytes: bytes, extents_bytes: bytes, n: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The boxes' groups for :func:`segments_clear`, from their ``(n, 3)`` centres and
-    ``(n,)`` bounding radii (float64 bytes): the boxes in group order, where each
-    group starts in it, and each group's centre and bounding radius (read only).
-    Made once per set of boxes: a simulated run tests its tags' lines of sight at
-    every visit against the structure then standing, the same in every run."""
+    ``(n, 3)`` extents (float64 bytes): each box's bounding radius, the boxes in group
+    order, where each group starts in it, and each group's centre and bounding radius
+    (read only). Made once per set of boxes: a simulated run tests its tags' lines of
+    sight at every visit against the structure then standing, the same in every run."""
     centre = np.frombuffer(centre_bytes, dtype=float).reshape(n, 3)
-    radius = np.frombuffer(radius_bytes, dtype=float)
+    radius = 0.5 * np.linalg.norm(np.frombuffer(extents_bytes, dtype=float).reshape(n, 3), axis=1)
     _, group = np.unique(_cell_keys(centre), return_inverse=True)
     group = group.ravel()
     order = np.argsort(group, kind="stable")
@@ -172,9 +172,9 @@ def _groups(
     )
     g_radius = np.zeros(len(g_centre))
     np.maximum.at(g_radius, group, np.linalg.norm(centre - g_centre[group], axis=1) + radius)
-    for a in (order, first, g_centre, g_radius):
+    for a in (radius, order, first, g_centre, g_radius):
         a.flags.writeable = False
-    return order, first, g_centre, g_radius
+    return radius, order, first, g_centre, g_radius
 
 
 def _slab_spans(
@@ -188,11 +188,13 @@ def _slab_spans(
     if len(boxes) == 0 or len(starts) == 0:
         return
     centre = np.ascontiguousarray(boxes.T_base_box[:, :3, 3], dtype=float)
-    radius = 0.5 * np.linalg.norm(boxes.extents, axis=1)
+    extents = np.ascontiguousarray(boxes.extents, dtype=float)
     R = boxes.T_base_box[:, :3, :3]
-    half = 0.5 * boxes.extents
-    groups = _groups if len(radius) <= GROUPS_CACHED else _groups.__wrapped__
-    order, first, g_centre, g_radius = groups(centre.tobytes(), radius.tobytes(), len(radius))
+    half = 0.5 * extents
+    groups = _groups if len(extents) <= GROUPS_CACHED else _groups.__wrapped__
+    radius, order, first, g_centre, g_radius = groups(
+        centre.tobytes(), extents.tobytes(), len(extents)
+    )
     chunk = max(1, 4_000_000 // max(len(g_centre), 1))
     for lo in range(0, len(starts), chunk):
         s, e = starts[lo : lo + chunk], ends[lo : lo + chunk]

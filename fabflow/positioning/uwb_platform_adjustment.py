@@ -31,7 +31,6 @@ from typing import Any
 import numpy as np
 from scipy import special
 
-from fabflow.errors import LocalizationError
 from fabflow.positioning.adjustment_tests import TestResult, global_test, one_column_tests_many
 from fabflow.positioning.observation_covariance import Covariance
 from fabflow.positioning.uwb import COND_LIMIT
@@ -417,16 +416,15 @@ def identify_by_refit(
         The chosen trial (or ``None``) and, when none is chosen for a reason the
         record should carry, that reason (else ``""``).
     """
-    trials: list[Trial] = []
+    left: list[tuple[int, np.ndarray]] = []
     for k in range(len(tests.labels)):
         if not tests.excludable[k] or not np.isfinite(tests.w[k]):
             continue
         rest = use & ~masks[k]
         if adj.n_anchors_used(rest) < 3 or not adj.determined(rest, state):
             continue
-        trial = _refit(adj, rest, state, k, tests.labels[k])
-        if trial is not None:
-            trials.append(trial)
+        left.append((k, rest))
+    trials = _refits(adj, left, state, tests.labels)
     if not trials:
         return None, ""
     passing = [t for t in trials if t.passed]
@@ -454,26 +452,41 @@ def identify_by_refit(
     return None, f"no single anchor or link explains the misfit (best refits without {best})"
 
 
-def _refit(
-    adj: PlatformAdjustment, use: np.ndarray, state: np.ndarray, index: int, label: str
-) -> Trial | None:
-    """The best of two fits of the ranges ``use``: from ``state`` and from its mirror image.
+def _refits(
+    adj: PlatformAdjustment,
+    left: Sequence[tuple[int, np.ndarray]],
+    state: np.ndarray,
+    labels: Sequence[str],
+) -> list[Trial]:
+    """Per hypothesis ``(index, ranges left)``, the better of two fits of the ranges left:
+    from ``state`` and from the mirror image of that first fit.
 
     The fix with a fault in it can stand nearer the mirror image of the pose
     the other ranges give (the side of the anchors' plane is the weakly
     determined part); started from there alone, the refit would settle on the
-    wrong side. The fit with the smaller global test statistic (of the
-    converged ones) is kept; ``None`` when neither could be solved.
+    wrong side. Of the converged fits the one with the smaller global test
+    statistic is kept (the first on a tie); a hypothesis whose first fit cannot be
+    solved has no trial, one whose mirrored fit cannot keeps its first. Every
+    hypothesis' first fits are one :func:`fit_many`, their mirrored ones another,
+    and the tests of both one :func:`grouped_tests`.
     """
-    fits = []
-    try:
-        fits.append(adj.fit(use, state))
-        fits.append(adj.fit(use, reflected(adj, use, fits[0][0])[0]))
-    except LocalizationError:
-        if not fits:
-            return None
-    trials = [Trial(index, label, use, st, it, conv, *adj.tests(use, st)) for st, it, conv in fits]
-    return min(trials, key=lambda t: (not t.converged, t.tests.statistic))
+    if not left:
+        return []
+    first, f_iters, f_conv, f_solved = fit_many([(adj, rest, state) for _, rest in left])
+    kept = np.flatnonzero(f_solved)
+    if not kept.size:
+        return []
+    mirrored = [reflected(adj, left[i][1], first[i])[0] for i in kept]
+    second = fit_many([(adj, left[i][1], m) for i, m in zip(kept, mirrored, strict=True)])
+    fits = [(i, first[i], f_iters[i], f_conv[i]) for i in kept]
+    fits += [(i, st, it, conv) for i, st, it, conv, ok in zip(kept, *second, strict=True) if ok]
+    tested = grouped_tests([(adj, left[i][1], st) for i, st, _, _ in fits])
+    by_case: dict[int, list[Trial]] = {}
+    for (i, st, it, conv), (result, masks) in zip(fits, tested, strict=True):
+        k, rest = left[i]
+        trial = Trial(k, labels[k], rest, st, int(it), bool(conv), result, masks)
+        by_case.setdefault(int(i), []).append(trial)
+    return [min(by_case[int(i)], key=lambda t: (not t.converged, t.tests.statistic)) for i in kept]
 
 
 def reflected(

@@ -583,3 +583,49 @@ def test_fixes_of_one_shape_finished_together_are_each_finished_alone() -> None:
         np.testing.assert_allclose(t.per_anchor_rms, alone.per_anchor_rms, rtol=1e-10)
         for name in ("pdop", "outside_coverage_m"):
             assert t.integrity.checks[name] == pytest.approx(alone.integrity.checks[name])
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    anchor=st.integers(0, 4),
+    tag=st.sampled_from([0, 1, None]),
+    offset=st.floats(0.1, 0.8),
+)
+def test_the_refits_of_every_hypothesis_at_once_are_each_hypothesis_own(
+    seed: int, anchor: int, tag: int | None, offset: float
+) -> None:
+    # identify_by_refit fits every hypothesis' ranges from the fix and from that
+    # fit's mirror image in two batched solves and tests them in one call: each
+    # trial is the better of the hypothesis' own two fits, made one at a time
+    from fabflow.errors import LocalizationError
+    from fabflow.positioning.uwb_platform_adjustment import _refits, reflected
+
+    r = _ranges(ANCHORS_5, seed % 1000)
+    r[:, slice(None) if tag is None else tag, anchor] += offset
+    later = _fix(ANCHORS_5, r, search_later=True)
+    assume(later.mirror_search is not None)
+    adj, use, state, *_ = later.mirror_search
+    tests, masks = adj.tests(np.ones(adj.d.size, dtype=bool), state)
+    left = [
+        (k, use & ~masks[k])
+        for k in range(len(tests.labels))
+        if adj.n_anchors_used(use & ~masks[k]) >= 3
+    ]
+    got = {t.index: t for t in _refits(adj, left, state, tests.labels)}
+    for k, rest in left:
+        fits = []
+        try:
+            fits.append(adj.fit(rest, state))
+            fits.append(adj.fit(rest, reflected(adj, rest, fits[0][0])[0]))
+        except LocalizationError:
+            if not fits:
+                assert k not in got
+                continue
+        tested = [(st, conv, adj.tests(rest, st)[0]) for st, _, conv in fits]
+        st, conv, want = min(tested, key=lambda f: (not f[1], f[2].statistic))
+        trial = got[k]
+        assert trial.label == tests.labels[k] and np.array_equal(trial.use, rest)
+        assert trial.converged == conv and trial.passed == (conv and want.passed)
+        np.testing.assert_allclose(trial.state, st, rtol=0, atol=1e-7)
+        assert trial.tests.statistic == pytest.approx(want.statistic, rel=1e-6, abs=1e-9)
