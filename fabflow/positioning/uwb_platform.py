@@ -45,7 +45,11 @@ from fabflow.positioning.uwb_platform_mirrors import (
     with_hidden_mirrors,
 )
 from fabflow.positioning.uwb_platform_model import UNDETERMINED
-from fabflow.positioning.uwb_platform_start import initial_state, link_means
+from fabflow.positioning.uwb_platform_start import (
+    initial_states,
+    link_means_many,
+    tag_starts,
+)
 
 
 def locate_platform(
@@ -146,9 +150,15 @@ def locate_platform(
     LocalizationError
         Too few valid fixes, or a single tag without a heading prior.
     """
-    adj, state, fit, ranges_links = _adjustment(
-        anchors, ranges, lever_arms, sigma, method, heading_prior, max_iter, anchor_bias_sigma,
-        alpha, anchor_ids, base_lever, link_sigma, seeds,
+    [(adj, state, fit, ranges_links)] = _adjustments(
+        [
+            {
+                "anchors": anchors, "ranges": ranges, "lever_arms": lever_arms, "sigma": sigma,
+                "method": method, "heading_prior": heading_prior, "max_iter": max_iter,
+                "anchor_bias_sigma": anchor_bias_sigma, "alpha": alpha, "anchor_ids": anchor_ids,
+                "base_lever": base_lever, "link_sigma": link_sigma, "seeds": seeds,
+            }
+        ]
     )  # fmt: skip
     iterations, converged = 0, True
     if fit:
@@ -170,7 +180,7 @@ def locate_platforms(problems: Sequence[dict[str, Any]], records: bool = True) -
     LocalizationError
         As :func:`locate_platform`, for the first platform it fails for.
     """
-    prepared = [_adjustment(**_arguments(p)) for p in problems]
+    prepared = _adjustments(problems)
     states = [state for _, state, _, _ in prepared]
     iterations, converged = [0] * len(prepared), [True] * len(prepared)
     fitted = [k for k, (_, _, fit, _) in enumerate(prepared) if fit]
@@ -191,7 +201,7 @@ def locate_platforms(problems: Sequence[dict[str, Any]], records: bool = True) -
 
 def _arguments(problem: dict[str, Any]) -> dict[str, Any]:
     """:func:`locate_platform`'s arguments for ``problem``, its defaults filled in (but
-    ``search_later``): what :func:`_adjustment` takes.
+    ``search_later``): what :func:`_checked` takes.
 
     Raises
     ------
@@ -219,7 +229,54 @@ def _parameters() -> tuple[frozenset[str], dict[str, Any]]:
     return frozenset(parameters), defaults
 
 
-def _adjustment(
+Prepared = tuple[PlatformAdjustment, np.ndarray, bool, tuple[np.ndarray, np.ndarray]]
+"""A problem as an adjustment: it, the start state, whether the pose is fitted before
+the tests, and every finite range (metres) with its link."""
+
+
+def _adjustments(problems: Sequence[dict[str, Any]]) -> list[Prepared]:
+    """The problems (:func:`locate_platform`'s arguments by name) as adjustments.
+
+    Each is checked and its tags started in turn (:func:`_checked`: the first
+    that fails raises); the link means and start poses of those with the same
+    ranges' shape and lever arms are then one call each (a simulated run's
+    visits), each problem's what it alone would get, to the bit.
+    """
+    checked = [_checked(**_arguments(p)) for p in problems]
+    groups: dict[tuple[Any, ...], list[int]] = {}
+    for i, c in enumerate(checked):
+        groups.setdefault((c["R"].shape, c["L"].tobytes()), []).append(i)
+    out: list[Prepared | None] = [None] * len(problems)
+    for members in groups.values():
+        R = np.stack([checked[i]["R"] for i in members])
+        L = checked[members[0]]["L"]
+        n_tags, n_anchors = R.shape[2], R.shape[3]
+        flat = np.flatnonzero(np.isfinite(R))  # each finite range's (problem, round, tag, anchor)
+        d = R.ravel()[flat]
+        own = flat // R[0].size
+        bounds = np.searchsorted(own, np.arange(len(members) + 1))
+        s = np.concatenate(
+            [
+                sigma_of(checked[i]["sigma"], np.maximum(d[a:b], MIN_RANGE_FOR_WEIGHT))
+                for i, a, b in zip(members, bounds[:-1], bounds[1:], strict=True)
+            ]
+        )
+        links = link_means_many(
+            d, s, own, flat // n_anchors % n_tags, flat % n_anchors, len(members), n_tags,
+            n_anchors,
+        )  # fmt: skip
+        states, observed = initial_states(
+            L, np.stack([checked[i]["tags"] for i in members]),
+            [checked[i]["heading_prior"] for i in members],
+        )  # fmt: skip
+        for n, i in enumerate(members):
+            c = checked[i]
+            ranges_links = (d[bounds[n] : bounds[n + 1]], links[n].pop("link"))
+            out[i] = _prepared(c, links[n], states[n], bool(observed[n]), ranges_links)
+    return out  # type: ignore[return-value]
+
+
+def _checked(
     anchors: np.ndarray,
     ranges: np.ndarray,
     lever_arms: np.ndarray,
@@ -233,10 +290,17 @@ def _adjustment(
     base_lever: np.ndarray | None,
     link_sigma: Sigma | np.ndarray | None,
     seeds: np.ndarray | None,
-) -> tuple[PlatformAdjustment, np.ndarray, bool, tuple[np.ndarray, np.ndarray]]:
-    """The checked inputs of :func:`locate_platform` as an adjustment: it, the start
-    state, whether the pose is fitted before the tests, and every finite range
-    (metres) with its link."""
+) -> dict[str, Any]:
+    """One problem's checked inputs (``A``, ``R``, ``L`` as arrays) with its tags' start
+    positions (``tags``, :func:`~fabflow.positioning.uwb_platform_start.tag_starts`).
+
+    Raises
+    ------
+    InputError
+        Arrays of the wrong shape, a per-link sigma not finite or of the wrong shape.
+    LocalizationError
+        One tag without a heading prior; a tag without a start.
+    """
     A = np.asarray(anchors, dtype=float)
     R = np.asarray(ranges, dtype=float)
     L = np.asarray(lever_arms, dtype=float)
@@ -252,17 +316,7 @@ def _adjustment(
             "one UWB tag cannot observe the heading of a standing platform; add a second "
             "tag or give a heading prior (from the motion or the IMU)"
         )
-    state, heading_observed = initial_state(A, R, L, sigma, method, heading_prior, seeds)
-    flat = np.flatnonzero(np.isfinite(R))  # each finite range's (round, tag, anchor), flat
-    d = R.ravel()[flat]
-    links = link_means(
-        d,
-        sigma_of(sigma, np.maximum(d, MIN_RANGE_FOR_WEIGHT)),
-        flat // A.shape[0] % n_tags,
-        flat % A.shape[0],
-        A.shape[0],
-    )
-    link = links.pop("link")
+    tags = tag_starts(A, R, L, sigma, method, seeds)
     if isinstance(link_sigma, np.ndarray):
         per_link = np.asarray(link_sigma, dtype=float)
         if per_link.shape != (n_tags, A.shape[0]) or not np.isfinite(per_link).all():
@@ -270,27 +324,48 @@ def _adjustment(
                 f"link_sigma as an array must be finite, (tags, anchors) = "
                 f"{(n_tags, A.shape[0])}, got {per_link.shape}"
             )
-        links["s"] = np.hypot(links["s"], per_link[links["tag_idx"], links["anc_idx"]])
+        link_sigma = per_link
+    return {
+        "A": A, "R": R, "L": L, "tags": tags, "sigma": sigma, "method": method,
+        "heading_prior": heading_prior, "max_iter": max_iter, "alpha": alpha,
+        "anchor_bias_sigma": anchor_bias_sigma, "anchor_ids": anchor_ids,
+        "base_lever": base_lever, "link_sigma": link_sigma,
+    }  # fmt: skip
+
+
+def _prepared(
+    c: dict[str, Any],
+    links: dict[str, np.ndarray],
+    state: np.ndarray,
+    heading_observed: bool,
+    ranges_links: tuple[np.ndarray, np.ndarray],
+) -> Prepared:
+    """A checked problem (:func:`_checked`) with its link means and start pose as an
+    adjustment (:data:`Prepared`)."""
+    A, L, link_sigma = c["A"], c["L"], c["link_sigma"]
+    if isinstance(link_sigma, np.ndarray):
+        links["s"] = np.hypot(links["s"], link_sigma[links["tag_idx"], links["anc_idx"]])
     elif link_sigma is not None:
         links["s"] = np.hypot(links["s"], sigma_of(link_sigma, links["d"]))
+    bias_sigma = c["anchor_bias_sigma"]
     adj = PlatformAdjustment(
         anchors=A,
         lever_arms=L,
         **links,
         bias_sigma=np.zeros(A.shape[0])
-        if anchor_bias_sigma is None
-        else np.asarray(anchor_bias_sigma, dtype=float),
-        ids=tuple(anchor_ids)
-        if anchor_ids is not None
+        if bias_sigma is None
+        else np.asarray(bias_sigma, dtype=float),
+        ids=tuple(c["anchor_ids"])
+        if c["anchor_ids"] is not None
         else tuple(f"A{j + 1}" for j in range(len(A))),
-        lever=np.zeros(3) if base_lever is None else np.asarray(base_lever, dtype=float),
-        heading_prior=heading_prior,
+        lever=np.zeros(3) if c["base_lever"] is None else np.asarray(c["base_lever"], dtype=float),
+        heading_prior=c["heading_prior"],
         heading_observed=heading_observed,
-        alpha=alpha,
-        max_iter=max_iter,
+        alpha=c["alpha"],
+        max_iter=c["max_iter"],
     )
-    fit = method == "wls-t" or not heading_observed or n_tags == 1
-    return adj, state, fit, (d, link)
+    fit = c["method"] == "wls-t" or not heading_observed or L.shape[0] == 1
+    return adj, state, fit, ranges_links
 
 
 def _tested(

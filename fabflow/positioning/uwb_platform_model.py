@@ -26,6 +26,14 @@ def rotz(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def rotz_many(yaw: np.ndarray) -> np.ndarray:
+    """:func:`rotz` of each of the angles ``yaw`` ``(n,)`` (radians), ``(n, 3, 3)``."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.zeros((len(yaw), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return R
+
+
 def _links(
     A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
