@@ -41,6 +41,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from itertools import repeat
 
 import numpy as np
 
@@ -344,8 +345,15 @@ def check_program(
         by_move: dict[int, list[tuple[int, int, float]]] = {}
         for (m, b, k), d in found.items():
             by_move.setdefault(m, []).append((b, k, d))
-        for mv in np.flatnonzero(todo).tolist():
-            memo[keys[mv]] = by_move.get(mv, [])
+        checked_moves = np.flatnonzero(todo).tolist()
+        # filed in one call: a print path's first check files tens of thousands of moves
+        memo.update(
+            zip(
+                map(keys.__getitem__, checked_moves),
+                map(by_move.get, checked_moves, repeat(())),
+                strict=True,
+            )
+        )
         for mv in np.flatnonzero(~todo).tolist():
             found.update({(mv, b, k): d for b, k, d in memo[keys[mv]]})
     names = [*link_names(robot, tool=True), "held"]

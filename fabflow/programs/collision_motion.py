@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from fabflow.robots.chain import RobotModel
 SEAT_HEIGHT = 0.001
 """A linear move ending within this height of the place's is on the bed (metres)."""
 
-CheckMemo = dict[tuple[object, ...], list[tuple[int, int, float]]]
+CheckMemo = dict[tuple[object, ...], Sequence[tuple[int, int, float]]]
 """Per move key (:func:`move_keys`), the move's contacts: ``(body, obstacle, distance)``."""
 
 
@@ -89,7 +90,6 @@ def program_motion(program: Program, robot: RobotModel, reach_beyond: float) -> 
     release = set(released.values())
     targets = np.array([m.q for m in moves], dtype=float).reshape(len(moves), robot.dof)
     T_flange_tool = np.asarray(program.T_flange_tool, dtype=float)
-    arms = _lever_arms(robot, targets, T_flange_tool, reach_beyond)
     fixed: list[np.ndarray] = []
     fixed_move: list[int] = []
     ptp: list[int] = []
@@ -135,6 +135,12 @@ def program_motion(program: Program, robot: RobotModel, reach_beyond: float) -> 
         dtype=bool,
     )
     p = np.array(ptp, dtype=np.intp)
+    # the lever arms at the ends of the joint moves alone (a print path has thousands
+    # of linear moves and a few joint moves)
+    ends = np.unique(np.r_[p - 1, p])
+    arms = np.zeros((len(moves), robot.dof))
+    if len(ends):
+        arms[ends] = _lever_arms(robot, targets[ends], T_flange_tool, reach_beyond)
     dq = np.abs(targets[p] - targets[p - 1])
     lever = np.maximum(arms[p - 1], arms[p])
     return CheckMotion(
@@ -176,7 +182,9 @@ def move_keys(motion: CheckMotion, parts: Mapping[str, str]) -> list[tuple[objec
     # fixed samples come in move order: split them where the move changes
     cut = np.flatnonzero(np.diff(motion.fixed_move)) + 1
     of_move = motion.fixed_move[np.r_[0, cut]].tolist() if len(motion.fixed_move) else []
-    samples = dict(zip(of_move, (s.tobytes() for s in np.split(motion.fixed_q, cut)), strict=True))
+    bounds = [0, *cut.tolist(), len(motion.fixed_q)]
+    rows = pairwise(bounds)
+    samples = dict(zip(of_move, (motion.fixed_q[a:b].tobytes() for a, b in rows), strict=True))
     # a PTP move's two ends, (2, dof) in C order: the row of both
     both = np.concatenate([motion.ptp_q0, motion.ptp_q1], axis=1)
     ends = dict(zip(motion.ptp_move.tolist(), (e.tobytes() for e in both), strict=True))
