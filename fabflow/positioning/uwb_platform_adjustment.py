@@ -35,12 +35,14 @@ from fabflow.positioning.adjustment_tests import TestResult, global_test, one_co
 from fabflow.positioning.observation_covariance import Covariance
 from fabflow.positioning.uwb import COND_LIMIT
 from fabflow.positioning.uwb_platform_model import (
+    jacobians_many,
     platform_information,
     platform_jacobian,
     platform_newton,
     platform_newton_batch,
     platform_ranges,
     rotz,
+    rotz_many,
 )
 
 
@@ -257,26 +259,54 @@ def grouped_tests(
             np.array(masks, dtype=float).reshape(len(masks), use.size)[:, use].T
         )
         U, _ = adj._shared(use)
-        linearized = [problems[i][0]._linearized(use, problems[i][2]) for i in members]
-        shared = [problems[i][0]._shared(use)[1] for i in members]
+        adjs = [problems[i][0] for i in members]
+        states = np.stack([problems[i][2] for i in members])
+        J, v = _linearized_many(adjs, use, states)
+        bias = np.stack([a.bias_sigma for a in adjs])[:, adj.anchors_used(use)]
         Q = Covariance(
-            diag=np.stack([problems[i][0].s[use] ** 2 for i in members]),
+            diag=np.stack([a.s[use] for a in adjs]) ** 2,
             low_rank=U,
-            low_rank_var=np.stack(shared),
+            low_rank_var=np.maximum(bias, 1e-9) ** 2,
         )
         prior = None
         if adj.heading_prior is not None and adj.heading_observed:
             prior = np.zeros((4, 4))
             prior[3, 3] = 1.0 / adj.heading_prior[1] ** 2
         tests = one_column_tests_many(
-            np.stack([J for J, _ in linearized]), Q, np.stack([v for _, v in linearized]),
-            labels, C, adj.alpha,
-            position_map=np.stack([problems[i][0].position_map(problems[i][2]) for i in members]),
-            prior_information=prior,
+            J, Q, v, labels, C, adj.alpha,
+            position_map=_position_maps(adjs, states), prior_information=prior,
         )  # fmt: skip
         for i, test in zip(members, tests, strict=True):
             out[i] = (test, masks)
     return out
+
+
+def _linearized_many(
+    adjs: Sequence[PlatformAdjustment], use: np.ndarray, states: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`PlatformAdjustment._linearized` of adjustments with the same links and
+    heading observability at ``states`` ``(V, 4)``: ``(V, m, u)`` and ``(V, m)``."""
+    adj = adjs[0]
+    tg, an = adj.tag_idx[use], adj.anc_idx[use]
+    A_link = np.stack([a.anchors for a in adjs])[:, an]
+    L = np.stack([a.lever_arms for a in adjs])
+    J, dist = jacobians_many(A_link, L, states, tg)
+    if not adj.heading_observed:
+        J = J[..., :3]
+    return J, np.stack([a.d[use] for a in adjs]) - dist
+
+
+def _position_maps(adjs: Sequence[PlatformAdjustment], states: np.ndarray) -> np.ndarray:
+    """:meth:`PlatformAdjustment.position_map` of adjustments of one heading
+    observability at ``states`` ``(V, 4)``: ``(V, 3, u)``."""
+    observed = adjs[0].heading_observed
+    G = np.zeros((len(adjs), 3, 4 if observed else 3))
+    G[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    if observed:
+        lever = np.stack([a.lever for a in adjs])
+        Rl = (rotz_many(states[:, 3]) @ lever[..., None])[..., 0]
+        G[:, 0, 3], G[:, 1, 3] = -Rl[:, 1], Rl[:, 0]
+    return G
 
 
 @dataclass(frozen=True)

@@ -25,8 +25,7 @@ from fabflow.positioning.uwb_platform_adjustment import PlatformAdjustment
 from fabflow.positioning.uwb_platform_model import (
     UNDETERMINED,
     information_of,
-    platform_jacobian,
-    platform_ranges,
+    jacobians_many,
 )
 from fabflow.positioning.uwb_platform_model import rotz as _rotz
 
@@ -124,28 +123,40 @@ def finish_fixes(finals: Sequence[Final]) -> list[PlatformFix]:
         )  # fmt: skip
         groups.setdefault(key, []).append(i)
     covariance: list[np.ndarray] = [np.zeros((4, 4))] * len(finals)
+    predicted: list[np.ndarray] = [np.zeros(0)] * len(finals)
     determined = np.zeros(len(finals), dtype=bool)
     geometry = np.zeros((len(finals), 2))
     for members in groups.values():
-        cov, ok, pdop, outside = _covariances([finals[i] for i in members])
+        cov, ok, pdop, outside, ranges = _covariances([finals[i] for i in members])
         for n, i in enumerate(members):
             covariance[i], determined[i], geometry[i] = cov[n], ok[n], (pdop[n], outside[n])
+            predicted[i] = ranges[n]
     for i, f in enumerate(finals):
         if not determined[i] and not f.excluded:
             raise LocalizationError(UNDETERMINED)
-    return [_fix(f, covariance[i], bool(determined[i]), *geometry[i]) for i, f in enumerate(finals)]
+    return [
+        _fix(f, covariance[i], bool(determined[i]), *geometry[i], predicted[i])
+        for i, f in enumerate(finals)
+    ]
 
 
 def _covariances(
     finals: Sequence[Final],
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Covariances ``(n, 4, 4)``, whether the pose is determined, PDOPs and distances
-    outside the anchors' plan hull of final solutions of one shape."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Covariances ``(n, 4, 4)``, whether the pose is determined, PDOPs, distances
+    outside the anchors' plan hull and every link's predicted range ``(n, m)``
+    (metres) of final solutions of one shape."""
     adj, use = finals[0].adj, finals[0].use
     A = adj.anchors
-    tg, an = adj.tag_idx[use], adj.anc_idx[use]
+    an = adj.anc_idx[use]
     states = np.stack([f.state for f in finals])
-    J = np.stack([platform_jacobian(A, f.adj.lever_arms, f.state, tg, an) for f in finals])
+    J_all, predicted = jacobians_many(
+        np.stack([f.adj.anchors[f.adj.anc_idx] for f in finals]),
+        np.stack([f.adj.lever_arms for f in finals]),
+        states,
+        adj.tag_idx,
+    )
+    J = J_all[:, use]
     s = np.stack([f.adj.s[use] for f in finals])
     info = information_of(J, s, adj.heading_prior)
     if not adj.heading_observed:
@@ -167,17 +178,24 @@ def _covariances(
         g = G @ (an[:, None] == np.arange(len(A))[None, :]).astype(float)
         cov = cov + (g * bias[:, None, :] ** 2) @ np.swapaxes(g, 1, 2)
     pdop, outside = geometry_checks(A[adj.anchors_used(use)], states)
-    return cov, determined, pdop, outside
+    return cov, determined, pdop, outside, predicted
 
 
-def _fix(f: Final, cov: np.ndarray, determined: bool, pdop: float, outside: float) -> PlatformFix:
-    """One finished fix: residuals, per-anchor RMS and the integrity record."""
+def _fix(
+    f: Final,
+    cov: np.ndarray,
+    determined: bool,
+    pdop: float,
+    outside: float,
+    predicted: np.ndarray,
+) -> PlatformFix:
+    """One finished fix: residuals, per-anchor RMS and the integrity record, from its
+    covariance, geometry checks and every link's predicted range (metres)."""
     adj, use, state = f.adj, f.use, f.state
-    A, L = adj.anchors, adj.lever_arms
+    A = adj.anchors
     d, link = f.ranges
     an = adj.anc_idx[use]
     # squares of the ranges' residuals: their scatter about the link mean, plus the mean's
-    predicted = platform_ranges(A, L, state, adj.tag_idx, adj.anc_idx)
     squares = adj.raw_sq_dev[use] + adj.count[use] * (adj.raw_mean[use] - predicted[use]) ** 2
     n_used = np.bincount(an, weights=adj.count[use], minlength=len(A))
     ss = np.bincount(an, weights=squares, minlength=len(A))

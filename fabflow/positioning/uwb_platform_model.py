@@ -52,6 +52,20 @@ def _links_at(
     return lever, diff, np.sqrt(np.add.reduce(diff * diff, axis=1))
 
 
+def jacobians_many(
+    A_link: np.ndarray, L: np.ndarray, states: np.ndarray, tag_idx: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`platform_jacobian` ``(V, m, 4)`` and :func:`platform_ranges` ``(V, m)`` of
+    ``V`` platforms with the same links at once: each with its links' anchors
+    ``A_link`` ``(V, m, 3)``, its tags' lever arms ``L`` ``(V, tags, 3)`` and its state
+    ``states`` ``(V, 4)`` (metres, radians). The arithmetic of :func:`_links_at`, so
+    each platform's numbers are those it gets alone."""
+    lever = (L @ np.swapaxes(rotz_many(states[:, 3]), -1, -2))[:, tag_idx]
+    diff = states[:, None, :3] + lever - A_link
+    dist = np.sqrt(np.add.reduce(diff * diff, axis=-1))
+    return _jacobian(lever, diff, dist), dist
+
+
 def platform_ranges(
     A: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray, anc_idx: np.ndarray
 ) -> np.ndarray:

@@ -59,6 +59,28 @@ def _drop_unreachable_optional(
     return [s for s in steps if id(s) not in dropped]
 
 
+def _configurations(
+    robot: RobotModel,
+    q: np.ndarray,
+    origin: np.ndarray,
+    q_solved: np.ndarray,
+    config: np.ndarray,
+) -> np.ndarray:
+    """:func:`~fabflow.programs.motion_checks.configuration_of` the executed moves' ``q``
+    ``(n, dof)``: a move made for target ``origin[i]`` (``-1``: a HOME move) whose joint
+    values are that target's solved ones ``q_solved`` to the bit has its configuration
+    ``config``; only the others (HOME, an A1 turned by a whole turn) are solved again.
+    A print wall has 28,000 targets."""
+    out = np.full(len(q), -2, dtype=np.intp)
+    own = np.flatnonzero(origin >= 0)
+    same = own[(q[own] == q_solved[origin[own]]).all(axis=1)]
+    out[same] = config[origin[same]]
+    rest = out == -2
+    if rest.any():
+        out[rest] = configuration_of(robot, q[rest])
+    return out
+
+
 def _home_move(
     q_home: np.ndarray,
     q_from: np.ndarray,
@@ -133,10 +155,12 @@ def compile_program(
     config = configuration_of(robot, q)
     ptp = np.array([w.kind == "ptp" for w in waypoints], dtype=bool)
     via_home = np.r_[False, config[1:] != config[:-1]] & ptp
+    q_solved = q
     q, via_q = settle_a1_turns(robot, q, via_q, ptp, q_home, via_home)
     if waypoints:
         dist, angle = move_lengths(np.stack([w.T_world_tool for w in waypoints]))
     instructions: list[Instruction] = [_home_move(q_home, q_home, 0.0, robot, T_world_home)]
+    origin = [-1]  # per move, the target it goes to (-1: HOME)
     t = 0.0
     k = 0
     previous_element: str | None = None
@@ -160,6 +184,7 @@ def compile_program(
                 q_home, q_from, t, robot, T_world_home, label="home (configuration change)"
             )
             instructions.append(home)
+            origin.append(-1)
             t, q_from = home.time, q_home
         if k == 0 or step.kind == "ptp":
             duration = float(np.max(np.abs(q[k] - q_from) / (robot.velocity_limits * speed)))
@@ -186,21 +211,26 @@ def compile_program(
                 wrist_interpolated=bool(wrist[k]),
             )
         )
+        origin.append(k)
         k += 1
     q_last = q[k - 1] if k else q_home
     instructions.append(_home_move(q_home, q_last, t, robot, T_world_home))
+    origin.append(-1)
     checks = {}
     executed = [i for i in instructions if isinstance(i, Move)]  # HOME to HOME
     if executed:
         T_flange = T_base_world @ np.stack([m.T_world_tool for m in executed])
         T_flange = T_flange @ np.linalg.inv(T_flange_tool)
+        q_executed = np.stack([m.q for m in executed])
+        assert len(origin) == len(executed)
         checks = program_checks(
             robot,
             [m.kind for m in executed],
-            np.stack([m.q for m in executed]),
+            q_executed,
             [m.via_q for m in executed],
             T_flange,
             joint=np.array([m.joint for m in executed]),
+            config=_configurations(robot, q_executed, np.array(origin), q_solved, config),
         )
         checks["wrist_interpolated"] = int(wrist.sum())
         checks["joint_through_wrist"] = int(joint.sum())

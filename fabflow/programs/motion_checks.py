@@ -152,6 +152,7 @@ def program_checks(
     via_q: Sequence[np.ndarray | None],
     T_base_flange: np.ndarray | None = None,
     joint: np.ndarray | None = None,
+    config: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The configuration figures of one program's moves.
 
@@ -172,6 +173,8 @@ def program_checks(
     joint
         ``(n,)`` bool: joint moves (HOME on the way between two configurations).
         They count for swings, not as targets whose configuration changes.
+    config
+        ``(n,)`` :func:`configuration_of` ``q``, when the caller has it already.
 
     Returns
     -------
@@ -194,7 +197,7 @@ def program_checks(
         moves = np.flatnonzero(swing)
         avoidable = int(avoidable_swings(robot, q[moves - 1], T_base_flange[moves]).sum())
     cartesian = np.ones(n, dtype=bool) if joint is None else ~np.asarray(joint, dtype=bool)
-    config = configuration_of(robot, q)
+    config = configuration_of(robot, q) if config is None else np.asarray(config)
     targets = config[cartesian]
     changes = int((targets[1:] != targets[:-1]).sum()) if len(targets) > 1 else 0
     # linear moves whose wrist flips (A5 changes sign) or whose configuration changes;

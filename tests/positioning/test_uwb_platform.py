@@ -12,8 +12,14 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from fabflow.errors import LocalizationError
 from fabflow.positioning.uwb_platform import locate_platform
-from fabflow.positioning.uwb_platform_adjustment import PlatformAdjustment, grouped_tests
+from fabflow.positioning.uwb_platform_adjustment import (
+    PlatformAdjustment,
+    _refits,
+    grouped_tests,
+    reflected,
+)
 from fabflow.positioning.uwb_platform_model import (
     _jacobian,
     _links,
@@ -329,7 +335,6 @@ def test_the_batched_newton_solve_is_each_problems_own(seed: int, n: int) -> Non
     # padded to one length: each ends where platform_newton ends alone (the sums'
     # rounding can take one more or one less of the last, negligible steps); a
     # singular one is flagged, not raised
-    from fabflow.errors import LocalizationError
     from fabflow.positioning.uwb_platform_model import (
         platform_newton,
         platform_newton_batch,
@@ -457,7 +462,6 @@ def test_the_batched_global_tests_are_the_adjustments_own(seed: int, n: int) -> 
 def test_many_platforms_located_together_are_each_located_alone() -> None:
     # a simulated run's visits: the first fits in one batched solve, then each
     # fix's own tests; the same fixes as one call each, defaults filled the same
-    from fabflow.errors import LocalizationError
     from fabflow.positioning.uwb_platform import locate_platforms
 
     problems = [
@@ -598,9 +602,6 @@ def test_the_refits_of_every_hypothesis_at_once_are_each_hypothesis_own(
     # identify_by_refit fits every hypothesis' ranges from the fix and from that
     # fit's mirror image in two batched solves and tests them in one call: each
     # trial is the better of the hypothesis' own two fits, made one at a time
-    from fabflow.errors import LocalizationError
-    from fabflow.positioning.uwb_platform_adjustment import _refits, reflected
-
     r = _ranges(ANCHORS_5, seed % 1000)
     r[:, slice(None) if tag is None else tag, anchor] += offset
     later = _fix(ANCHORS_5, r, search_later=True)

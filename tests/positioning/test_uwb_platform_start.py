@@ -1,7 +1,7 @@
 """The start of many standing platforms' UWB fixes made at once: each platform's link
-means and start pose are those it gets alone, to the bit.
+means, start pose and design matrix are those it gets alone, to the bit.
 
-Random platforms (2-3 tags, 3-6 anchors, ranges missing at random, some platforms
+Random platforms (1-3 tags, 3-6 anchors, ranges missing at random, some platforms
 without any), seeded by hypothesis.
 """
 
@@ -11,6 +11,12 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fabflow.positioning.uwb_platform_model import (
+    jacobians_many,
+    platform_jacobian,
+    platform_ranges,
+    rotz,
+)
 from fabflow.positioning.uwb_platform_start import (
     initial_state,
     initial_states,
@@ -96,3 +102,34 @@ def test_the_start_poses_of_many_platforms_are_each_platforms_own(
             turned = lc @ np.array([[c, s], [-s, c]])
             other = lc @ np.array([[-c, -s], [s, -c]])  # half a turn more
             assert np.sum(turned * mc) >= np.sum(other * mc) - 1e-12
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n_platforms=st.integers(1, 6))
+def test_the_jacobians_of_many_platforms_are_each_platforms_own(seed: int, n_platforms: int):
+    # the tests and covariances of a run's fixes take their design matrices and
+    # predicted ranges in one call: each platform's, to the bit, as alone
+    rng = np.random.default_rng(seed)
+    n_tags, n_anchors = int(rng.integers(1, 4)), int(rng.integers(3, 7))
+    tag_idx = np.repeat(np.arange(n_tags), n_anchors)
+    anc_idx = np.tile(np.arange(n_anchors), n_tags)
+    keep = rng.random(tag_idx.size) < 0.8
+    keep[0] = True
+    tag_idx, anc_idx = tag_idx[keep], anc_idx[keep]
+    A = rng.uniform(-8.0, 8.0, (n_platforms, n_anchors, 3))
+    L = rng.uniform(-1.0, 1.0, (n_platforms, n_tags, 3))
+    states = np.column_stack(
+        [rng.uniform(-3.0, 3.0, (n_platforms, 3)), rng.uniform(-np.pi, np.pi, n_platforms)]
+    )
+    J, ranges = jacobians_many(A[:, anc_idx], L, states, tag_idx)
+    for k in range(n_platforms):
+        np.testing.assert_array_equal(
+            J[k], platform_jacobian(A[k], L[k], states[k], tag_idx, anc_idx)
+        )
+        np.testing.assert_array_equal(
+            ranges[k], platform_ranges(A[k], L[k], states[k], tag_idx, anc_idx)
+        )
+        tags = states[k, :3] + L[k] @ rotz(states[k, 3]).T
+        np.testing.assert_allclose(
+            ranges[k], np.linalg.norm(tags[tag_idx] - A[k, anc_idx], axis=1), rtol=1e-12
+        )

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from program_cases import PROJECT, T_WORLD_BASE, make_pose
 
 from fabflow.design.elements import Element
-from fabflow.programs.assemble import compile_program
+from fabflow.programs.assemble import _configurations, compile_program
 from fabflow.programs.feasibility import solve_moves
 from fabflow.programs.ir import Program
 from fabflow.programs.motion_checks import (
@@ -269,3 +269,33 @@ def test_an_empty_package_compiles_to_home_and_back() -> None:
     program = compile_program("empty", [], project, T_WORLD_BASE, {})
     assert [m.joint for m in program.moves] == [True, True]
     assert program.checks["configuration_changes"] == 0
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 30))
+def test_the_executed_moves_take_their_targets_configurations(seed: int, n: int) -> None:
+    # a program's checks read the configurations its compile solved for the targets:
+    # a move whose joint values are its target's to the bit takes the target's, the
+    # HOME moves and the targets whose A1 was turned a whole turn are solved again
+    rng = np.random.default_rng(seed)
+    robot = get_robot("kuka_kr60_3")
+    lo, hi = robot.joint_limits[:, 0], robot.joint_limits[:, 1]
+    q_solved = lo + rng.uniform(0.05, 0.95, (n, 6)) * (hi - lo)
+    config = configuration_of(robot, q_solved)
+    q_home = (lo + hi) / 2
+    origin = [-1]
+    rows = [q_home]
+    for k in range(n):
+        if rng.random() < 0.2:
+            origin.append(-1)
+            rows.append(q_home)
+        q = q_solved[k].copy()
+        if rng.random() < 0.3:
+            q[0] += 2 * np.pi * rng.choice([-1.0, 1.0])  # the turn settle_a1_turns makes
+        origin.append(k)
+        rows.append(q)
+    origin.append(-1)
+    rows.append(q_home)
+    q_executed = np.stack(rows)
+    got = _configurations(robot, q_executed, np.array(origin), q_solved, config)
+    np.testing.assert_array_equal(got, configuration_of(robot, q_executed))
