@@ -6,11 +6,12 @@ user runs it: with Python's compiled bytecode cached (one warm-up run writes it;
 compiling the package's modules from source would add about 0.3 CPU s a run).
 The CPU time (user + system of the child) is the median over the repeats.
 Targets: the cabin at most 1.5 CPU s, the print wall at most 2.5.
-Then one build per project in this process, timed stage by stage, after the
-imports a build needs (timed in a fresh process: ``import fabflow.cli`` and the
-build runner), to show where the time goes. The imports' peer: the third-party
-packages those imports load, imported alone in a fresh process (what no change
-to fabflow's own modules can take off a build).
+Then one build per project in this process, timed stage by stage (and the site
+plan it writes at the end), after the imports a build needs (timed in a fresh
+process: ``import fabflow.cli`` and the build runner), to show where the time
+goes. The imports' peer: the third-party packages those imports load, imported
+alone in a fresh process (what no change to fabflow's own modules can take off
+a build).
 
     python benchmarks/build.py [--quick] [--repeats N] [--projects cabin,print_path]
 """
@@ -28,6 +29,7 @@ import time
 from pathlib import Path
 
 from fabflow.build import runner
+from fabflow.build.context import BuildContext
 from fabflow.project import load_project
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,7 +63,8 @@ print(", ".join(sorted(names)))
 
 
 def stage_times(project: str, out: Path) -> dict[str, float]:
-    """CPU seconds of each stage of one build of ``project`` in this process."""
+    """CPU seconds of each stage of one build of ``project`` in this process, and of
+    writing the site plan the stages drew (after the last stage)."""
     loaded = load_project(ROOT / "projects" / project)
     times: dict[str, float] = {}
     stages = runner.stages
@@ -77,11 +80,20 @@ def stage_times(project: str, out: Path) -> dict[str, float]:
 
         return [(name, wrap(name, stage)) for name, stage in stages(p)]
 
+    finish = BuildContext.finish
+
+    def timed_finish(ctx: BuildContext) -> None:
+        start = time.process_time()
+        finish(ctx)
+        times["site plan"] = time.process_time() - start
+
     runner.stages = timed
+    BuildContext.finish = timed_finish  # type: ignore[method-assign]
     try:
         runner.run_build(loaded, out)
     finally:
         runner.stages = stages
+        BuildContext.finish = finish  # type: ignore[method-assign]
     return times
 
 
