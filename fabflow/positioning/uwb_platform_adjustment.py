@@ -37,10 +37,8 @@ from fabflow.positioning.uwb import COND_LIMIT
 from fabflow.positioning.uwb_platform_model import (
     jacobians_many,
     platform_information,
-    platform_jacobian,
     platform_newton,
     platform_newton_batch,
-    platform_ranges,
     rotz,
     rotz_many,
 )
@@ -192,16 +190,6 @@ class PlatformAdjustment:
         """
         return grouped_tests([(self, use, state)])[0]
 
-    def position_map(self, state: np.ndarray) -> np.ndarray:
-        """(3, u) derivative of the base position by the state at ``state``: the
-        base lever turns with the heading."""
-        G = np.zeros((3, 4 if self.heading_observed else 3))
-        G[:, :3] = np.eye(3)
-        if self.heading_observed:
-            Rl = rotz(float(state[3])) @ self.lever
-            G[:2, 3] = np.array([-Rl[1], Rl[0]])
-        return G
-
     def global_test(self, use: np.ndarray, state: np.ndarray) -> tuple[int, float, float]:
         """The global test of :meth:`tests` alone: redundancy, statistic, critical value."""
         J, Q, v = self._test_inputs(use, state)
@@ -217,12 +205,8 @@ class PlatformAdjustment:
 
     def _linearized(self, use: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Design matrix and residuals of the ranges ``use`` at ``state``."""
-        tg, an = self.tag_idx[use], self.anc_idx[use]
-        J = platform_jacobian(self.anchors, self.lever_arms, state, tg, an)
-        if not self.heading_observed:
-            J = J[:, :3]
-        v = self.d[use] - platform_ranges(self.anchors, self.lever_arms, state, tg, an)
-        return J, v
+        J, v = _linearized_many([self], use, np.asarray(state, dtype=float)[None])
+        return J[0], v[0]
 
     def _shared(self, use: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
         """The low-rank part of the ranges ``use``' covariance: one indicator column per
@@ -297,8 +281,9 @@ def _linearized_many(
 
 
 def _position_maps(adjs: Sequence[PlatformAdjustment], states: np.ndarray) -> np.ndarray:
-    """:meth:`PlatformAdjustment.position_map` of adjustments of one heading
-    observability at ``states`` ``(V, 4)``: ``(V, 3, u)``."""
+    """The derivative ``(V, 3, u)`` of the base position by the state of adjustments of
+    one heading observability at ``states`` ``(V, 4)``: the base lever turns with the
+    heading."""
     observed = adjs[0].heading_observed
     G = np.zeros((len(adjs), 3, 4 if observed else 3))
     G[:, [0, 1, 2], [0, 1, 2]] = 1.0

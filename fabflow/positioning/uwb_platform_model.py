@@ -39,30 +39,31 @@ def _links(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per link at ``state``: the rotated lever arm of its tag and the vector from its
     anchor to the tag ``(m, 3)``, and that vector's length ``(m,)`` (metres)."""
-    return _links_at(A[anc_idx], L, state, tag_idx)
+    lever, diff, dist = _links_many(
+        A[anc_idx][None], np.asarray(L)[None], np.asarray(state, dtype=float)[None], tag_idx
+    )
+    return lever[0], diff[0], dist[0]
 
 
-def _links_at(
-    A_link: np.ndarray, L: np.ndarray, state: np.ndarray, tag_idx: np.ndarray
+def _links_many(
+    A_link: np.ndarray, L: np.ndarray, states: np.ndarray, tag_idx: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_links` with each link's anchor ``A_link`` (m, 3) given."""
-    lever = (L @ rotz(state[3]).T)[tag_idx]
-    diff = state[:3] + lever - A_link
+    """:func:`_links` of ``V`` platforms with the same links: each with its links'
+    anchors ``A_link`` ``(V, m, 3)``, its tags' lever arms ``L`` ``(V, tags, 3)`` and
+    its state ``states`` ``(V, 4)``; ``(V, m, 3)``, ``(V, m, 3)`` and ``(V, m)``."""
+    lever = (L @ np.swapaxes(rotz_many(states[:, 3]), -1, -2))[:, tag_idx]
+    diff = states[:, None, :3] + lever - A_link
     # np.linalg.norm's sum, without its wrapper (a solve makes thousands of these)
-    return lever, diff, np.sqrt(np.add.reduce(diff * diff, axis=1))
+    return lever, diff, np.sqrt(np.add.reduce(diff * diff, axis=-1))
 
 
 def jacobians_many(
     A_link: np.ndarray, L: np.ndarray, states: np.ndarray, tag_idx: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`platform_jacobian` ``(V, m, 4)`` and :func:`platform_ranges` ``(V, m)`` of
-    ``V`` platforms with the same links at once: each with its links' anchors
-    ``A_link`` ``(V, m, 3)``, its tags' lever arms ``L`` ``(V, tags, 3)`` and its state
-    ``states`` ``(V, 4)`` (metres, radians). The arithmetic of :func:`_links_at`, so
-    each platform's numbers are those it gets alone."""
-    lever = (L @ np.swapaxes(rotz_many(states[:, 3]), -1, -2))[:, tag_idx]
-    diff = states[:, None, :3] + lever - A_link
-    dist = np.sqrt(np.add.reduce(diff * diff, axis=-1))
+    ``V`` platforms with the same links at once (:func:`_links_many`'s arguments;
+    metres, radians)."""
+    lever, diff, dist = _links_many(A_link, L, states, tag_idx)
     return _jacobian(lever, diff, dist), dist
 
 
