@@ -17,10 +17,9 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
-from scipy import special
 
 from fabflow.json_format import json_safe
-from fabflow.positioning.adjustment_tests import ALPHA, TestResult
+from fabflow.positioning.adjustment_tests import ALPHA, TestResult, chi2_quantile
 
 Status = Literal["ok", "excluded", "failed"]
 
@@ -238,7 +237,7 @@ def consistency_tests(
     the statistics, the threshold, whether each passed."""
     e = np.asarray(e, dtype=float)
     statistic = np.einsum("ni,nij,nj->n", e, np.linalg.pinv(np.asarray(C, dtype=float)), e)
-    threshold = float(special.chdtri(e.shape[-1], alpha))
+    threshold = chi2_quantile(e.shape[-1], alpha)
     return statistic, threshold, statistic <= threshold
 
 
