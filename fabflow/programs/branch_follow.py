@@ -5,7 +5,8 @@ samples of a linear move are one controller step apart, so a branch that keeps
 its solutions valid, its joint steps small and its speeds within the limits is
 the joint path. :func:`follow_branch` follows one move; :func:`follow_branch_chain`
 the linear moves after a PTP target at once (a print path's thousands of short
-moves), and leaves anything else to the move-by-move search.
+moves); :func:`nearest_prefix` as much of one move whose solutions change branch numbers
+on the way as it can. It leaves the rest to the sample-by-sample search.
 """
 
 from __future__ import annotations
@@ -118,3 +119,76 @@ def follow_branch_chain(
     bounds = [0, *first[1:n_good].tolist(), int(stop)]
     paths = [path[a:b] for a, b in pairwise(bounds)]
     return list(zip(paths, slowdown[:n_good].tolist(), strict=True))
+
+
+def nearest_prefix(
+    robot: RobotModel,
+    q_rows: np.ndarray,
+    valid_rows: np.ndarray,
+    q_prev: np.ndarray,
+    multi_turn: np.ndarray,
+    dt: float,
+) -> tuple[np.ndarray, int]:
+    """The first samples of a linear move, each taking the valid solution nearest the
+    one before, as :func:`fabflow.programs.feasibility._step_through` takes them,
+    without a Python loop: for a move along which the solver's branch numbers swap.
+
+    Each step's choice depends only on the branch chosen at the sample before, so
+    the choices are a table per sample (the nearest solution after each branch),
+    and the branches taken are the prefix compositions of those tables, found by
+    doubling (Hillis-Steele). Distances are joint steps over the robot's speed
+    limits (``dt`` seconds per sample), multi-turn joints by the shortest angle.
+
+    Parameters
+    ----------
+    robot
+        The robot.
+    q_rows
+        (m, K, dof) every branch's solution at each sample (radians).
+    valid_rows
+        (m, K) which exist within the limits.
+    q_prev
+        (dof,) configuration before the move.
+    multi_turn
+        (dof,) joints with more than a turn of range.
+    dt
+        Seconds per sample at the programmed speed.
+
+    Returns
+    -------
+    path, branch
+        The joint path (k, dof) of the first k samples, equal up to rounding to the
+        sample-by-sample search's, and the branch at the last of them (-1 when k is
+        0). It stops before the first sample where that search does more than take
+        the nearest solution: one with no solution, a step over the speed limits
+        (there it solves the sample again near the one before, as at the wrist
+        singularity), a jump over :data:`MAX_JOINT_STEP` or a path leaving the
+        limits.
+    """
+    m, K = valid_rows.shape
+    if m == 0:
+        return np.zeros((0, len(q_prev))), -1
+    # steps from every branch at a sample (and from q_prev) to every branch at the next
+    before = np.concatenate([np.broadcast_to(q_prev, (1, K, len(q_prev))), q_rows[:-1]])
+    steps = q_rows[:, None, :, :] - before[:, :, None, :]  # (m, K from, K to, dof)
+    steps[..., multi_turn] = wrap_angle(steps[..., multi_turn])
+    with np.errstate(invalid="ignore"):  # invalid solutions may be NaN; masked below
+        load = (np.abs(steps) / (robot.velocity_limits * dt)).max(axis=-1)
+    load = np.where(valid_rows[:, None, :], load, np.inf)
+    table = np.argmin(load, axis=2)  # (m, K): the branch taken after each branch
+    shift = 1
+    while shift < m:  # prefix compositions: table[j] becomes the choice from q_prev
+        table[shift:] = np.take_along_axis(table[shift:], table[:-shift], axis=1)
+        shift *= 2
+    chosen = table[:, 0]
+    came_from = np.r_[0, chosen[:-1]]
+    rows = np.arange(m)
+    taken = steps[rows, came_from, chosen]
+    path = q_rows[rows, chosen]
+    path[:, multi_turn] = q_prev[multi_turn] + np.cumsum(taken[:, multi_turn], axis=0)
+    with np.errstate(invalid="ignore"):
+        bad = ~(load[rows, came_from, chosen] <= 1.0)  # also where no solution exists
+        bad |= np.abs(taken).max(axis=1) > MAX_JOINT_STEP
+    bad |= ~robot.within_limits(path)
+    k = int(np.argmax(bad)) if bad.any() else m
+    return path[:k], int(chosen[k - 1]) if k else -1

@@ -25,6 +25,7 @@ from fabflow.programs.branch_follow import (
     MIN_SPEED_FRACTION,
     follow_branch,
     follow_branch_chain,
+    nearest_prefix,
 )
 from fabflow.programs.chain_memo import ChainMemo, ChainMove, chain_key, frozen
 from fabflow.programs.motion_checks import configuration_of, wrap_angle, wrist_flips
@@ -537,7 +538,8 @@ def _step_through(
     dt: float,
 ) -> tuple[np.ndarray, int, float]:
     """Follow a linear move sample by sample, each time taking the valid
-    configuration nearest the previous one.
+    configuration nearest the previous one (the samples up to the first that
+    needs more than that at once, :func:`~fabflow.programs.branch_follow.nearest_prefix`).
 
     Handles the places where the branch numbering of the closed-form solver
     swaps, and the wrist singularity, where only the sum of the two aligned
@@ -550,9 +552,13 @@ def _step_through(
     """
     rate_limit = robot.velocity_limits * dt
     path = np.zeros((len(q_rows), robot.dof))
-    branch = -1
-    slowdown = 1.0
-    for j in range(len(q_rows)):
+    multi_turn = np.diff(robot.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
+    settled, branch = nearest_prefix(robot, q_rows, valid_rows, q_prev, multi_turn, dt)
+    path[: len(settled)] = settled
+    if len(settled):
+        q_prev = settled[-1]
+    slowdown = 1.0  # the settled samples' steps are within the speed limits
+    for j in range(len(settled), len(q_rows)):
         candidates = np.flatnonzero(valid_rows[j])
         if len(candidates) == 0:
             why = (
