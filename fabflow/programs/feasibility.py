@@ -209,7 +209,7 @@ def solve_moves(
         robot.joint_limits.mean(axis=1) if q_start is None else np.asarray(q_start, dtype=float)
     )
     current = int(configuration_of(robot, q_prev[None])[0])
-    multi_turn = np.diff(robot.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
+    multi_turn = robot.multi_turn
     # Time per sample of each linear move at its programmed speed: the joint
     # speeds the line demands must stay within the robot's limits.
     dist, angle = move_lengths(T_world_tool)
@@ -518,8 +518,7 @@ def _nearest_turn(robot: RobotModel, q: np.ndarray, q_ref: np.ndarray) -> np.nda
     limits are left to the robot model's general rule.
     """
     lo, hi = robot.joint_limits[:, 0], robot.joint_limits[:, 1]
-    multi_turn = hi - lo > 2.0 * np.pi
-    turned = np.where(multi_turn, q_ref + wrap_angle(q - q_ref), q)
+    turned = np.where(robot.multi_turn, q_ref + wrap_angle(q - q_ref), q)
     outside = ((turned < lo - 1e-9) | (turned > hi + 1e-9)).any(axis=1)
     if outside.any():
         ref = np.broadcast_to(q_ref, q.shape)
@@ -552,8 +551,7 @@ def _step_through(
     """
     rate_limit = robot.velocity_limits * dt
     path = np.zeros((len(q_rows), robot.dof))
-    multi_turn = np.diff(robot.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
-    settled, branch = nearest_prefix(robot, q_rows, valid_rows, q_prev, multi_turn, dt)
+    settled, branch = nearest_prefix(robot, q_rows, valid_rows, q_prev, robot.multi_turn, dt)
     path[: len(settled)] = settled
     if len(settled):
         q_prev = settled[-1]

@@ -461,6 +461,12 @@ class RobotModel:
         return best
 
     @cached_property
+    def multi_turn(self) -> NDArray[np.bool_]:
+        """(dof,) joints with more than a whole turn of range (their values are
+        compared by the shortest angle, and turned whole turns within the limits)."""
+        return self.joint_limits[:, 1] - self.joint_limits[:, 0] > TWO_PI
+
+    @cached_property
     def _limits_with_slack(self) -> tuple[FloatArray, FloatArray]:
         """The lower and upper joint limits widened by 1e-9 rad, as the turn rules test them."""
         return self.joint_limits[:, 0] - 1e-9, self.joint_limits[:, 1] + 1e-9

@@ -22,7 +22,7 @@ from fabflow.robots import get_robot
 from fabflow.transforms.so3 import exp_so3
 
 ROBOT = get_robot("kuka_kr60_3")
-MULTI_TURN = np.diff(ROBOT.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
+MULTI_TURN = ROBOT.multi_turn
 
 
 def follow_one(

@@ -52,3 +52,10 @@ def test_nearest_turn_equals_the_search_over_every_turn(
     # one value and one reference for every joint: broadcast over the joints
     one = robot.nearest_turn(q[0, 0, 0], ref.ravel()[0])
     np.testing.assert_array_equal(one, every_turn(q[0, 0, 0], ref.ravel()[0], lo, hi))
+
+
+def test_multi_turn_joints_are_those_with_more_than_a_turn_of_range() -> None:
+    kuka = get_robot("kuka_kr60_3")  # A1 +-185, A4 and A6 +-350 deg
+    assert kuka.multi_turn.tolist() == [True, False, False, True, False, True]
+    ur = get_robot("ur10e")  # every joint +-360 deg
+    assert ur.multi_turn.all()
