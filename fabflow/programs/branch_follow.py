@@ -31,7 +31,6 @@ def follow_branch(
     q_branch: np.ndarray,
     ok: np.ndarray,
     q_prev: np.ndarray,
-    multi_turn: np.ndarray,
     dt: float,
 ) -> tuple[np.ndarray, float] | None:
     """The joint path along one IK branch and its slowdown, or None when the branch
@@ -42,7 +41,7 @@ def follow_branch(
     turn of range are unwrapped by the shortest angle between neighbours.
     """
     moves = follow_branch_chain(
-        robot, q_branch, ok, np.array([len(q_branch)]), q_prev, multi_turn, np.array([dt]),
+        robot, q_branch, ok, np.array([len(q_branch)]), q_prev, np.array([dt]),
         stop_at_flip=False,
     )  # fmt: skip
     return moves[0] if moves else None
@@ -54,7 +53,6 @@ def follow_branch_chain(
     ok: np.ndarray,
     counts: np.ndarray,
     q_prev: np.ndarray,
-    multi_turn: np.ndarray,
     dt: np.ndarray,
     stop_at_flip: bool = True,
 ) -> list[tuple[np.ndarray, float]]:
@@ -64,7 +62,7 @@ def follow_branch_chain(
     Parameters
     ----------
     robot
-        The robot.
+        The robot (its multi-turn joints are unwrapped by the shortest angle).
     q_branch
         (m, dof) the branch's solutions at every sample of the moves, in order (radians).
     ok
@@ -73,8 +71,6 @@ def follow_branch_chain(
         (k,) samples per move (each at least 1, summing to m).
     q_prev
         (dof,) configuration before the first move.
-    multi_turn
-        (dof,) joints with more than a turn of range (unwrapped by the shortest angle).
     dt
         (k,) seconds per sample of each move at its programmed speed.
     stop_at_flip
@@ -93,6 +89,7 @@ def follow_branch_chain(
     """
     first = np.r_[0, np.cumsum(counts)[:-1]]
     steps = np.diff(np.vstack([q_prev, q_branch]), axis=0)
+    multi_turn = robot.multi_turn
     steps[:, multi_turn] = wrap_angle(steps[:, multi_turn])
     path = q_prev + np.cumsum(steps, axis=0)
     with np.errstate(invalid="ignore"):  # invalid solutions may be NaN; they fail anyway
@@ -126,7 +123,6 @@ def nearest_prefix(
     q_rows: np.ndarray,
     valid_rows: np.ndarray,
     q_prev: np.ndarray,
-    multi_turn: np.ndarray,
     dt: float,
 ) -> tuple[np.ndarray, int]:
     """The first samples of a linear move, each taking the valid solution nearest the
@@ -149,8 +145,6 @@ def nearest_prefix(
         (m, K) which exist within the limits.
     q_prev
         (dof,) configuration before the move.
-    multi_turn
-        (dof,) joints with more than a turn of range.
     dt
         Seconds per sample at the programmed speed.
 
@@ -171,6 +165,7 @@ def nearest_prefix(
     # steps from every branch at a sample (and from q_prev) to every branch at the next
     before = np.concatenate([np.broadcast_to(q_prev, (1, K, len(q_prev))), q_rows[:-1]])
     steps = q_rows[:, None, :, :] - before[:, :, None, :]  # (m, K from, K to, dof)
+    multi_turn = robot.multi_turn
     steps[..., multi_turn] = wrap_angle(steps[..., multi_turn])
     with np.errstate(invalid="ignore"):  # invalid solutions may be NaN; masked below
         load = (np.abs(steps) / (robot.velocity_limits * dt)).max(axis=-1)

@@ -209,7 +209,6 @@ def solve_moves(
         robot.joint_limits.mean(axis=1) if q_start is None else np.asarray(q_start, dtype=float)
     )
     current = int(configuration_of(robot, q_prev[None])[0])
-    multi_turn = robot.multi_turn
     # Time per sample of each linear move at its programmed speed: the joint
     # speeds the line demands must stay within the robot's limits.
     dist, angle = move_lengths(T_world_tool)
@@ -227,9 +226,7 @@ def solve_moves(
     def follow(i: int, q_prev: np.ndarray, branch: int) -> tuple[np.ndarray, int, float]:
         """Joint path of linear move ``i`` from ``q_prev`` on IK branch ``branch``."""
         rows = slice(starts[i], stops[i])
-        path = follow_branch(
-            robot, q_all[rows, branch], valid[rows, branch], q_prev, multi_turn, dt[i]
-        )
+        path = follow_branch(robot, q_all[rows, branch], valid[rows, branch], q_prev, dt[i])
         if path is not None:
             return path[0], branch, path[1]
         return _step_through(
@@ -262,7 +259,7 @@ def solve_moves(
                 rows = slice(starts[k], stops[last - 1])
                 fast = follow_branch_chain(
                     robot, q_all[rows, branch], valid[rows, branch], (stops - starts)[k:last],
-                    q_chain, multi_turn, dt[k:last],
+                    q_chain, dt[k:last],
                 )  # fmt: skip
                 if fast:
                     chain += [(path, slow, None, False) for path, slow in fast]
@@ -551,7 +548,7 @@ def _step_through(
     """
     rate_limit = robot.velocity_limits * dt
     path = np.zeros((len(q_rows), robot.dof))
-    settled, branch = nearest_prefix(robot, q_rows, valid_rows, q_prev, robot.multi_turn, dt)
+    settled, branch = nearest_prefix(robot, q_rows, valid_rows, q_prev, dt)
     path[: len(settled)] = settled
     if len(settled):
         q_prev = settled[-1]

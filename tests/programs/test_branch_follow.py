@@ -22,7 +22,7 @@ from fabflow.robots import get_robot
 from fabflow.transforms.so3 import exp_so3
 
 ROBOT = get_robot("kuka_kr60_3")
-MULTI_TURN = ROBOT.multi_turn
+MULTI_TURN = np.diff(ROBOT.joint_limits, axis=1)[:, 0] > 2.0 * np.pi
 
 
 def follow_one(
@@ -53,7 +53,7 @@ def one_by_one(
     for start, count, step in zip(first, counts, dt, strict=True):
         rows = slice(start, start + count)
         got = follow_one(q_branch[rows], ok[rows], q_prev, float(step))
-        assert _same(got, follow_branch(ROBOT, q_branch[rows], ok[rows], q_prev, MULTI_TURN, step))
+        assert _same(got, follow_branch(ROBOT, q_branch[rows], ok[rows], q_prev, step))
         if got is None or wrist_flips(np.vstack([q_prev, got[0]])):
             break
         out.append(got)
@@ -102,7 +102,7 @@ def chains(draw: st.DrawFn) -> tuple[np.ndarray, ...]:
 @given(chains())
 def test_chain_equals_moves_one_by_one(case: tuple[np.ndarray, ...]) -> None:
     q, ok, counts, q_prev, dt = case
-    fast = follow_branch_chain(ROBOT, q, ok, counts, q_prev, MULTI_TURN, dt)
+    fast = follow_branch_chain(ROBOT, q, ok, counts, q_prev, dt)
     slow = one_by_one(q, ok, counts, q_prev, dt)
     assert len(fast) == len(slow)
     for (path_f, slow_f), (path_s, slow_s) in zip(fast, slow, strict=True):
@@ -116,7 +116,7 @@ def test_chain_stops_before_a_refused_move() -> None:
     ok = np.ones(6, dtype=bool)
     ok[4] = False  # the third move's first sample
     counts = np.array([2, 2, 2])
-    fast = follow_branch_chain(ROBOT, q, ok, counts, q_prev, MULTI_TURN, np.full(3, 0.01))
+    fast = follow_branch_chain(ROBOT, q, ok, counts, q_prev, np.full(3, 0.01))
     assert len(fast) == 2
     np.testing.assert_allclose(fast[1][0], q[2:4], atol=1e-12)
 
@@ -182,7 +182,7 @@ def nearest_one_by_one(
 @given(lines())
 def test_the_nearest_prefix_is_the_samples_taken_one_by_one(case: tuple[np.ndarray, ...]) -> None:
     q_rows, valid, q0, _, dt = case
-    path, branch = nearest_prefix(ROBOT, q_rows, valid, q0, MULTI_TURN, dt)
+    path, branch = nearest_prefix(ROBOT, q_rows, valid, q0, dt)
     want, want_branch = nearest_one_by_one(q_rows, valid, q0, dt)
     assert len(path) == len(want)
     assert branch == want_branch
