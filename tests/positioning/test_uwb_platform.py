@@ -11,20 +11,32 @@ import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
+from scipy.optimize import least_squares
 
 from fabflow.errors import LocalizationError
-from fabflow.positioning.uwb_platform import locate_platform
+from fabflow.positioning.integrity import Integrity
+from fabflow.positioning.uwb_platform import (
+    failing_first,
+    finish_mirror_searches,
+    locate_platform,
+    locate_platforms,
+)
 from fabflow.positioning.uwb_platform_adjustment import (
     PlatformAdjustment,
     _refits,
     grouped_tests,
+    padded_links,
     reflected,
 )
+from fabflow.positioning.uwb_platform_mirrors import _global_tests
 from fabflow.positioning.uwb_platform_model import (
     _jacobian,
     _links,
     _weighted_curvature,
     platform_jacobian,
+    platform_newton,
+    platform_newton_batch,
+    platform_ranges,
     range_curvature,
     rotz,
 )
@@ -204,9 +216,6 @@ def test_the_fix_converges_where_the_residuals_bend_the_height(seed: int) -> Non
     # longer by an NLOS-like excess: the residuals are not small against the ranges'
     # curvature in height, where Gauss-Newton alone crept past 20 iterations
     # (seeds 18 and 66); the minimum is checked against scipy's least squares
-    from scipy.optimize import least_squares
-
-    from fabflow.positioning.uwb_platform_model import platform_newton, platform_ranges
 
     rng = np.random.default_rng(seed)
     n = 10
@@ -237,9 +246,6 @@ def test_the_fix_converges_where_the_residuals_bend_the_height(seed: int) -> Non
 def test_the_wls_t_fix_is_the_least_squares_minimum_whatever_its_start(seed: int, anchors) -> None:
     # the Newton solve starts from the fix of each tag's per-link median ranges
     # (one solve, not one per epoch); where it ends must not depend on that
-    from scipy.optimize import least_squares
-
-    from fabflow.positioning.uwb_platform_model import platform_ranges
 
     rng = np.random.default_rng(seed)
     R = _ranges(anchors, seed)
@@ -335,11 +341,6 @@ def test_the_batched_newton_solve_is_each_problems_own(seed: int, n: int) -> Non
     # padded to one length: each ends where platform_newton ends alone (the sums'
     # rounding can take one more or one less of the last, negligible steps); a
     # singular one is flagged, not raised
-    from fabflow.positioning.uwb_platform_model import (
-        platform_newton,
-        platform_newton_batch,
-        platform_ranges,
-    )
 
     rng = np.random.default_rng(seed)
     m = 2 * 6
@@ -390,7 +391,6 @@ def test_the_hidden_mirrors_of_many_fixes_are_each_fixs_own() -> None:
     # a simulated run's visits are checked together; the padding of fixes with
     # fewer links (an anchor out of sight) changes nothing, nor does a mirror that
     # fits as well (anchors in one plane) failing one of them
-    from fabflow.positioning.uwb_platform import finish_mirror_searches
 
     flat = np.array([[0.0, 0.0, 1.0], [4.8, 0.0, 1.0], [4.8, 6.0, 1.0], [0.0, 6.0, 1.02]])
     cases = []
@@ -426,8 +426,6 @@ def test_the_hidden_mirrors_of_many_fixes_are_each_fixs_own() -> None:
 def test_the_batched_global_tests_are_the_adjustments_own(seed: int, n: int) -> None:
     # the mirror verdicts test many fits at once with Woodbury's identity in closed
     # form (one anchor per link); each must be the adjustment's own global test
-    from fabflow.positioning.uwb_platform_adjustment import padded_links
-    from fabflow.positioning.uwb_platform_mirrors import _global_tests
 
     rng = np.random.default_rng(seed)
     fits, states = [], []
@@ -462,7 +460,6 @@ def test_the_batched_global_tests_are_the_adjustments_own(seed: int, n: int) -> 
 def test_many_platforms_located_together_are_each_located_alone() -> None:
     # a simulated run's visits: the first fits in one batched solve, then each
     # fix's own tests; the same fixes as one call each, defaults filled the same
-    from fabflow.positioning.uwb_platform import locate_platforms
 
     problems = [
         {"anchors": PAPER_ANCHORS_3D, "ranges": _ranges(PAPER_ANCHORS_3D, 0)},
@@ -486,7 +483,6 @@ def test_fixes_without_records_search_only_those_that_left_ranges_out() -> None:
     # a hidden mirror raises the protection level, which decides the status only of
     # a fix that left ranges out: without records the others are not searched, and
     # everything but that record is the same
-    from fabflow.positioning.uwb_platform import locate_platforms
 
     faulty = _ranges(ANCHORS_5, 7)
     faulty[:, 0, 3] += 0.5  # one link long: the tests leave it out
@@ -510,8 +506,6 @@ def test_fixes_without_records_search_only_those_that_left_ranges_out() -> None:
 def test_a_mirror_found_last_reads_as_found_right_after_the_record() -> None:
     # the mirror checks are made after the fix's other checks, whose reasons stand
     # first; the mirror's goes where it went when it was checked first
-    from fabflow.positioning.integrity import Integrity
-    from fabflow.positioning.uwb_platform import failing_first
 
     recorded = Integrity(status="excluded", reason="left out anchor A4")
     then = recorded.failing("MIRROR").failing("not converged")
@@ -562,7 +556,6 @@ def test_fixes_of_one_shape_finished_together_are_each_finished_alone() -> None:
     # a run's visits share anchors and links: their covariances, residuals, records and
     # geometry checks come from one stacked solve per shape, with a fix that left a
     # link out among them
-    from fabflow.positioning.uwb_platform import locate_platforms
 
     problems = []
     for seed in range(4):
